@@ -1,0 +1,93 @@
+"""The reward f_R(a_o, b, a) = R_comp + R_II + T_RP of MODEL.md (Eqs. 3-5 of the paper) and the reduced action
+space A-hat(a_o)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from htlm_world.model import Model
+from htlm_world.scenario import Scenario
+from htlm_world.types import BoolArray, FloatArray, IntArray, Marginals
+
+
+@dataclass(frozen=True)
+class RewardTables:
+    """Per-agent reward parameters as arrays over agents (agents may carry their own preferences)."""
+
+    level_rewards: FloatArray  # (N, L)
+    threshold: FloatArray  # (N,)
+    idle_bonus: FloatArray  # (N,) already scaled by idle_incentive
+    excess_penalty: FloatArray  # (N,) already scaled by idle_incentive
+    excess_margin: IntArray  # (N,)
+    reassign_cost: FloatArray  # (N,)
+    load_management: bool  # False in HT mode: R_LM = 0
+
+    @staticmethod
+    def build(sc: Scenario) -> RewardTables:
+        """Collect every agent's parameters (its own or the shared ones)."""
+        rs = [sc.agent_reward(i) for i in range(sc.n_agents)]
+        return RewardTables(
+            level_rewards=np.array([r.level_rewards for r in rs]),
+            threshold=np.array([r.belief_threshold for r in rs]),
+            idle_bonus=np.array([r.idle_bonus * r.idle_incentive for r in rs]),
+            excess_penalty=np.array([r.excess_penalty * r.idle_incentive for r in rs]),
+            excess_margin=np.array([r.excess_margin for r in rs], dtype=np.int64),
+            reassign_cost=np.array([r.reassign_cost for r in rs]),
+            load_management=sc.mode == "htlm",
+        )
+
+
+def confident_levels(marg: Marginals, threshold: FloatArray) -> IntArray:
+    """Smallest l with P(level <= l) >= b_th, per task: (B, N, p, L) -> (B, N, p); threshold (N,)."""
+    cdf = np.cumsum(marg, axis=-1)
+    ok = cdf >= threshold[:, None, None] - 1e-9
+    return np.asarray(ok.argmax(axis=-1), dtype=np.int64)
+
+
+def reward(
+    model: Model, tables: RewardTables, prev: IntArray, marg: Marginals, actions: IntArray
+) -> tuple[FloatArray, dict[str, FloatArray]]:
+    """f_R for every agent (MODEL.md, Reward), from its own updated belief.
+
+    Args:
+        prev: (B, N) previous assignments a_o (-1: none).
+        marg: (B, N, p, L) per-task marginals of each agent's updated belief.
+        actions: (B, N) the actions taken.
+
+    Returns:
+        (B, N) rewards and their parts {"comp", "idle", "reassign"}.
+    """
+    sc = model.scenario
+    p = sc.n_tasks
+    lv = confident_levels(marg, tables.threshold)  # (B, N, p)
+    n = actions.shape[1]
+    r_levels = np.take_along_axis(
+        np.broadcast_to(tables.level_rewards[None], (lv.shape[0],) + tables.level_rewards.shape), lv, axis=2
+    )
+    comp = r_levels.mean(axis=-1)
+    if not tables.load_management:
+        zero = np.zeros_like(comp)
+        return comp, {"comp": comp, "idle": zero, "reassign": zero}
+    idle = actions >= p
+    task = np.where(idle, 0, actions)
+    my_cap = model.agent_caps[np.arange(n)[None, :], task]  # (B, N)
+    task_level = np.take_along_axis(lv, task[..., None], axis=2)[..., 0]
+    excess = (~idle) & (my_cap >= task_level + tables.excess_margin)
+    r_ii = np.where(idle, tables.idle_bonus, np.where(excess, tables.excess_penalty, 0.0))
+    moved = (prev >= 0) & (model.action_site[np.maximum(prev, 0)] != model.action_site[actions])
+    t_rp = np.where(moved, tables.reassign_cost, 0.0)
+    return comp + r_ii + t_rp, {"comp": comp, "idle": r_ii, "reassign": t_rp}
+
+
+def action_mask(sc: Scenario, prev: IntArray) -> BoolArray:
+    """A-hat(a_o): the p tasks and the idle location at the site of a_o (HT mode: the p tasks). (..., |G|)."""
+    p = sc.n_tasks
+    mask = np.zeros(prev.shape + (sc.n_actions,), dtype=bool)
+    mask[..., :p] = True
+    if sc.n_idle:
+        site = np.array(sc.action_sites)[np.maximum(prev, 0)]
+        site = np.where(prev >= 0, site, 0)
+        np.put_along_axis(mask, (p + site)[..., None], True, axis=-1)
+    return mask

@@ -1,0 +1,107 @@
+"""Episode metrics of MODEL.md and agent importance (Eqs. 6-9 of the paper), from recorded trajectories."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .scenario import Scenario
+from .types import FloatArray, IntArray
+
+
+def completion_step(levels: IntArray) -> tuple[IntArray, np.ndarray]:
+    """First step after which every true level is 0, per episode; h (and failed=True) when never.
+
+    Args:
+        levels: (h+1, B, p) true levels, levels[0] the initial ones.
+
+    Returns:
+        (B,) completion steps and (B,) failure mask.
+    """
+    h = levels.shape[0] - 1
+    done = (levels[1:] == 0).all(axis=-1)  # (h, B)
+    failed = ~done.any(axis=0)
+    first = done.argmax(axis=0) + 1
+    return np.where(failed, h, first).astype(np.int64), failed
+
+
+@dataclass(frozen=True)
+class EpisodeMetrics:
+    """Per-episode metrics of MODEL.md for B episodes."""
+
+    completion: IntArray  # (B,)
+    failed: np.ndarray  # (B,) bool
+    unused_capability: FloatArray  # (B,) per agent per step
+    unused_fraction: FloatArray  # (B,) unused capability / mean total capability per agent
+    idle_before: IntArray  # (B,) team idle decisions at steps <= completion
+    reassign_before: IntArray  # (B,) team decisions changing site at steps <= completion
+    agent_unused: FloatArray  # (B, N) unused capability of each agent per step
+    agent_idle_before: IntArray  # (B, N)
+    agent_reassign_before: IntArray  # (B, N)
+
+
+def episode_metrics(sc: Scenario, levels: IntArray, actions: IntArray) -> EpisodeMetrics:
+    """Metrics of MODEL.md from (h+1, B, p) true levels and (h, B, N) actions (-1 counts as idle)."""
+    h, b, n = actions.shape
+    p = sc.n_tasks
+    comp, failed = completion_step(levels)
+    idle = (actions >= p) | (actions < 0)  # (h, B, N)
+    total_cap = np.array([a.fire + a.rescue for a in sc.agents], dtype=np.float64)  # (N,)
+    agent_unused = (idle * total_cap).sum(axis=0) / h  # (B, N)
+    unused = agent_unused.sum(axis=1) / n
+    mean_cap = total_cap.mean()
+    before = (np.arange(1, h + 1)[:, None] <= comp[None, :])[..., None]  # (h, B, 1)
+    sites = np.array(sc.action_sites)
+    start = sc.start_assignment
+    prev = np.concatenate([np.full((1, b, n), start, dtype=np.int64), actions[:-1]], axis=0)
+    # a "previous decision" that was no decision (-1) keeps the one before it
+    for t in range(1, h):
+        prev[t] = np.where(prev[t] >= 0, prev[t], prev[t - 1])
+    moved = (prev >= 0) & (actions >= 0) & (sites[np.maximum(prev, 0)] != sites[np.maximum(actions, 0)])
+    agent_idle = (idle & before).sum(axis=0)
+    agent_moves = (moved & before).sum(axis=0)
+    return EpisodeMetrics(
+        completion=comp,
+        failed=failed,
+        unused_capability=unused,
+        unused_fraction=unused / mean_cap if mean_cap > 0 else np.zeros_like(unused),
+        idle_before=agent_idle.sum(axis=1),
+        reassign_before=agent_moves.sum(axis=1),
+        agent_unused=agent_unused,
+        agent_idle_before=agent_idle,
+        agent_reassign_before=agent_moves,
+    )
+
+
+def mean_se(x: FloatArray | IntArray) -> tuple[float, float]:
+    """Mean and standard error of the mean."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.size <= 1:
+        return float(x.mean()) if x.size else float("nan"), 0.0
+    return float(x.mean()), float(x.std(ddof=1) / np.sqrt(x.size))
+
+
+@dataclass(frozen=True)
+class Importance:
+    """Agent importance (Eqs. 6-9): per agent capabilities C, usage U, score zeta; per task type omega."""
+
+    capability: FloatArray  # (N, K) C_fire, C_rescue
+    usage: FloatArray  # (N, K) u_k (Eq. 7)
+    omega: FloatArray  # (K,) task urgency weights (Eqs. 8-9)
+    zeta: FloatArray  # (N,) importance (Eq. 6)
+
+
+def importance(sc: Scenario, actions: IntArray) -> Importance:
+    """Agent importance from the greedy policy's actions (h, E, N) over E episodes (Eqs. 6-9)."""
+    h, e, n = actions.shape
+    p = sc.n_tasks
+    working = (actions >= 0) & (actions < p)
+    ttype = np.where(working, actions % 2, -1)  # 0 fire, 1 rescue
+    caps = np.array([[a.fire, a.rescue] for a in sc.agents], dtype=np.float64)  # (N, K)
+    counts = np.stack([(ttype == k).sum(axis=(0, 1)) for k in range(2)], axis=1)  # (N, K) over episodes, steps
+    usage = caps * counts / e  # Eq. 7
+    omega_bar = counts.sum(axis=0).astype(np.float64)  # Eq. 8
+    omega = omega_bar / omega_bar.sum() if omega_bar.sum() > 0 else np.zeros(2)  # Eq. 9
+    zeta = usage @ omega  # Eq. 6
+    return Importance(capability=caps, usage=usage, omega=omega, zeta=zeta)

@@ -1,0 +1,194 @@
+"""The transition T, observation O and information I models of MODEL.md, as probability tables.
+
+Each model is defined once, as a table; the simulator samples from the very same tables that the belief filter
+and the optimal baseline use (inverse-CDF sampling), so the three can never disagree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .scenario import Scenario
+from .types import FloatArray, IntArray
+
+
+def p_drop_table(sc: Scenario) -> FloatArray:
+    """p_drop(c, l) for c in 0..capability_max and l in 0..L-1 (MODEL.md, Transition T)."""
+    cm, L = sc.capability_max, sc.levels
+    table = np.zeros((cm + 1, L))
+    for c in range(1, cm + 1):
+        for lv in range(1, L):
+            margin = c - lv
+            k = 0 if margin >= 0 else min(-margin, len(sc.p_drop) - 1)
+            table[c, lv] = sc.p_drop[k]
+    return table
+
+
+def fire_table(sc: Scenario) -> FloatArray:
+    """T_fire[c, f, f']: next fire level given joint fire capability c and level f (MODEL.md)."""
+    cm, L = sc.capability_max, sc.levels
+    pd = p_drop_table(sc)
+    t = np.zeros((cm + 1, L, L))
+    for c in range(cm + 1):
+        t[c, 0, 0] = 1.0
+        for f in range(1, L):
+            if c == 0:
+                up = min(L - 1, f + 1)
+                t[c, f, up] += sc.fire_growth
+                t[c, f, f] += 1.0 - sc.fire_growth
+            else:
+                t[c, f, f - 1] += pd[c, f]
+                t[c, f, f] += 1.0 - pd[c, f]
+    return t
+
+
+def rescue_table(sc: Scenario) -> FloatArray:
+    """T_rescue[c, f, r, r']: next rescue level given capability c, the site's fire f and rescue level r."""
+    cm, L = sc.capability_max, sc.levels
+    pd = p_drop_table(sc)
+    t = np.zeros((cm + 1, L, L, L))
+    for c in range(cm + 1):
+        for f in range(L):
+            t[c, f, 0, 0] = 1.0
+            for r in range(1, L):
+                p = pd[c, r]
+                if f > sc.rescue_block_fire or c == 0:
+                    t[c, f, r, r] = 1.0
+                elif f <= sc.rescue_double_fire and c >= r and r >= sc.rescue_double_min_level:
+                    t[c, f, r, r - 2] += sc.rescue_double_share * p
+                    t[c, f, r, r - 1] += (1.0 - sc.rescue_double_share) * p
+                    t[c, f, r, r] += 1.0 - p
+                else:
+                    t[c, f, r, r - 1] += p
+                    t[c, f, r, r] += 1.0 - p
+    return t
+
+
+def observation_table(sc: Scenario) -> FloatArray:
+    """O[s, l, z]: probability of observing z when the true level is l, for sensing s (MODEL.md)."""
+    cm, L = sc.capability_max, sc.levels
+    t = np.zeros((cm + 1, L, L))
+    for s in range(cm + 1):
+        acc = min(1.0, sc.sensing_base + sc.sensing_slope * s)
+        for lv in range(L):
+            nbrs = [n for n in (lv - 1, lv + 1) if 0 <= n < L]
+            t[s, lv, lv] = acc
+            for n in nbrs:
+                t[s, lv, n] += (1.0 - acc) / len(nbrs)
+    return t
+
+
+def keep_probability(sc: Scenario, comm: int) -> float:
+    """tau = comm / capability_max: probability that a broadcast level passes the channel intact."""
+    return comm / sc.capability_max if sc.channel else 1.0
+
+
+def information_table(sc: Scenario) -> FloatArray:
+    """I[s, comm, l, m] = tau O_s(m | l) + (1 - tau) / L: likelihood of a teammate's message (MODEL.md)."""
+    cm, L = sc.capability_max, sc.levels
+    obs = observation_table(sc)
+    t = np.zeros((cm + 1, cm + 1, L, L))
+    for comm in range(cm + 1):
+        tau = keep_probability(sc, comm)
+        t[:, comm] = tau * obs + (1.0 - tau) / L
+    return t
+
+
+@dataclass(frozen=True)
+class Model:
+    """All tables of one scenario, computed once."""
+
+    scenario: Scenario
+    fire: FloatArray  # (C+1, L, L)
+    rescue: FloatArray  # (C+1, L, L, L)
+    obs: FloatArray  # (C+1, L, L)
+    info: FloatArray  # (C+1, C+1, L, L)
+    fire_cdf: FloatArray  # cumulative fire rows, for inverse-CDF sampling
+    rescue_cdf: FloatArray
+    obs_cdf: FloatArray
+    agent_caps: IntArray  # (N, |G|) capability each agent brings to each element of G-bar (0 for idle)
+    sensing: IntArray  # (N,)
+    comm: IntArray  # (N,)
+    keep: FloatArray  # (N,) tau of each agent's channel
+    task_type: IntArray  # (p,) 0 fire, 1 rescue
+    task_site: IntArray  # (p,)
+    action_site: IntArray  # (|G|,)
+
+    @staticmethod
+    def build(sc: Scenario) -> Model:
+        """Compute every table of scenario sc."""
+        fire, rescue, obs = fire_table(sc), rescue_table(sc), observation_table(sc)
+        p, na = sc.n_tasks, sc.n_actions
+        caps = np.zeros((sc.n_agents, na), dtype=np.int64)
+        for i, a in enumerate(sc.agents):
+            for j in range(p):
+                caps[i, j] = a.fire if j % 2 == 0 else a.rescue
+        return Model(
+            scenario=sc,
+            fire=fire,
+            rescue=rescue,
+            obs=obs,
+            info=information_table(sc),
+            fire_cdf=_cdf(fire),
+            rescue_cdf=_cdf(rescue),
+            obs_cdf=_cdf(obs),
+            agent_caps=caps,
+            sensing=np.array([a.sensing for a in sc.agents], dtype=np.int64),
+            comm=np.array([a.comm for a in sc.agents], dtype=np.int64),
+            keep=np.array([keep_probability(sc, a.comm) for a in sc.agents]),
+            task_type=np.arange(p, dtype=np.int64) % 2,
+            task_site=np.arange(p, dtype=np.int64) // 2,
+            action_site=np.array(sc.action_sites, dtype=np.int64),
+        )
+
+    def joint_capability(self, actions: IntArray) -> IntArray:
+        """Joint capability on every task, capped: (..., N) actions -> (..., p) capabilities."""
+        sc = self.scenario
+        n = actions.shape[-1]
+        flat = actions.reshape(-1, n)
+        out = np.zeros((flat.shape[0], sc.n_actions), dtype=np.int64)
+        rows = np.arange(flat.shape[0])
+        for i in range(n):
+            a = flat[:, i]
+            valid = a >= 0
+            np.add.at(out, (rows[valid], a[valid]), self.agent_caps[i, a[valid]])
+        caps = np.minimum(out[:, : sc.n_tasks], sc.capability_max)
+        return caps.reshape(actions.shape[:-1] + (sc.n_tasks,))
+
+    def transition_rows(self, levels: IntArray, caps: IntArray) -> FloatArray:
+        """Distribution of every task's next level: (..., p) levels and capabilities -> (..., p, L)."""
+        fire_lv = levels[..., 0::2]
+        out = np.empty(levels.shape + (self.scenario.levels,))
+        out[..., 0::2, :] = self.fire[caps[..., 0::2], fire_lv]
+        out[..., 1::2, :] = self.rescue[caps[..., 1::2], fire_lv, levels[..., 1::2]]
+        return out
+
+    def sample_transition(self, levels: IntArray, caps: IntArray, u: FloatArray) -> IntArray:
+        """Next levels of T by inverse CDF from uniforms u of shape (..., p) (MODEL.md, Transition T)."""
+        fire_lv = levels[..., 0::2]
+        nxt = np.empty_like(levels)
+        fcdf = self.fire_cdf[caps[..., 0::2], fire_lv]
+        rcdf = self.rescue_cdf[caps[..., 1::2], fire_lv, levels[..., 1::2]]
+        nxt[..., 0::2] = (u[..., 0::2, None] >= fcdf).sum(-1)
+        nxt[..., 1::2] = (u[..., 1::2, None] >= rcdf).sum(-1)
+        return np.minimum(nxt, self.scenario.levels - 1)
+
+    def sample_observation(self, true_level: IntArray, sensing: IntArray, u: FloatArray) -> IntArray:
+        """Observed levels of O by inverse CDF: true levels, sensing and uniforms of one shape."""
+        cdf = self.obs_cdf[sensing, true_level]
+        return np.minimum((u[..., None] >= cdf).sum(-1), self.scenario.levels - 1)
+
+    def apply_channel(self, level: IntArray, keep: FloatArray, u_keep: FloatArray, u_level: FloatArray) -> IntArray:
+        """The simulated channel: with probability 1 - tau replace the level by a uniformly random one."""
+        L = self.scenario.levels
+        random_level = np.minimum((u_level * L).astype(np.int64), L - 1)
+        return np.where(u_keep < keep, level, random_level)
+
+
+def _cdf(t: FloatArray) -> FloatArray:
+    c = np.cumsum(t, axis=-1)
+    # guard against round-off: once the cumulative sum reaches 1, no further (zero-probability) level is drawn
+    c[c >= 1.0 - 1e-9] = np.inf
+    return c
