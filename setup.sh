@@ -1,11 +1,31 @@
 #!/usr/bin/env bash
-# Create .venv and install everything HTLM needs. Safe to run twice.
+# Create .venv and install everything HTLM needs. Safe to run twice: a second run with nothing changed returns at
+# once (the stamp .venv/.setup-stamp is newer than every file that decides what gets installed).
+# Environment: PYTHON (interpreter for the venv, default python3), HTLM_SETUP_FORCE=1 (reinstall anyway).
 set -euo pipefail
 cd "$(dirname "$0")"
 PY=${PYTHON:-python3}
+STAMP=.venv/.setup-stamp
+INPUTS=(setup.sh requirements-dev.txt src/*/setup.py src/*/setup.cfg)
+
+up_to_date() {
+  [ -x .venv/bin/python ] && [ -f "$STAMP" ] || return 1
+  local f
+  for f in "${INPUTS[@]}"; do
+    [ "$f" -nt "$STAMP" ] && return 1
+  done
+  return 0
+}
+
+if [ "${HTLM_SETUP_FORCE:-0}" != 1 ] && up_to_date; then
+  echo "setup: up to date (.venv; HTLM_SETUP_FORCE=1 to reinstall)"
+  exit 0
+fi
+
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
+rm -f "$STAMP"
 . .venv/bin/activate
 export PIP_DISABLE_PIP_VERSION_CHECK=1
 python -m pip install -q --upgrade pip
@@ -14,4 +34,5 @@ python -m pip install -q "torch==2.13.0"
 python -m pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 python -m pip install -q -r requirements-dev.txt
 python -m pip install -q -e src/htlm_msgs_py -e src/htlm_world -e src/htlm_agent
+touch "$STAMP"
 echo "setup: done (.venv ready; activate with: . .venv/bin/activate)"

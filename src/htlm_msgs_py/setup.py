@@ -2,21 +2,21 @@
 
 from setuptools import find_packages, setup
 
-PACKAGE = 'htlm_msgs_py'
+PACKAGE = "htlm_msgs_py"
 
 setup(
     name=PACKAGE,
-    version='0.1.0',
-    packages=find_packages(exclude=['test', 'test.*']),
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
     data_files=[
-        ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
-        (f'share/{PACKAGE}', ['package.xml']),
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
     ],
     install_requires=[],
-    python_requires='>=3.11',
+    python_requires=">=3.11",
     zip_safe=False,
-    maintainer='HTLM maintainers',
-    maintainer_email='htlm@example.com',
-    description='HTLM wire contract: topic names, QoS profiles, message schemas on standard ROS 2 interfaces, encode/decode with validation.',
-    license='Apache-2.0',
+    maintainer="HTLM maintainers",
+    maintainer_email="htlm@example.com",
+    description="HTLM wire contract: topic names, QoS profiles, validated message schemas on standard interfaces.",
+    license="Apache-2.0",
 )

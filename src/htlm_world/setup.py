@@ -4,31 +4,31 @@ from glob import glob
 
 from setuptools import find_packages, setup
 
-PACKAGE = 'htlm_world'
+PACKAGE = "htlm_world"
 
 setup(
     name=PACKAGE,
-    version='0.1.0',
-    packages=find_packages(exclude=['test', 'test.*']),
-    package_data={PACKAGE: ['scenarios/*.yaml']},
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    package_data={PACKAGE: ["scenarios/*.yaml"]},
     data_files=[
-        ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
-        (f'share/{PACKAGE}', ['package.xml']),
-        (f'share/{PACKAGE}/scenarios', sorted(glob(f'{PACKAGE}/scenarios/*.yaml'))),
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/scenarios", sorted(glob(f"{PACKAGE}/scenarios/*.yaml"))),
     ],
     install_requires=[
-        'numpy>=1.26',
-        'pyyaml>=6',
+        "numpy>=1.26",
+        "pyyaml>=6",
     ],
-    python_requires='>=3.11',
+    python_requires=">=3.11",
     zip_safe=False,
-    maintainer='HTLM maintainers',
-    maintainer_email='htlm@example.com',
-    description='HTLM operation model: scenarios, transition, observation and channel models, metrics, batched simulator, and the world node.',
-    license='Apache-2.0',
+    maintainer="HTLM maintainers",
+    maintainer_email="htlm@example.com",
+    description="HTLM operation model: scenarios, transition/observation/channel models, simulator, world node.",
+    license="Apache-2.0",
     entry_points={
-        'console_scripts': [
-            'world_node = htlm_world.world_node:main',
+        "console_scripts": [
+            "world_node = htlm_world.world_node:main",
         ],
     },
 )
