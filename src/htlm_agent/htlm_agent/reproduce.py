@@ -442,12 +442,12 @@ def write_report(out: Path, data: dict[str, Any], command: str, wall: float) -> 
     idle, reassign, inact, base, cl = (data["idle_effect"], data["reassign_effect"], data["importance"],
                                        data["baselines"], data["claims"])
     seeds = data["seeds"]
+    budget_note = "QUICK (smoke-test budgets; numbers are not meaningful)" if data["quick"] else "full budgets"
     lines = [
         "# HTLM: reproduction of the paper's results",
         "",
         f"Command: `{command}` · commit `{data['commit']}` · wall time {wall / 60:.1f} min · seeds {list(seeds)} · "
-        f"{data['eval_episodes']} evaluation episodes per configuration · {'QUICK (smoke-test budgets; numbers are '
-        'not meaningful)' if data['quick'] else 'full budgets'}.",
+        f"{data['eval_episodes']} evaluation episodes per configuration · {budget_note}.",
         "",
         "Values are mean ± standard error across training seeds (with one seed: across evaluation episodes).",
         "",

@@ -379,7 +379,7 @@ def validate(sc: Scenario, src: str) -> None:
     if not 0.0 <= sc.gamma <= 1.0:
         raise ScenarioError(f"{src}: gamma: {sc.gamma!r} is not in [0, 1]")
     if not sc.agents:
-        raise ScenarioError(f"{src}: agents: an agent count of zero; a team needs at least one agent")
+        raise ScenarioError(f"{src}: agents: [] is an agent count of zero; a team needs at least one agent")
     names = [a.name for a in sc.agents]
     if len(set(names)) != len(names):
         raise ScenarioError(f"{src}: agents: names must be unique, got {names!r}")
