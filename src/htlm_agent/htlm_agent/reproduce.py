@@ -177,7 +177,9 @@ def figure_idle_effect(res: dict[str, list[dict[str, Any]]], out: Path) -> dict[
             comp_se.append(s)
             un.append(u)
             un_se.append(us)
-            table[Config(HET, idle, rp).name] = {"completion": [m, s], "unused_capability": [u, us]}
+            f, fs, _ = seed_stats(r, ("unused_fraction",))
+            table[Config(HET, idle, rp).name] = {"completion": [m, s], "unused_capability": [u, us],
+                                                 "unused_fraction": [f, fs]}
         lbl = "with R_II" if idle else "without R_II"
         axes[0].bar(x + (j - 0.5) * 0.38, comp, 0.38, yerr=comp_se, capsize=3, label=lbl)
         axes[1].bar(x + (j - 0.5) * 0.38, un, 0.38, yerr=un_se, capsize=3, label=lbl)
@@ -383,8 +385,8 @@ def claims(idle: dict[str, Any], reassign: dict[str, Any], inact: dict[str, Any]
         return dict(idle[Config(HET, idle_on, rp).name])
 
     out = []
-    on = cfg(True, "medium")["unused_capability"][0] / 2.8
-    off = cfg(False, "medium")["unused_capability"][0] / 2.8
+    on = cfg(True, "medium")["unused_fraction"][0]
+    off = cfg(False, "medium")["unused_fraction"][0]
     out.append({"id": "C1", "claim": "with R_II unused capability is a large share (paper ≈ 71%); without it nearly "
                 "none (paper ≈ 2.5%)", "held": bool(on >= 0.6 and off <= 0.10),
                 "numbers": f"medium T_RP: unused fraction {on:.1%} with R_II, {off:.1%} without"})
