@@ -1,0 +1,824 @@
+"""Decentralized deep Q-learning for load management (Algorithm 1 of the paper).
+
+Every agent has its own Q-network, target network, optimizer state and replay memory; agents never share
+parameters, gradients or memories. For speed the N networks are stacked (`qnet.StackedQ`) and trained as one batched
+computation: the loss is the sum of the agents' own losses, so every agent's gradient is that of its own loss, and the
+optimizer (`StackedAdam`) keeps a step count per agent, exactly as N separate Adam optimizers would.
+
+Two ways to feed the learner:
+- in process: `train()` runs B episodes at once in `team.Team` (line 3-10 of Algorithm 1 as array operations);
+- from another process (the ROS trainer node): `Learner.store()` one transition at a time, `Learner.train_step()`,
+  and `Learner.agent_weights()` to send an agent its new weights.
+
+Random streams (STYLE.md 4), all derived from the run's seed: network initialisation per agent, replay sampling per
+agent, exploration per agent and batch, and the world and channels per batch of training episodes. The same seed
+gives the same learning curve and the same weights (on CPU, for the same `threads`).
+"""
+
+from __future__ import annotations
+
+import ast
+import csv
+import dataclasses
+import inspect
+import json
+import math
+import sys
+import textwrap
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from htlm_world.scenario import Scenario
+from htlm_world.simulator import channel_rng
+from htlm_world.types import BoolArray, FloatArray, IntArray
+
+from .qnet import StackedQ, layer_sizes, masked_argmax, masked_max, pack_weights
+from .replay import Batch, Replay
+from .reward import action_mask
+from .team import Context, Team
+
+# stream tags of SeedSequence([seed, tag, ...]); the simulator uses 0 (world) and 1 (channels) for evaluation
+_INIT, _EXPLORE, _REPLAY, _TRAIN_WORLD, _TRAIN_CHANNEL = 2, 3, 4, 10, 11
+
+
+def derive_seed(seed: int, *keys: int) -> int:
+    """A 63-bit seed derived from the master seed and stream keys (agent index, batch index, ...)."""
+    return int(np.random.SeedSequence([seed, *keys]).generate_state(2, np.uint64)[0] >> np.uint64(1))
+
+
+# ----- settings -------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Everything that decides a training run besides the scenario. Saved with every run (settings.json)."""
+
+    hidden: tuple[int, ...] = (64, 64)
+    """Hidden layer sizes of every agent's Q-network MLP (ReLU)."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    batch_size: int = 128
+    """Minibatch size per agent and gradient update."""
+    memory: int = 50_000
+    """Replay memory capacity per agent, in transitions (oldest overwritten first)."""
+    learning_starts: int = 2_000
+    """Transitions an agent must have stored before its network is trained."""
+    target_sync: int = 200
+    """Gradient updates of an agent between copies of its network into its target network."""
+    horizon_terminal: bool = False
+    """Treat the last step (the horizon h) as terminal in the Bellman target. Episodes end only by the time limit and
+    the knowledge state holds no time, so by default the last step bootstraps like any other (a terminal there would
+    give the same knowledge state targets from 1 to 1/(1-γ) times the reward, depending only on the hidden time)."""
+    n_step: int = 1
+    """n of n-step returns: a stored transition sums n discounted rewards and bootstraps from the knowledge state n
+    steps later (shorter at the end of an episode)."""
+    advantage_learning: float = 0.0
+    """α of advantage learning (Bellemare et al. 2016): the target is lowered by α (max_b Q̂(K, b) − Q̂(K, a)), which
+    widens the gaps between actions without changing the greedy policy; 0 is plain Q-learning."""
+    double_dqn: bool = True
+    """Double DQN targets (online network picks a', target network values it); False: plain max over the target."""
+    huber_delta: float = 1.0
+    """Huber loss threshold on the TD error (in scaled reward units)."""
+    reward_scale: float = 0.1
+    """Rewards are multiplied by this before learning (a positive scale leaves the greedy policy unchanged)."""
+    grad_clip: float = 10.0
+    """Clip each agent's gradient norm to this (0: no clipping)."""
+    eps_start: float = 1.0
+    """ε of ε-greedy exploration at the first episode."""
+    eps_end: float = 0.05
+    """ε after the decay."""
+    eps_fraction: float = 0.5
+    """Fraction of `episodes` over which ε decays linearly from eps_start to eps_end."""
+    episodes: int = 16_384
+    """Training episodes in total."""
+    envs: int = 128
+    """B, episodes simulated in parallel; one batch of B episodes runs the whole horizon together."""
+    updates_per_step: int = 2
+    """Gradient updates of every agent per batched environment step (B transitions per agent)."""
+    seed: int = 0
+    """Master seed of the run."""
+    threads: int = 1
+    """torch intra-op threads; results are reproducible for a fixed value."""
+    eval_episodes: int = 500
+    """Episodes of the greedy evaluation at the end of training."""
+    eval_every: int = 0
+    """Episodes between periodic greedy evaluations logged during training (0: only at the end)."""
+    checkpoint_every: int = 8_192
+    """Episodes between checkpoints (always one at the end)."""
+
+    def __post_init__(self) -> None:
+        """Validate every field (STYLE.md 3): a bad value raises ValueError naming it."""
+        positive = ("n_step", "lr", "batch_size", "memory", "target_sync", "episodes", "envs", "updates_per_step", "threads")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be > 0")
+        for name in ("learning_starts", "grad_clip", "eval_episodes", "eval_every", "checkpoint_every", "seed"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be >= 0")
+        for name in ("eps_start", "eps_end", "eps_fraction", "advantage_learning"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be in [0, 1]")
+        if not self.hidden or any(int(h) < 1 for h in self.hidden):
+            raise ValueError(f"settings.hidden: {self.hidden!r} needs at least one layer, every size >= 1")
+        if not self.reward_scale > 0 or not self.huber_delta > 0:
+            raise ValueError(f"settings: reward_scale {self.reward_scale!r} and huber_delta {self.huber_delta!r} "
+                             "must be > 0")
+        if self.envs > self.memory:
+            raise ValueError(f"settings.envs: {self.envs!r} must not exceed settings.memory {self.memory!r}")
+
+    def epsilon(self, episode: float) -> float:
+        """ε of ε-greedy at training episode `episode`: linear decay from eps_start to eps_end over the first
+        eps_fraction · episodes, then constant (an agent process computes its own ε with this)."""
+        span = self.eps_fraction * self.episodes
+        frac = 1.0 if span <= 0 else min(max(float(episode) / span, 0.0), 1.0)
+        return self.eps_start + frac * (self.eps_end - self.eps_start)
+
+    def replace(self, **changes: Any) -> Settings:
+        """A copy with fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for settings.json."""
+        d = dataclasses.asdict(self)
+        d["hidden"] = list(self.hidden)
+        return d
+
+    @staticmethod
+    def from_dict(data: Any, src: str = "<settings>") -> Settings:
+        """Settings from plain data; unknown keys or bad values raise ValueError naming src and the field."""
+        if not isinstance(data, dict):
+            raise ValueError(f"{src}: settings must be a mapping, got {type(data).__name__}")
+        names = {f.name: f for f in dataclasses.fields(Settings)}
+        unknown = sorted(set(data) - set(names))
+        if unknown:
+            raise ValueError(f"{src}: unknown settings field {unknown[0]!r}; known: {sorted(names)}")
+        kw: dict[str, Any] = {}
+        for k, v in data.items():
+            default = names[k].default
+            if k == "hidden":
+                if not isinstance(v, (list, tuple)) or not all(isinstance(h, int) for h in v):
+                    raise ValueError(f"{src}: settings.hidden: {v!r} must be a list of integers")
+                kw[k] = tuple(v)
+            elif isinstance(default, bool):
+                if not isinstance(v, bool):
+                    raise ValueError(f"{src}: settings.{k}: {v!r} must be true or false")
+                kw[k] = v
+            elif isinstance(default, int):
+                if isinstance(v, bool) or not isinstance(v, int):
+                    raise ValueError(f"{src}: settings.{k}: {v!r} must be an integer")
+                kw[k] = v
+            else:
+                if isinstance(v, bool) or not isinstance(v, (int, float)):
+                    raise ValueError(f"{src}: settings.{k}: {v!r} must be a number")
+                kw[k] = float(v)
+        try:
+            return Settings(**kw)
+        except ValueError as e:
+            raise ValueError(f"{src}: {e}") from None
+
+
+@cache
+def field_docs(cls: type) -> dict[str, str]:
+    """The one-line docstring under every field of a dataclass (for --help and reports)."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    out: dict[str, str] = {}
+    for prev, node in zip(body, body[1:], strict=False):
+        if (
+            isinstance(prev, ast.AnnAssign)
+            and isinstance(prev.target, ast.Name)
+            and isinstance(node, ast.Expr)
+            and isinstance(node.value, ast.Constant)
+            and isinstance(node.value.value, str)
+        ):
+            out[prev.target.id] = " ".join(node.value.value.split())
+    return out
+
+
+# ----- pieces of the update -------------------------------------------------------------------------------------
+
+
+def bellman_targets(
+    r: torch.Tensor,
+    discount: torch.Tensor,
+    q_next_target: torch.Tensor,
+    mask2: torch.Tensor,
+    q_next_online: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """y = r + d · max_{a' ∈ Â(K')} Q(K', a'; θ̂) (Eq. 10 of the paper, the Bellman target), with d = γ (one step),
+    γ^n (an n-step return r), or 0 (terminal K').
+
+    With `q_next_online` (Double DQN) the maximising a' is chosen by the online network and valued by the target
+    network. Shapes: r, discount (..., M); q's and mask2 (..., M, |Ḡ|).
+    """
+    if q_next_online is None:
+        nxt = masked_max(q_next_target, mask2)
+    else:
+        a2 = masked_argmax(q_next_online, mask2)
+        nxt = q_next_target.gather(-1, a2[..., None])[..., 0]
+    return r + discount * nxt
+
+
+def advantage_gap(q_target: torch.Tensor, mask: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """max_{b ∈ Â(K)} Q̂(K, b) − Q̂(K, a) >= 0, the term advantage learning subtracts (scaled by α) from the target."""
+    return masked_max(q_target, mask) - q_target.gather(-1, a[..., None])[..., 0]
+
+
+class NStep:
+    """Turns a stream of one-step transitions (of one agent, or of arrays of agents and episodes advancing in
+    lockstep) into n-step transitions <K_t, a_t, Σ_{j<m} γ^j r_{t+j}, K_{t+m}, Â(K_{t+m}), d> with m = n, or fewer at
+    the end of an episode, and d = γ^m, or 0 when the episode ends in a terminal state. Rewards are scaled here."""
+
+    def __init__(self, n: int, gamma: float, scale: float = 1.0) -> None:
+        """An empty window of n steps."""
+        self.n, self.gamma, self.scale = n, gamma, scale
+        self.items: list[tuple[Any, Any, Any]] = []
+
+    def _emit(self, k2: Any, mask2: Any, terminal: bool) -> tuple[Any, ...]:
+        k, a, _ = self.items[0]
+        ret = sum((self.gamma**j) * r for j, (_, _, r) in enumerate(self.items))
+        disc = 0.0 if terminal else self.gamma ** len(self.items)
+        self.items.pop(0)
+        return k, a, ret * self.scale, k2, mask2, disc
+
+    def push(self, k: Any, a: Any, r: Any, k2: Any, mask2: Any, end: bool, terminal: bool) -> list[tuple[Any, ...]]:
+        """Add the step (K, a, r, K', Â(K')); returns the transitions complete now (all pending ones at the end of an
+        episode, `end`), each (K, a, return, K', Â(K'), discount)."""
+        self.items.append((k, a, r))
+        out = []
+        if end:
+            while self.items:
+                out.append(self._emit(k2, mask2, terminal))
+        elif len(self.items) == self.n:
+            out.append(self._emit(k2, mask2, False))
+        return out
+
+    def clear(self) -> None:
+        """Forget a partial episode."""
+        self.items.clear()
+
+
+class StackedAdam:
+    """Adam over stacked per-agent parameters (N, P) with a step count per agent: identical to one Adam per agent,
+    and an agent's parameters and moments change only on updates it takes part in."""
+
+    def __init__(
+        self, param: torch.Tensor, lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8
+    ) -> None:
+        """Moments start at zero, step counts at zero."""
+        self.param = param
+        self.lr, self.betas, self.eps = lr, betas, eps
+        self.m = torch.zeros_like(param)
+        self.v = torch.zeros_like(param)
+        self.t = torch.zeros(param.shape[0], dtype=torch.float64)
+
+    @torch.no_grad()
+    def step(self, active: torch.Tensor) -> None:
+        """Apply the gradient rows of the agents marked in `active` (N,) bool."""
+        b1, b2 = self.betas
+        g = self.param.grad
+        assert g is not None
+        self.t += active.to(self.t.dtype)
+        t = self.t.clamp(min=1.0)
+        c1 = (1.0 - b1**t).to(torch.float32)[:, None]
+        c2 = (1.0 - b2**t).to(torch.float32)[:, None]
+        if bool(active.all()):
+            self.m.mul_(b1).add_(g, alpha=1.0 - b1)
+            self.v.mul_(b2).addcmul_(g, g, value=1.0 - b2)
+            self.param.sub_(self.lr * (self.m / c1) / ((self.v / c2).sqrt_().add_(self.eps)))
+            return
+        a = active[:, None]
+        self.m.copy_(torch.where(a, b1 * self.m + (1.0 - b1) * g, self.m))
+        self.v.copy_(torch.where(a, b2 * self.v + (1.0 - b2) * g * g, self.v))
+        upd = self.lr * (self.m / c1) / ((self.v / c2).sqrt() + self.eps)
+        self.param.sub_(torch.where(a, upd, torch.zeros_like(upd)))
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """Tensors of the optimizer state."""
+        return {"m": self.m.clone(), "v": self.v.clone(), "t": self.t.clone()}
+
+    def load_state(self, st: dict[str, torch.Tensor]) -> None:
+        """Restore `state()`."""
+        self.m.copy_(st["m"])
+        self.v.copy_(st["v"])
+        self.t.copy_(st["t"])
+
+
+def clip_grad_per_agent(param: torch.Tensor, max_norm: float) -> torch.Tensor:
+    """Scale each agent's gradient row of the stacked parameters (N, P) to norm <= max_norm (0: no clipping);
+    returns the norms (N,) before clipping."""
+    g = param.grad
+    assert g is not None
+    norm = g.norm(dim=1)
+    if max_norm > 0:
+        g.mul_((max_norm / (norm + 1e-6)).clamp(max=1.0)[:, None])
+    return norm
+
+
+def epsilon_greedy(
+    q: torch.Tensor, mask: torch.Tensor, epsilon: float, rngs: Sequence[np.random.Generator]
+) -> IntArray:
+    """ε-greedy over Â for every agent: q, mask (N, B, |Ḡ|); agent i draws from rngs[i]. Returns (B, N)."""
+    greedy = masked_argmax(q, mask).numpy()  # (N, B)
+    m = mask.numpy()
+    out = greedy.copy()
+    if epsilon > 0:
+        for i, g in enumerate(rngs):
+            u = g.random(m.shape[1:])  # (B, |G|)
+            explore = g.random(m.shape[1]) < epsilon
+            rand = np.where(m[i], u, -1.0).argmax(axis=-1)
+            out[i] = np.where(explore, rand, greedy[i])
+    return np.ascontiguousarray(out.T, dtype=np.int64)
+
+
+# ----- the learner ----------------------------------------------------------------------------------------------
+
+
+class Learner:
+    """The N agents' Q-networks, target networks, optimizer states and replay memories (Algorithm 1)."""
+
+    def __init__(self, scenario: Scenario, settings: Settings, seed: int | None = None) -> None:
+        """Fresh networks and empty memories.
+
+        Args:
+            scenario: the operation and team (knowledge and action layout).
+            settings: learning settings.
+            seed: master seed (default: settings.seed).
+        """
+        self.scenario = scenario
+        self.settings = settings
+        self.seed = settings.seed if seed is None else int(seed)
+        n = scenario.n_agents
+        self.sizes = layer_sizes(scenario, settings.hidden)
+        self.net = StackedQ.fresh(self.sizes, [derive_seed(self.seed, _INIT, i) for i in range(n)])
+        self.target = StackedQ.fresh(self.sizes, [0] * n)
+        self.target.load_state_dict(self.net.state_dict())
+        self.target.requires_grad_(False)
+        self.opt = StackedAdam(self.net.flat, settings.lr)
+        self.replay = Replay(
+            n,
+            settings.memory,
+            scenario.knowledge_size,
+            scenario.n_actions,
+            [derive_seed(self.seed, _REPLAY, i) for i in range(n)],
+        )
+        self.updates = np.zeros(n, dtype=np.int64)
+        self.episodes_done = 0
+        self.gamma = scenario.gamma
+        na = scenario.n_actions
+        self._mask_table = torch.from_numpy(action_mask(scenario, np.arange(na)).astype(np.float32))
+        self._mask_none = torch.from_numpy(action_mask(scenario, np.array(-1)).astype(np.float32))
+        self._nstep = [NStep(settings.n_step, self.gamma, settings.reward_scale) for _ in range(n)]
+        self._nstep_batch = NStep(settings.n_step, self.gamma, settings.reward_scale)
+
+    @property
+    def n_agents(self) -> int:
+        """N."""
+        return self.scenario.n_agents
+
+    # ----- acting ----------------------------------------------------------------------------------------------
+    def q_values(self, knowledge: FloatArray) -> FloatArray:
+        """Q-values (B, N, |Ḡ|) of every agent's own knowledge state (B, N, K)."""
+        with torch.no_grad():
+            x = torch.from_numpy(np.ascontiguousarray(knowledge.transpose(1, 0, 2), dtype=np.float32))
+            return self.net(x).numpy().transpose(1, 0, 2).astype(np.float64)
+
+    def act(
+        self, knowledge: FloatArray, mask: BoolArray, epsilon: float, rngs: Sequence[np.random.Generator]
+    ) -> IntArray:
+        """ε-greedy actions (B, N) over Â from knowledge (B, N, K) and masks (B, N, |Ḡ|); agent i explores with
+        rngs[i]."""
+        with torch.no_grad():
+            x = torch.from_numpy(np.ascontiguousarray(knowledge.transpose(1, 0, 2), dtype=np.float32))
+            q = self.net(x)
+            m = torch.from_numpy(np.ascontiguousarray(mask.transpose(1, 0, 2)))
+            return epsilon_greedy(q, m, epsilon, rngs)
+
+    # ----- storing ---------------------------------------------------------------------------------------------
+    def store(
+        self, agent: int, k: FloatArray, a: int, r: float, k2: FloatArray, mask2: BoolArray, done: bool
+    ) -> None:
+        """Store one transition <K, a, K', f_R> of one agent (from an agent process), with Â of K' and whether K'
+        ends the episode (the horizon: terminal in the target only with settings.horizon_terminal). Invalid input
+        raises ValueError naming the bad value."""
+        sc = self.scenario
+        if not 0 <= agent < sc.n_agents:
+            raise ValueError(f"agent {agent!r} is out of range 0..{sc.n_agents - 1}")
+        k_arr, k2_arr, m_arr = np.asarray(k), np.asarray(k2), np.asarray(mask2)
+        ks = sc.knowledge_size
+        if k_arr.shape != (ks,) or k2_arr.shape != (ks,):
+            raise ValueError(f"knowledge states must have shape ({ks},), got {k_arr.shape} and {k2_arr.shape}")
+        if not (np.isfinite(k_arr).all() and np.isfinite(k2_arr).all() and math.isfinite(float(r))):
+            raise ValueError(f"transition of agent {agent} holds NaN or infinity (reward {r!r})")
+        if m_arr.shape != (sc.n_actions,) or m_arr.dtype != np.bool_ or not m_arr.any():
+            raise ValueError(f"mask2 must be bool of shape ({sc.n_actions},) with an allowed action, got {m_arr!r}")
+        if not 0 <= int(a) < sc.n_actions:
+            raise ValueError(f"action {a!r} is out of range 0..{sc.n_actions - 1}")
+        for t in self._nstep[agent].push(k_arr, int(a), float(r), k2_arr, m_arr, bool(done), self._terminal(done)):
+            self.replay.add(agent, *t)
+
+    def _terminal(self, done: bool) -> bool:
+        return bool(done) and self.settings.horizon_terminal
+
+    def store_batch(
+        self, k: FloatArray, a: IntArray, r: FloatArray, k2: FloatArray, mask2: BoolArray, done: bool
+    ) -> None:
+        """Store B transitions of every agent (arrays with a leading (B, N)); each goes to its agent's memory.
+        `done`: K' is at the horizon (terminal in the target only with settings.horizon_terminal)."""
+        for t in self._nstep_batch.push(k, a, r, k2, mask2, bool(done), self._terminal(done)):
+            self.replay.add_batch(*t)
+
+    # ----- training --------------------------------------------------------------------------------------------
+    def ready(self) -> BoolArray:
+        """(N,) agents whose memories hold enough transitions to train."""
+        need = max(self.settings.learning_starts, 1)
+        return np.asarray(self.replay.size >= need)
+
+    def loss(self, batch: Batch, active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Sum over active agents of each agent's mean Huber TD error, and the per-agent losses (N,)."""
+        s = self.settings
+        k = torch.from_numpy(batch.k)
+        k2 = torch.from_numpy(batch.k2)
+        a = torch.from_numpy(batch.a)
+        r = torch.from_numpy(batch.r)
+        mask2 = torch.from_numpy(batch.mask2)
+        discount = torch.from_numpy(batch.discount)
+        m = k.shape[1]
+        if s.double_dqn:  # one pass of the online network over K and K'
+            q_both = self.net(torch.cat([k, k2], dim=1))
+            q, q_o = q_both[:, :m], q_both[:, m:].detach()
+        else:
+            q, q_o = self.net(k), None
+        with torch.no_grad():
+            if s.advantage_learning > 0:
+                qt_both = self.target(torch.cat([k, k2], dim=1))
+                qt_k, qt_k2 = qt_both[:, :m], qt_both[:, m:]
+                y = bellman_targets(r, discount, qt_k2, mask2, q_o)
+                y = y - s.advantage_learning * advantage_gap(qt_k, self.knowledge_mask(k), a)
+            else:
+                y = bellman_targets(r, discount, self.target(k2), mask2, q_o)
+        q = q.gather(-1, a[..., None])[..., 0]
+        per_agent = torch.nn.functional.huber_loss(q, y, reduction="none", delta=s.huber_delta).mean(dim=1)
+        per_agent = per_agent * active.to(per_agent.dtype)
+        return per_agent.sum(), per_agent.detach()
+
+    def knowledge_mask(self, k: torch.Tensor) -> torch.Tensor:
+        """Â(a_o) (..., |Ḡ|) of knowledge states (..., K), from their one-hot previous assignment."""
+        onehot = k[..., self.scenario.n_tasks * self.scenario.levels :]
+        none = 1.0 - onehot.sum(-1, keepdim=True)
+        return (onehot @ self._mask_table + none * self._mask_none) > 0.5
+
+    def train_step(self) -> float | None:
+        """One gradient update of every agent whose memory holds enough data (line 10 of Algorithm 1); returns the
+        mean loss of those agents, or None when no agent is ready yet."""
+        ready = self.ready()
+        if not ready.any():
+            return None
+        active = torch.from_numpy(ready)
+        batch = self.replay.sample(self.settings.batch_size, ready)
+        total, per_agent = self.loss(batch, active)
+        self.net.flat.grad = None
+        total.backward()
+        clip_grad_per_agent(self.net.flat, self.settings.grad_clip)
+        self.opt.step(active)
+        self.updates += ready
+        sync = ready & (self.updates % self.settings.target_sync == 0)
+        if sync.any():
+            self.sync_target(sync)
+        return float(per_agent[active].mean())
+
+    def sync_target(self, agents: BoolArray) -> None:
+        """Copy the online networks of the marked agents into their target networks."""
+        idx = torch.from_numpy(np.flatnonzero(agents))
+        with torch.no_grad():
+            self.target.flat[idx] = self.net.flat[idx]
+
+    # ----- weights and persistence -----------------------------------------------------------------------------
+    def agent_weights(self, agent: int) -> bytes:
+        """Agent `agent`'s online network as bytes (the format of `qnet.AgentQ.get_weights`)."""
+        if not 0 <= agent < self.n_agents:
+            raise ValueError(f"agent {agent!r} is out of range 0..{self.n_agents - 1}")
+        return pack_weights(self.net.agent_params(agent))
+
+    def policy(self) -> QPolicy:
+        """The greedy decentralized team policy of the current networks."""
+        return QPolicy(self.scenario, self.net)
+
+    def save(self, directory: str | Path, replay: bool = True, extra: dict[str, Any] | None = None) -> Path:
+        """Write a checkpoint directory (see `htlm_agent.checkpoint`) with everything needed to continue exactly."""
+        from .checkpoint import save_checkpoint
+
+        train_state = {
+            "target": self.target.flat.detach().clone(),
+            "adam": self.opt.state(),
+        }
+        rs = self.replay.state() if replay else None
+        info = {
+            "updates": self.updates.tolist(),
+            "replay_rngs": rs.pop("rngs") if rs is not None else None,
+            **(extra or {}),
+        }
+        return save_checkpoint(
+            directory,
+            scenario=self.scenario,
+            settings=self.settings,
+            seed=self.seed,
+            episodes_done=self.episodes_done,
+            weights=[self.net.agent_params(i) for i in range(self.n_agents)],
+            train_state=train_state,
+            replay_state=rs,
+            info=info,
+        )
+
+    @staticmethod
+    def load(directory: str | Path, settings: Settings | None = None) -> Learner:
+        """A learner from a checkpoint directory, with its target networks, optimizer state and (when saved) replay
+        memories; `settings` may replace the saved ones if the network layout is the same (e.g. more episodes)."""
+        from .checkpoint import CheckpointError, load_checkpoint
+
+        ck = load_checkpoint(directory)
+        s = ck.settings if settings is None else settings
+        if tuple(s.hidden) != tuple(ck.settings.hidden):
+            raise CheckpointError(f"{ck.path}: hidden sizes {list(ck.settings.hidden)} differ from {list(s.hidden)}")
+        lr = Learner(ck.scenario, s, ck.seed)
+        for i, w in enumerate(ck.weights):
+            lr.net.set_agent_params(i, w)
+        lr.episodes_done = ck.episodes_done
+        ts = ck.train_state()
+        if ts is not None:
+            with torch.no_grad():
+                lr.target.flat.copy_(ts["target"])
+            lr.opt.load_state(ts["adam"])
+        else:
+            lr.target.load_state_dict(lr.net.state_dict())
+        lr.updates[:] = ck.info.get("updates", [0] * lr.n_agents)
+        rs = ck.replay_state()
+        if rs is not None and ck.info.get("replay_rngs") is not None and s.memory == ck.settings.memory:
+            rs["rngs"] = ck.info["replay_rngs"]
+            lr.replay.load_state(rs)
+        return lr
+
+
+class QPolicy:
+    """The decentralized team policy of stacked Q-networks: every agent takes the greedy masked argmax of its own
+    network over its own knowledge state and Â (its own row of the Context only)."""
+
+    def __init__(self, scenario: Scenario, net: StackedQ) -> None:
+        """Wrap networks (not copied: the policy follows later training)."""
+        assert net.n_agents == scenario.n_agents and net.sizes[0] == scenario.knowledge_size
+        self.scenario = scenario
+        self.net = net
+
+    @staticmethod
+    def from_checkpoint(ckpt: Any) -> QPolicy:
+        """The policy of a loaded checkpoint (`checkpoint.Checkpoint`)."""
+        net = StackedQ(layer_sizes(ckpt.scenario, ckpt.settings.hidden),
+                       [[torch.from_numpy(p) for p in w] for w in ckpt.weights])
+        net.requires_grad_(False)
+        return QPolicy(ckpt.scenario, net)
+
+    def act(self, ctx: Context) -> IntArray:
+        """Greedy actions (B, N)."""
+        with torch.no_grad():
+            x = torch.from_numpy(np.ascontiguousarray(ctx.knowledge.transpose(1, 0, 2), dtype=np.float32))
+            m = torch.from_numpy(np.ascontiguousarray(ctx.mask.transpose(1, 0, 2)))
+            a = masked_argmax(self.net(x), m)  # (N, B)
+        return np.ascontiguousarray(a.numpy().T, dtype=np.int64)
+
+
+# ----- the in-process training loop -----------------------------------------------------------------------------
+
+
+@dataclass
+class TrainResult:
+    """What `train` produced."""
+
+    out_dir: Path
+    scenario: Scenario
+    settings: Settings
+    episodes: int
+    wall_time: float
+    """Seconds of the whole call, final evaluation included."""
+    train_time: float
+    """Seconds of training only (no final evaluation, no checkpoint writing)."""
+    metrics: dict[str, Any]
+    """Final greedy evaluation (`evaluate.evaluate`)."""
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+LOG_FIELDS = (
+    "episodes",
+    "wall_s",
+    "episodes_per_s",
+    "epsilon",
+    "updates",
+    "loss",
+    "reward",
+    "completion",
+    "failure_rate",
+    "unused_fraction",
+    "eval_completion",
+    "eval_failure_rate",
+    "eval_unused_fraction",
+)
+
+
+def _batch_completion(levels_hist: list[IntArray], horizon: int) -> tuple[FloatArray, BoolArray]:
+    done = np.stack([(lv == 0).all(axis=1) for lv in levels_hist[1:]])  # (h, B)
+    failed = ~done.any(axis=0)
+    return np.where(failed, horizon, done.argmax(axis=0) + 1).astype(np.float64), failed
+
+
+def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, float]:
+    """Algorithm 1, lines 3-10, for B episodes at once: run one batch of episodes ε-greedily, storing every agent's
+    transitions in its own memory and training every agent `updates_per_step` times per step."""
+    sc, s = learner.scenario, learner.settings
+    seed = learner.seed
+    n, p, b = sc.n_agents, sc.n_tasks, team.batch
+    team.sim.rng = np.random.default_rng(np.random.SeedSequence([seed, _TRAIN_WORLD, batch_index]))
+    team.sim.channel_rngs = [
+        np.random.default_rng(np.random.SeedSequence([seed, _TRAIN_CHANNEL, i, batch_index])) for i in range(n)
+    ]
+    rngs = [np.random.default_rng(np.random.SeedSequence([seed, _EXPLORE, i, batch_index])) for i in range(n)]
+    eps = s.epsilon(learner.episodes_done)
+    k = team.reset()
+    m = team.mask()
+    levels = [team.sim.levels.copy()]
+    idle = np.zeros((b, n))
+    rsum = 0.0
+    losses: list[float] = []
+    for t in range(sc.horizon):
+        a = learner.act(k, m, eps, rngs)
+        k2, r, info = team.step(a)
+        m2 = team.mask()
+        learner.store_batch(k, a, r, k2, m2, t == sc.horizon - 1)
+        for _ in range(s.updates_per_step):
+            loss = learner.train_step()
+            if loss is not None:
+                losses.append(loss)
+        levels.append(info.levels)
+        idle += a >= p
+        rsum += float(r.mean())
+        k, m = k2, m2
+    learner.episodes_done += b
+    comp, failed = _batch_completion(levels, sc.horizon)
+    caps = np.array([ag.fire + ag.rescue for ag in sc.agents], dtype=np.float64)
+    unused = (idle * caps).sum(axis=1) / (n * sc.horizon)
+    return {
+        "epsilon": eps,
+        "loss": float(np.mean(losses)) if losses else float("nan"),
+        "reward": rsum / sc.horizon,
+        "completion": float(comp.mean()),
+        "failure_rate": float(failed.mean()),
+        "unused_fraction": float(unused.mean() / caps.mean()) if caps.mean() > 0 else 0.0,
+    }
+
+
+def write_run_files(out_dir: Path, scenario: Scenario, settings: Settings) -> None:
+    """settings.json and scenario.yaml beside the run's results (STYLE.md 2)."""
+    import yaml
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "settings.json").write_text(json.dumps(settings.to_dict(), indent=2) + "\n")
+    (out_dir / "scenario.yaml").write_text(yaml.safe_dump(scenario.to_dict(), sort_keys=False))
+
+
+def train(
+    scenario: Scenario,
+    settings: Settings,
+    out_dir: str | Path,
+    progress: bool = True,
+    resume: bool = False,
+    tensorboard: bool = True,
+    evaluate_at_end: bool = True,
+) -> TrainResult:
+    """Train a team in process (Algorithm 1 with B parallel episodes) and evaluate it greedily at the end.
+
+    Writes into out_dir: settings.json, scenario.yaml, progress.csv (one row per batch of episodes), tb/ (TensorBoard),
+    checkpoint/ (periodic and final), eval/ (final evaluation: metrics.json, CSVs, histogram PNG).
+
+    Args:
+        scenario: operation and team (ignored when resuming: the checkpoint's is used).
+        settings: learning settings (when resuming, only `episodes` and the logging/evaluation fields may change).
+        out_dir: the run directory.
+        progress: show a progress line on stderr.
+        resume: continue the run in out_dir from its checkpoint.
+        tensorboard: also write TensorBoard logs.
+        evaluate_at_end: run the final greedy evaluation (settings.eval_episodes episodes).
+    """
+    from . import evaluate as ev
+    from .checkpoint import CheckpointError, load_checkpoint
+    from .progress import Progress
+
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    torch.set_num_threads(settings.threads)
+    torch.use_deterministic_algorithms(True)
+    ckpt_dir = out / "checkpoint"
+    if resume:
+        ck = load_checkpoint(ckpt_dir)
+        scenario = ck.scenario
+        fixed = {k: v for k, v in ck.settings.to_dict().items()
+                 if k not in ("episodes", "eval_episodes", "eval_every", "checkpoint_every", "threads")}
+        mine = {k: v for k, v in settings.to_dict().items() if k in fixed}
+        if fixed != mine:
+            diff = sorted(k for k in fixed if fixed[k] != mine[k])
+            raise CheckpointError(f"{ck.path}: cannot resume with changed settings {diff}; only episodes and "
+                                  "logging fields may change")
+        learner = Learner.load(ckpt_dir, settings)
+    else:
+        if (ckpt_dir / "meta.json").exists():
+            raise FileExistsError(f"{out}: already holds a run; use resume to continue it or choose another --out")
+        learner = Learner(scenario, settings)
+    s = settings
+    write_run_files(out, scenario, s)
+    team = Team(scenario, s.envs, s.seed)
+    writer = None
+    if tensorboard:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(out / "tb"), purge_step=learner.episodes_done if resume else None)
+    log_path = out / "progress.csv"
+    new_log = not (resume and log_path.exists())
+    if resume and log_path.exists():  # drop rows written after the checkpoint (an interrupted run)
+        rows = list(csv.DictReader(log_path.open()))
+        rows = [r for r in rows if int(r["episodes"]) <= learner.episodes_done]
+        with log_path.open("w", newline="") as f:
+            w = csv.DictWriter(f, LOG_FIELDS)
+            w.writeheader()
+            w.writerows(rows)
+    log_file = log_path.open("w" if new_log else "a", newline="")
+    log = csv.DictWriter(log_file, LOG_FIELDS)
+    if new_log:
+        log.writeheader()
+    total = s.episodes
+    bar = Progress(total, initial=learner.episodes_done, unit="ep", enabled=progress)
+    history: list[dict[str, float]] = []
+    train_time = 0.0
+    last_ckpt = learner.episodes_done
+    last_eval = learner.episodes_done
+    try:
+        while learner.episodes_done < total:
+            t0 = time.perf_counter()
+            batch_index = learner.episodes_done // s.envs
+            row: dict[str, float] = train_batch(learner, team, batch_index)
+            train_time += time.perf_counter() - t0
+            row["episodes"] = learner.episodes_done
+            row["updates"] = int(learner.updates.max())
+            row["wall_s"] = round(time.perf_counter() - t_start, 3)
+            row["episodes_per_s"] = bar.rate
+            if s.eval_every and learner.episodes_done - last_eval >= s.eval_every:
+                last_eval = learner.episodes_done
+                em = ev.evaluate(learner.policy(), scenario, min(s.eval_episodes, 200) or 200, seed=s.seed)
+                row["eval_completion"] = em["completion"]["mean"]
+                row["eval_failure_rate"] = em["completion"]["failure_rate"]
+                row["eval_unused_fraction"] = em["unused_fraction"]["mean"]
+            history.append(row)
+            log.writerow({k: row.get(k, "") for k in LOG_FIELDS})
+            log_file.flush()
+            if writer is not None:
+                for key, val in row.items():
+                    if key not in ("episodes", "wall_s") and not (isinstance(val, float) and math.isnan(val)):
+                        writer.add_scalar(f"train/{key}", val, learner.episodes_done)
+            bar.update(
+                learner.episodes_done,
+                completion=f"{row['completion']:.2f}",
+                unused=f"{row['unused_fraction']:.2f}",
+                eps=f"{row['epsilon']:.2f}",
+            )
+            if s.checkpoint_every and learner.episodes_done - last_ckpt >= s.checkpoint_every and \
+                    learner.episodes_done < total:
+                last_ckpt = learner.episodes_done
+                learner.save(ckpt_dir)
+    finally:
+        bar.close()
+        log_file.close()
+    learner.save(ckpt_dir)
+    metrics: dict[str, Any] = {}
+    if evaluate_at_end and s.eval_episodes > 0:
+        evaluation = ev.evaluate_run(learner.policy(), scenario, s.eval_episodes, seed=s.seed)
+        ev.write_reports(evaluation, out / "eval")
+        metrics = evaluation.metrics
+        if writer is not None:
+            writer.add_scalar("eval/completion", metrics["completion"]["mean"], learner.episodes_done)
+            writer.add_scalar("eval/failure_rate", metrics["completion"]["failure_rate"], learner.episodes_done)
+            writer.add_scalar("eval/unused_fraction", metrics["unused_fraction"]["mean"], learner.episodes_done)
+    if writer is not None:
+        writer.close()
+    wall = time.perf_counter() - t_start
+    summary = {"episodes": learner.episodes_done, "wall_time_s": round(wall, 2), "train_time_s": round(train_time, 2),
+               "metrics": metrics}
+    (out / "result.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if progress and metrics:
+        c = metrics["completion"]
+        print(f"final greedy evaluation ({metrics['episodes']} episodes): completion {c['mean']:.2f} ± {c['se']:.2f}"
+              f", failures {c['failure_rate']:.1%}, unused capability {metrics['unused_fraction']['mean']:.1%}"
+              f" ({wall:.0f} s)", file=sys.stderr)
+    return TrainResult(out, scenario, s, learner.episodes_done, wall, train_time, metrics, history)

@@ -1,0 +1,148 @@
+"""Replay memories D of Algorithm 1: one ring buffer per agent, in preallocated arrays.
+
+The memories of the N agents live in arrays with a leading agent axis (N, capacity, ...) so that a minibatch of every
+agent is gathered in one indexing operation, but each agent has its own fill level, write position and sampling
+generator: agents never see each other's transitions. A transition is X = <K, a, K', f_R> plus the reduced action
+space Â(a_o') of K' (for the max of the Bellman target) and the discount of the bootstrap term: γ^n for an n-step
+return that continues, 0 where K' is terminal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from htlm_world.types import BoolArray, FloatArray, IntArray
+
+
+@dataclass
+class Batch:
+    """A minibatch of every agent: arrays (N, M, ...)."""
+
+    k: NDArray[np.float32]  # (N, M, K)
+    a: IntArray  # (N, M)
+    r: NDArray[np.float32]  # (N, M)
+    k2: NDArray[np.float32]  # (N, M, K)
+    mask2: BoolArray  # (N, M, |G|)
+    discount: NDArray[np.float32]  # (N, M) factor of the bootstrap term: γ^n, 0 when terminal
+
+
+class Replay:
+    """Per-agent ring buffers of capacity C each, as one float32 array (N, C, D) of records
+    [K (K), K' (K), a, r, Â(K') (|G|), discount] so that a minibatch of every agent is a single gather."""
+
+    def __init__(self, n_agents: int, capacity: int, knowledge_size: int, n_actions: int, seeds: list[int]) -> None:
+        """Allocate the memories.
+
+        Args:
+            n_agents: N.
+            capacity: C transitions per agent; the oldest is overwritten when full.
+            knowledge_size: K.
+            n_actions: |Ḡ|.
+            seeds: one sampling seed per agent.
+        """
+        assert capacity >= 1 and len(seeds) == n_agents
+        self.n_agents, self.capacity = n_agents, capacity
+        self.ks, self.na = knowledge_size, n_actions
+        ks = knowledge_size
+        self.cols = {
+            "k": slice(0, ks),
+            "k2": slice(ks, 2 * ks),
+            "a": slice(2 * ks, 2 * ks + 1),
+            "r": slice(2 * ks + 1, 2 * ks + 2),
+            "mask2": slice(2 * ks + 2, 2 * ks + 2 + n_actions),
+            "discount": slice(2 * ks + 2 + n_actions, 2 * ks + 3 + n_actions),
+        }
+        self.width = 2 * ks + 3 + n_actions
+        self.data = np.zeros((n_agents, capacity, self.width), dtype=np.float32)
+        self.size = np.zeros(n_agents, dtype=np.int64)
+        self.pos = np.zeros(n_agents, dtype=np.int64)
+        self.rngs = [np.random.default_rng(s) for s in seeds]
+
+    def _records(
+        self, k: FloatArray, a: Any, r: Any, k2: FloatArray, mask2: BoolArray, discount: Any
+    ) -> NDArray[np.float32]:
+        lead = np.shape(a)
+        rec = np.empty(lead + (self.width,), dtype=np.float32)
+        c = self.cols
+        rec[..., c["k"]] = k
+        rec[..., c["k2"]] = k2
+        rec[..., c["a"]] = np.asarray(a)[..., None]
+        rec[..., c["r"]] = np.asarray(r)[..., None]
+        rec[..., c["mask2"]] = mask2
+        rec[..., c["discount"]] = np.asarray(discount)[..., None]
+        return rec
+
+    def add(
+        self, agent: int, k: FloatArray, a: int, r: float, k2: FloatArray, mask2: BoolArray, discount: float
+    ) -> None:
+        """Store one transition of one agent."""
+        i = int(self.pos[agent])
+        self.data[agent, i] = self._records(k, a, r, k2, mask2, discount)
+        self.pos[agent] = (i + 1) % self.capacity
+        self.size[agent] = min(self.size[agent] + 1, self.capacity)
+
+    def add_batch(
+        self, k: FloatArray, a: IntArray, r: FloatArray, k2: FloatArray, mask2: BoolArray, discount: FloatArray | float
+    ) -> None:
+        """Store B transitions of every agent at once: k, k2 (B, N, K), a, r (B, N), mask2 (B, N, |G|), discount
+        (B, N) or a scalar. Every agent's transitions go to its own memory."""
+        b = a.shape[0]
+        assert b <= self.capacity
+        disc = np.broadcast_to(np.asarray(discount, dtype=np.float32), (b, self.n_agents))
+        rec = self._records(k, a, r, k2, mask2, disc)  # (B, N, D)
+        for agent in range(self.n_agents):
+            idx = (self.pos[agent] + np.arange(b)) % self.capacity
+            self.data[agent, idx] = rec[:, agent]
+            self.pos[agent] = (self.pos[agent] + b) % self.capacity
+            self.size[agent] = min(self.size[agent] + b, self.capacity)
+
+    def sample_indices(self, batch: int, agents: NDArray[np.bool_]) -> IntArray:
+        """(N, batch) indices drawn uniformly with replacement from each marked agent's own memory with its own
+        generator; unmarked agents get index 0 and draw nothing."""
+        idx = np.zeros((self.n_agents, batch), dtype=np.int64)
+        for agent in range(self.n_agents):
+            if agents[agent]:
+                idx[agent] = self.rngs[agent].integers(0, self.size[agent], batch)
+        return idx
+
+    def sample(self, batch: int, agents: NDArray[np.bool_]) -> Batch:
+        """A minibatch of `batch` transitions of every agent marked in `agents` (N,) bool from its own memory
+        (`sample_indices`); other agents' rows are padding the caller ignores."""
+        idx = self.sample_indices(batch, agents)
+        rec = self.data[np.arange(self.n_agents)[:, None], idx]  # (N, M, D)
+        c = self.cols
+        return Batch(
+            k=rec[..., c["k"]],
+            a=rec[..., c["a"]][..., 0].astype(np.int64),
+            r=np.ascontiguousarray(rec[..., c["r"]][..., 0]),
+            k2=rec[..., c["k2"]],
+            mask2=rec[..., c["mask2"]] > 0.5,
+            discount=np.ascontiguousarray(rec[..., c["discount"]][..., 0]),
+        )
+
+    # ----- persistence (for resuming a run exactly) ------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """Arrays and generator states (only the filled part of the memories)."""
+        n = int(self.size.max()) if self.n_agents else 0
+        return {
+            "data": self.data[:, :n],
+            "size": self.size.copy(),
+            "pos": self.pos.copy(),
+            "rngs": [g.bit_generator.state for g in self.rngs],
+        }
+
+    def load_state(self, st: dict[str, Any]) -> None:
+        """Restore from `state()`."""
+        data = st["data"]
+        n = data.shape[1]
+        if n > self.capacity or data.shape[0] != self.n_agents or data.shape[2] != self.width:
+            raise ValueError(f"replay state of shape {data.shape} does not fit memories of {self.data.shape}")
+        self.data[:, :n] = data
+        self.size[:] = st["size"]
+        self.pos[:] = st["pos"]
+        for g, s in zip(self.rngs, st["rngs"], strict=True):
+            g.bit_generator.state = s

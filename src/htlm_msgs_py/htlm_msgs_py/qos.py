@@ -1,0 +1,36 @@
+"""QoS profiles of the HTLM topics, named once (ARCHITECTURE.md, The wire contract).
+
+Plain data, so this module imports without rclpy; `htlm_msgs_py.ros.qos_profile` turns a spec into an
+rclpy QoSProfile.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class QosSpec:
+    """A QoS profile: history KEEP_LAST of `depth`, with the given reliability and durability."""
+
+    name: str
+    """Profile name used in the topic table."""
+    reliability: Literal["reliable", "best_effort"]
+    """RELIABLE retransmits lost samples; BEST_EFFORT does not."""
+    durability: Literal["transient_local", "volatile"]
+    """TRANSIENT_LOCAL keeps the last `depth` samples for subscribers that join later."""
+    depth: int
+    """KEEP_LAST queue depth."""
+
+
+STATE = QosSpec("STATE", "reliable", "transient_local", 1)
+"""State topics (scenario, weights, beliefs, goal poses): a late joiner gets the latest value."""
+
+EVENTS = QosSpec("EVENTS", "reliable", "volatile", 100)
+"""Per-step events: reliable, not replayed to late joiners; the queue holds a few steps of a whole team."""
+
+DIAGNOSTICS = QosSpec("DIAGNOSTICS", "reliable", "volatile", 10)
+"""/diagnostics, as the ROS diagnostics tools expect it."""
+
+PROFILES: dict[str, QosSpec] = {q.name: q for q in (STATE, EVENTS, DIAGNOSTICS)}

@@ -1,0 +1,169 @@
+"""Fixtures of the ROS integration tests: a team of real processes over real DDS (Fast DDS from the PyPI wheels),
+on a ROS domain of its own per test and with localhost-only discovery, always cleaned up."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from htlm_agent.launch import LaunchConfig, Proc, start, stop
+from htlm_agent.lockstep import DecentralizedPolicy, builtin_policy
+from htlm_agent.team import Team, rollout
+from htlm_world.scenario import Scenario, builtin
+
+TOOLS = Path(__file__).resolve().parent / "ros_tools.py"
+# one domain per test, away from the launcher's default 42 and from other test sessions
+_DOMAINS = itertools.count(random.Random(os.getpid()).randrange(0, 50))
+
+
+def next_domain() -> int:
+    """A ROS_DOMAIN_ID for one test (120..229)."""
+    return 120 + next(_DOMAINS) % 110
+
+
+class RosTeam:
+    """The world, the agents and the trainer as processes (via htlm_agent.launch), plus helper processes."""
+
+    def __init__(self, tmp: Path, cfg: LaunchConfig) -> None:
+        self.tmp = tmp
+        self.cfg = cfg
+        self.procs: dict[str, Proc] = {}
+        self.helpers: list[subprocess.Popen[bytes]] = []
+
+    @property
+    def run_dir(self) -> Path:
+        return self.cfg.run_dir
+
+    def env(self) -> dict[str, str]:
+        from htlm_agent.launch import ros_env
+
+        return ros_env(self.cfg)
+
+    def start(self, *names: str) -> None:
+        """Start these processes (all of the launch when none is named)."""
+        only = names or self.cfg.only or ()
+        cfg = LaunchConfig(**{**self.cfg.__dict__, "only": tuple(only)})
+        for p in start(cfg):
+            self.procs[p.name] = p
+
+    def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
+        p = self.procs[name].popen
+        p.send_signal(sig)
+        p.wait(timeout=10)
+
+    def helper(self, *args: str) -> subprocess.Popen[bytes]:
+        """Start tests/ros/ros_tools.py with these arguments on the team's domain."""
+        log = open(self.tmp / f"helper-{len(self.helpers)}.log", "wb")  # noqa: SIM115
+        p = subprocess.Popen([sys.executable, str(TOOLS), *args], env=self.env(), stdout=log, stderr=subprocess.STDOUT)
+        self.helpers.append(p)
+        return p
+
+    def wait(self, name: str, timeout: float) -> int:
+        """Exit code of a process, waiting for it at most `timeout` seconds (fails the test after that)."""
+        try:
+            return self.procs[name].popen.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"{name} still running after {timeout} s; log:\n{self.log(name)[-3000:]}")
+
+    def wait_all(self, timeout: float) -> dict[str, int]:
+        end = time.monotonic() + timeout
+        return {n: self.wait(n, max(0.1, end - time.monotonic())) for n in self.procs}
+
+    def log(self, name: str) -> str:
+        return self.procs[name].log.read_text(errors="replace")
+
+    def world_episodes(self) -> list[dict[str, Any]]:
+        f = self.run_dir / "world.jsonl"
+        return [json.loads(x) for x in f.read_text().splitlines()] if f.exists() else []
+
+    def agent_episodes(self, name: str) -> list[dict[str, Any]]:
+        f = self.run_dir / f"{name}.jsonl"
+        return [json.loads(x) for x in f.read_text().splitlines()] if f.exists() else []
+
+    def wait_for(self, what: Callable[[], bool], timeout: float, why: str) -> None:
+        end = time.monotonic() + timeout
+        while not what():
+            if time.monotonic() > end:
+                pytest.fail(f"timed out after {timeout} s waiting for {why}; world log:\n"
+                            f"{self.log('world')[-3000:] if 'world' in self.procs else ''}")
+            time.sleep(0.05)
+
+    def cleanup(self) -> None:
+        stop(list(self.procs.values()), signal.SIGKILL, wait=2.0)
+        for h in self.helpers:
+            if h.poll() is None:
+                h.kill()
+            h.wait()
+
+
+@pytest.fixture
+def ros_team(tmp_path: Path) -> Iterator[Callable[..., RosTeam]]:
+    """Factory: ros_team(mode=..., episodes=..., ...) -> RosTeam (not started), cleaned up after the test."""
+    teams: list[RosTeam] = []
+
+    def make(**kw: Any) -> RosTeam:
+        kw.setdefault("scenario", builtin())
+        kw.setdefault("mode", "evaluate")
+        kw.setdefault("policy", "greedy")
+        kw.setdefault("run_dir", tmp_path / f"run{len(teams)}")
+        kw.setdefault("domain_id", next_domain())
+        kw.setdefault("echo", False)
+        team = RosTeam(tmp_path, LaunchConfig(**kw))
+        teams.append(team)
+        return team
+
+    yield make
+    for t in teams:
+        t.cleanup()
+
+
+def in_process(scenario: Scenario, seed: int, episode: int, policy: str) -> Any:
+    """The in-process Team's trajectory of one episode (batch 1) with per-agent built-in policies."""
+    pols = [builtin_policy(scenario, policy, i) for i in range(scenario.n_agents)]
+    dp = DecentralizedPolicy([p for p, _ in pols], seed, pols[0][1])
+    dp.begin(episode)
+    return rollout(Team(scenario, 1, seed, episode=episode), dp)
+
+
+def assert_same_as_in_process(team: RosTeam, seed: int, policy: str | Callable[[int], Any]) -> int:
+    """Every episode the world logged equals the in-process rollout: levels, assignments and observations (world
+    log), and each agent's assignments, broadcast levels and rewards (agent logs). Returns the episodes compared."""
+    sc = team.cfg.scenario
+    agents = {a.name: {x["episode"]: x for x in team.agent_episodes(a.name)} for a in sc.agents}
+    episodes = team.world_episodes()
+    assert episodes, "no episode finished"
+    for w in episodes:
+        e = w["metrics"]["episode"]
+        tr = policy(e) if callable(policy) else in_process(sc, seed, e, policy)
+        assert np.array_equal(tr.levels[:, 0], w["levels"]), f"episode {e}: levels differ"
+        assert np.array_equal(tr.actions[:, 0], w["actions"]), f"episode {e}: assignments differ"
+        assert np.array_equal(tr.observations[:, 0], w["observations"]), f"episode {e}: observations differ"
+        for i, a in enumerate(sc.agents):
+            rec = agents[a.name][e]
+            assert rec["actions"] == tr.actions[:, 0, i].tolist(), f"episode {e} {a.name}: actions differ"
+            assert rec["messages"] == tr.messages[:, 0, i].tolist(), f"episode {e} {a.name}: broadcasts differ"
+            assert rec["rewards"] == tr.rewards[:, 0, i].tolist(), f"episode {e} {a.name}: rewards differ"
+    return len(episodes)
+
+
+def read_json(path: Path, timeout: float = 10.0) -> Any:
+    end = time.monotonic() + timeout
+    while True:
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError):
+            if time.monotonic() > end:
+                raise
+            time.sleep(0.1)

@@ -1,0 +1,188 @@
+"""Helper processes of the ROS integration tests, each run as its own OS process (`python ros_tools.py CMD ...`):
+
+- diag: record the latest /diagnostics status of every node into a JSON file, rewritten every 0.3 s;
+- fuzz: publish malformed records on every subscribed topic of a team, then write how many went out per topic;
+- rogue: a stranger without the team key publishing plausible, well-formed forged observations, broadcasts and
+  actions for every step of the episodes it sees begin.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # tests/: wire_fuzz
+
+import rclpy  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+
+from htlm_msgs_py import schema as S  # noqa: E402
+from htlm_msgs_py import topics  # noqa: E402
+from htlm_msgs_py.ros import EVENTS, STATE, String, string  # noqa: E402
+from htlm_msgs_py.signing import Signer  # noqa: E402
+
+AGENTS = [f"agent{i}" for i in range(1, 6)]
+
+
+def subscribed_topics(mode: str) -> dict[str, tuple[S.Schema, Any]]:
+    """Every topic some node of a 5-agent team subscribes to in `mode`, with its schema and QoS."""
+    out: dict[str, tuple[S.Schema, Any]] = {
+        topics.SCENARIO: (S.SCENARIO, STATE),
+        topics.STEP: (S.STEP, EVENTS),
+        topics.ACTION: (S.ACTION, EVENTS),
+        topics.READY: (S.READY, EVENTS),
+        topics.BROADCAST: (S.BROADCAST, EVENTS),
+        topics.TRANSITIONS: (S.TRANSITION, EVENTS),
+        topics.TRANSITION_ACK: (S.TRANSITION_ACK, EVENTS),
+        topics.EPISODE_METRICS: (S.EPISODE_METRICS, EVENTS),
+    }
+    for a in AGENTS:
+        out[topics.observation(a)] = (S.OBSERVATION, EVENTS)
+        if mode == "train":
+            out[topics.weights(a)] = (S.WEIGHTS, STATE)
+    return out
+
+
+def _spin_for(node: Node, seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        rclpy.spin_once(node, timeout_sec=min(0.05, max(0.0, end - time.monotonic())))
+
+
+def diag(args: argparse.Namespace) -> None:
+    node = Node("test_diag_listener")
+    latest: dict[str, dict[str, Any]] = {}
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        for st in msg.status:
+            latest[st.name] = {"level": int.from_bytes(st.level, "little") if isinstance(st.level, bytes)
+                               else int(st.level), "message": st.message,
+                               **{kv.key: kv.value for kv in st.values}}
+
+    node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diag, 50)
+    out = Path(args.out)
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    last = 0.0
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        if time.monotonic() - last > 0.3:
+            tmp = out.with_suffix(".tmp")
+            tmp.write_text(json.dumps(latest))
+            tmp.replace(out)
+            last = time.monotonic()
+    out.write_text(json.dumps(latest))
+
+
+def fuzz(args: argparse.Namespace) -> None:
+    from wire_fuzz import malformed
+
+    node = Node("test_fuzzer")
+    lim = S.limits(5, 4, 6, 5, args.horizon)
+    targets = subscribed_topics(args.mode)
+    pubs = {t: node.create_publisher(String, t, qos) for t, (_, qos) in targets.items()}
+    # wait until every topic is matched with its subscribers
+    end = time.monotonic() + 20
+    while time.monotonic() < end and any(p.get_subscription_count() == 0 for p in pubs.values()):
+        _spin_for(node, 0.1)
+    unmatched = [t for t, p in pubs.items() if p.get_subscription_count() == 0]
+    rng = random.Random(args.seed)
+    texts = {
+        t: list(malformed(schema, rng, args.count, (args.first, args.first + args.episodes), lim))
+        for t, (schema, _) in targets.items()
+    }
+    sent = dict.fromkeys(targets, 0)
+    for i in range(args.count):
+        for t, pub in pubs.items():
+            pub.publish(string(texts[t][i]))
+            sent[t] += 1
+        if i % 10 == 9:
+            _spin_for(node, args.pause)
+    _spin_for(node, 1.0)
+    Path(args.out).write_text(json.dumps({"sent": sent, "unmatched": unmatched}))
+
+
+def rogue(args: argparse.Namespace) -> None:
+    node = Node("test_rogue")
+    signer = Signer(args.key.encode()) if args.key else None
+    pubs = {
+        "broadcast": node.create_publisher(String, topics.BROADCAST, EVENTS),
+        "action": node.create_publisher(String, topics.ACTION, EVENTS),
+        **{a: node.create_publisher(String, topics.observation(a), EVENTS) for a in AGENTS},
+    }
+    seen: list[int] = []
+
+    def on_step(msg: String) -> None:
+        try:
+            rec = json.loads(msg.data)
+        except ValueError:
+            return
+        if rec.get("phase") == "begin" and rec.get("episode") not in seen:
+            seen.append(rec["episode"])
+
+    node.create_subscription(String, topics.STEP, on_step, EVENTS)
+    rng = random.Random(args.seed)
+    count = 0
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    end = time.monotonic() + args.seconds
+    while not stop and time.monotonic() < end:
+        rclpy.spin_once(node, timeout_sec=0.01)
+        if not seen:
+            continue
+        e = seen[-1]
+        for t in range(1, args.horizon + 1):
+            k = rng.randrange(5)
+            lvl = rng.randrange(5)
+            recs = [
+                ("broadcast", S.BROADCAST, {"agent": k, "episode": e, "step": t, "action": rng.randrange(4),
+                                            "level": lvl}),
+                ("action", S.ACTION, {"agent": k, "episode": e, "step": t, "action": rng.randrange(4)}),
+                (AGENTS[k], S.OBSERVATION, {"agent": k, "episode": e, "step": t, "task": 0, "level": lvl,
+                                            "acted": [0, 1, 2, 3, 4]}),
+            ]
+            for topic, schema, fields in recs:
+                pubs[topic].publish(string(S.encode(schema, fields, signer)))
+                count += 1
+        _spin_for(node, 0.02)
+    Path(args.out).write_text(json.dumps({"sent": count, "episodes": seen}))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    sub = p.add_subparsers(dest="cmd", required=True)
+    d = sub.add_parser("diag")
+    d.add_argument("--out", required=True)
+    f = sub.add_parser("fuzz")
+    f.add_argument("--out", required=True)
+    f.add_argument("--mode", default="evaluate")
+    f.add_argument("--count", type=int, default=1000)
+    f.add_argument("--first", type=int, default=0)
+    f.add_argument("--episodes", type=int, default=1)
+    f.add_argument("--horizon", type=int, default=30)
+    f.add_argument("--pause", type=float, default=0.005)
+    f.add_argument("--seed", type=int, default=0)
+    r = sub.add_parser("rogue")
+    r.add_argument("--out", required=True)
+    r.add_argument("--key", default="", help="the rogue's own (wrong) key; empty: unsigned")
+    r.add_argument("--horizon", type=int, default=30)
+    r.add_argument("--seconds", type=float, default=60.0)
+    r.add_argument("--seed", type=int, default=0)
+    args = p.parse_args()
+    rclpy.init()
+    try:
+        {"diag": diag, "fuzz": fuzz, "rogue": rogue}[args.cmd](args)
+    finally:
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,246 @@
+"""The ROS runtime's core without ROS: the lockstep protocol in one process equals the in-process Team step for
+step; the agent's mind drops what the protocol says to drop; the trainer's durable store; node settings."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from htlm_agent.baselines import GreedyPolicy
+from htlm_agent.launch import LaunchConfig, process_specs, ros_env, write_params
+from htlm_agent.lockstep import (
+    AgentMind,
+    AgentSettings,
+    DecentralizedPolicy,
+    builtin_policy,
+    loopback_episode,
+    validate_agent_settings,
+)
+from htlm_agent.team import Team, rollout
+from htlm_agent.transition_store import (
+    StoreError,
+    TrainerSettings,
+    TransitionStore,
+    read_store,
+    validate_trainer_settings,
+)
+from htlm_world.lockstep import WorldEpisode, WorldSettings, validate_world_settings
+from htlm_world.model import Model
+from htlm_world.scenario import builtin
+
+FIELDS = ("levels", "actions", "observations", "messages", "rewards")
+
+
+def _policies(sc, name):  # type: ignore[no-untyped-def]
+    out = [builtin_policy(sc, name, i) for i in range(sc.n_agents)]
+    return [p for p, _ in out], out[0][1]
+
+
+@pytest.mark.parametrize("team", ["heterogeneous", "semi-heterogeneous", "homogeneous"])
+@pytest.mark.parametrize("name", ["greedy", "random"])
+def test_loopback_equals_team_rollout(team: str, name: str) -> None:
+    sc = builtin(team)
+    model = Model.build(sc)
+    pols, eps = _policies(sc, name)
+    for seed, episode in [(0, 0), (3, 7), (11, 2)]:
+        dp = DecentralizedPolicy(pols, seed, eps)
+        dp.begin(episode)
+        tr = rollout(Team(sc, 1, seed, episode=episode), dp)
+        lb = loopback_episode(sc, seed, episode, pols, epsilon=eps, model=model)
+        for f in FIELDS:
+            assert np.array_equal(getattr(tr, f)[:, 0], lb[f]), (f, seed, episode)
+
+
+def test_row_policy_is_the_team_greedy_policy() -> None:
+    sc = builtin()
+    pols, _ = _policies(sc, "greedy")
+    dp = DecentralizedPolicy(pols, 5, 0.0)
+    dp.begin(4)
+    a = rollout(Team(sc, 1, 5, episode=4), dp)
+    b = rollout(Team(sc, 1, 5, episode=4), GreedyPolicy(sc))
+    for f in FIELDS:
+        assert np.array_equal(getattr(a, f), getattr(b, f))
+
+
+def test_ht_mode_loopback_equals_team() -> None:
+    sc = builtin(mode="ht")
+    pols, _ = _policies(sc, "random")
+    dp = DecentralizedPolicy(pols, 2, 1.0)
+    dp.begin(1)
+    tr = rollout(Team(sc, 1, 2, episode=1), dp)
+    lb = loopback_episode(sc, 2, 1, pols, epsilon=1.0)
+    for f in FIELDS:
+        assert np.array_equal(getattr(tr, f)[:, 0], lb[f]), f
+
+
+def test_an_absent_agent_is_idle_like_an_inactive_one() -> None:
+    """Agent 2 silent for the whole episode: the world idles it at its site, its teammates assume its last known
+    assignment (idle@site1); the result is the in-process Team with agent 2 inactive."""
+    sc = builtin()
+    pols, _ = _policies(sc, "greedy")
+    absent = {t: {2} for t in range(1, sc.horizon + 1)}
+    lb = loopback_episode(sc, 4, 3, pols, absent=absent)
+    dp = DecentralizedPolicy(pols, 4, 0.0)
+    dp.begin(3)
+    tr = rollout(Team(sc, 1, 4, episode=3, inactive=(2,)), dp)
+    for f in FIELDS:
+        assert np.array_equal(getattr(tr, f)[:, 0], lb[f]), f
+    world = WorldEpisode(sc, Model.build(sc), 4, 3)
+    for _ in range(3):
+        world.step({0: 0, 1: 1})
+    m = world.metrics()
+    assert m["absent"] == [0, 0, 3, 3, 3]
+
+
+def _mind(seed: int = 0) -> AgentMind:
+    sc = builtin()
+    pol, _ = builtin_policy(sc, "greedy", 0)
+    return AgentMind(sc, 0, seed, pol)
+
+
+def test_mind_drops_past_future_and_duplicates() -> None:
+    m = _mind()
+    assert m.observe(0, 1, 3, [0]).drop == "no_episode"
+    eff = m.begin(5)
+    assert eff.action is not None and eff.action[0] == 1
+    again = m.begin(5)  # the world asks again: same answer, nothing changes
+    assert again.action == eff.action and again.drop is None
+    assert m.begin(4).drop == "past"
+    assert m.begin(6).drop == "future"  # the episode is not over
+    assert m.observe(4, 1, 3, [0]).drop == "past"
+    assert m.observe(6, 1, 3, [0]).drop == "future"
+    assert m.observe(5, 3, 3, [0]).drop == "future"
+    assert m.hear(1, 5, 9, 2, 3).drop == "future"
+    assert m.hear(0, 5, 1, 2, 3).drop == "self"
+    state = (m.t, m.current, m.belief.copy(), m.prev)
+    out = m.observe(5, 1, 3, [0, 1])  # agent 1 acted: wait for its broadcast
+    assert out.broadcast is not None and out.transition is None
+    assert m.observe(5, 1, 3, [0, 1]).drop == "duplicate"
+    assert state[0] == m.t and np.array_equal(state[2], m.belief)
+    done = m.hear(1, 5, 1, 2, 3)
+    assert done.transition is not None and done.action is not None and done.action[0] == 2
+    assert m.hear(1, 5, 1, 2, 3).drop == "past"
+
+
+def test_mind_buffers_a_broadcast_ahead_of_its_observation() -> None:
+    m = _mind()
+    m.begin(0)
+    assert m.hear(1, 0, 1, 0, 4).drop is None  # before our own observation of step 1
+    out = m.observe(0, 1, 3, [0, 1])
+    assert out.transition is not None  # nothing left to wait for
+
+
+def test_mind_times_out_on_a_missing_broadcast_and_catches_up() -> None:
+    m = _mind()
+    m.begin(0)
+    m.observe(0, 1, 3, [0, 1], now=10.0)
+    assert m.tick(10.5, 1.0).transition is None
+    out = m.tick(11.5, 1.0)
+    assert out.transition is not None and out.action is not None and m.timeouts == 1
+    # the world went on without our action of step 3: the mind closes step 2 and idles in step 3
+    out = m.observe(0, 3, -1, [1])
+    assert out.transition is not None and out.transition.step == 2 and m.current == 3
+    assert m.missed_steps == 1
+
+
+def test_mind_random_policy_uses_the_exploration_generator() -> None:
+    sc = builtin()
+    pol, eps = builtin_policy(sc, "random", 1)
+    assert eps == 1.0
+    a = [AgentMind(sc, 1, 9, pol).begin(e, eps).action for e in range(5)]
+    b = [AgentMind(sc, 1, 9, pol).begin(e, eps).action for e in range(5)]
+    assert a == b and len({x[1] for x in a if x}) > 1
+
+
+def _rec(agent: int, session: str, seq: int) -> dict[str, object]:
+    return {
+        "agent": agent,
+        "session": session,
+        "seq": seq,
+        "episode": 1,
+        "step": seq % 30 + 1,
+        "k": [0.5] * 26,
+        "a": 2,
+        "r": -1.25,
+        "k2": [0.25] * 26,
+        "mask2": [True] * 5 + [False],
+        "done": False,
+    }
+
+
+def test_store_acknowledges_only_durable_records_and_survives_reopen(tmp_path: Path) -> None:
+    path = tmp_path / "transitions.bin"
+    st = TransitionStore(path, 26, 6)
+    s = "0123456789abcdef"
+    assert st.append(_rec(1, s, 0)) and st.append(_rec(1, s, 2))
+    assert not st.append(_rec(1, s, 0))
+    assert st.acked_upto(1, s) == -1  # not flushed yet
+    assert st.flush() == [(1, s)]
+    assert st.acked_upto(1, s) == 0  # seq 1 is missing
+    st.append(_rec(1, s, 1))
+    st.flush()
+    assert st.acked_upto(1, s) == 2
+    st.close()
+    with open(path, "ab") as f:
+        f.write(b"\x01" * 100)  # a torn record
+    st2 = TransitionStore(path, 26, 6)
+    assert st2.count == 3 and st2.truncated == 1 and st2.acked_upto(1, s) == 2
+    assert not st2.append(_rec(1, s, 1))
+    recs = read_store(path)
+    assert recs["seq"].tolist() == [0, 2, 1] and recs["r"][0] == -1.25 and recs["k"][0, 0] == 0.5
+    st2.close()
+    with pytest.raises(StoreError, match="layout"):
+        TransitionStore(path, 20, 6)
+
+
+def test_store_detects_a_corrupted_record(tmp_path: Path) -> None:
+    path = tmp_path / "t.bin"
+    st = TransitionStore(path, 26, 6)
+    for i in range(4):
+        st.append(_rec(0, "aaaaaaaaaaaaaaaa", i))
+    st.close()
+    data = bytearray(path.read_bytes())
+    data[-10] ^= 0xFF  # flip a bit of the last record
+    path.write_bytes(bytes(data))
+    st2 = TransitionStore(path, 26, 6)
+    assert st2.count == 3 and st2.acked_upto(0, "aaaaaaaaaaaaaaaa") == 2
+    st2.close()
+
+
+@pytest.mark.parametrize(
+    ("cls", "check", "field", "bad"),
+    [
+        (WorldSettings, validate_world_settings, "team", "nope"),
+        (WorldSettings, validate_world_settings, "act_deadline", 0.0),
+        (WorldSettings, validate_world_settings, "clock", "sundial"),
+        (WorldSettings, validate_world_settings, "episodes", -1),
+        (AgentSettings, validate_agent_settings, "agent", ""),
+        (AgentSettings, validate_agent_settings, "policy", "clever"),
+        (AgentSettings, validate_agent_settings, "epsilon", 2.0),
+        (TrainerSettings, validate_trainer_settings, "run_dir", ""),
+        (TrainerSettings, validate_trainer_settings, "settings_json", "[1]"),
+    ],
+)
+def test_settings_validation_names_the_parameter(cls: type, check, field: str, bad: object) -> None:  # type: ignore[no-untyped-def]
+    base = {"agent": "agent1"} if cls is AgentSettings else {"run_dir": "x"} if cls is TrainerSettings else {}
+    good = cls(**base)
+    assert check(good) == []
+    problems = check(dataclasses.replace(good, **{field: bad}))
+    assert problems and problems[0].startswith(f"{field}:") and repr(bad) in problems[0] or str(bad) in problems[0]
+
+
+def test_launch_specs_and_environment(tmp_path: Path) -> None:
+    sc = builtin()
+    cfg = LaunchConfig(mode="evaluate", scenario=sc, run_dir=tmp_path / "run", policy="greedy", domain_id=77)
+    specs = process_specs(cfg)
+    assert [s[0] for s in specs] == ["world", "trainer", "agent1", "agent2", "agent3", "agent4", "agent5"]
+    assert specs[2][2]["agent"] == "agent1" and specs[0][2]["mode"] == "evaluate"
+    env = ros_env(cfg)
+    assert env["ROS_DOMAIN_ID"] == "77" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    only = process_specs(dataclasses.replace(cfg, only=("agent2",)))
+    assert [s[0] for s in only] == ["agent2"]
+    p = write_params(tmp_path / "p.yaml", {"a": "x: y", "b": 1.5, "c": True})
+    assert p.read_text().splitlines()[2:] == ['    a: "x: y"', "    b: 1.5", "    c: true"]

@@ -1,0 +1,176 @@
+"""Malformed records for every schema of the wire contract: used by the unit tests of decode and by the fuzzing
+integration test (tests/ros/test_fuzz.py). Deterministic for a given generator."""
+
+from __future__ import annotations
+
+import json
+import random
+from collections.abc import Iterator
+from typing import Any
+
+from htlm_msgs_py import schema as S
+
+VALID: dict[str, dict[str, Any]] = {
+    "htlm/scenario": {
+        "run": "r1",
+        "seed": 1,
+        "mode": "evaluate",
+        "clock": "lockstep",
+        "first_episode": 0,
+        "episodes": 1,
+        "state": "running",
+        "layout": "0123abcd",
+        "scenario": {"name": "paper"},
+    },
+    "htlm/step": {"episode": 1, "step": 0, "phase": "begin"},
+    "htlm/action": {"agent": 1, "episode": 1, "step": 3, "action": 2},
+    "htlm/observation": {"agent": 1, "episode": 1, "step": 3, "task": 2, "level": 3, "acted": [0, 1, 2]},
+    "htlm/broadcast": {"agent": 1, "episode": 1, "step": 3, "action": 2, "level": 3},
+    "htlm/ready": {"agent": 1, "episode": 1, "step": 30},
+    "htlm/transition": {
+        "agent": 1,
+        "session": "0123456789abcdef",
+        "seq": 0,
+        "episode": 1,
+        "step": 3,
+        "k": [0.0] * 26,
+        "a": 2,
+        "r": 1.5,
+        "k2": [0.0] * 26,
+        "mask2": [True] * 5 + [False],
+        "done": False,
+    },
+    "htlm/transition_ack": {"agent": 1, "session": "0123456789abcdef", "upto": 5},
+    "htlm/weights": {
+        "agent": 1,
+        "version": 3,
+        "episode": 2,
+        "encoding": "base64",
+        "data": "AAAA",
+        "sha256": "0" * 64,
+        "settings": {},
+    },
+    "htlm/belief": {"agent": 1, "episode": 1, "step": 3, "marginals": [0.2] * 20, "confident": [1, 2, 3, 4]},
+    "htlm/ground_truth": {"episode": 1, "step": 3, "levels": [1, 2, 3, 4], "actions": [0, 1, 2, 3, 4]},
+    "htlm/episode_metrics": {
+        "episode": 1,
+        "completion": 9,
+        "failed": False,
+        "unused_capability": 0.5,
+        "unused_fraction": 0.2,
+        "idle_before": 3,
+        "reassign_before": 2,
+        "absent": [0, 0, 0, 0, 0],
+        "seconds": 0.3,
+    },
+}
+"""A valid record of every schema for the paper scenario's limits (5 agents, 4 tasks, 6 actions, 5 levels, h 30)."""
+
+PAPER_LIMITS = S.limits(5, 4, 6, 5, 30)
+
+
+
+def wrong_type(fld: S.Field, rng: random.Random) -> Any:
+    """A value of another JSON type than field `fld` accepts."""
+    if isinstance(fld, S.Int):
+        return rng.choice(["x", 1.5, True, None, [], {}])
+    if isinstance(fld, S.Float):
+        return rng.choice(["x", True, None, [1.0], {}])
+    if isinstance(fld, (S.Text, S.OneOf)):
+        return rng.choice([1, None, [], {}, True])
+    if isinstance(fld, S.Bool):
+        return rng.choice([1, 0, "true", None, []])
+    if isinstance(fld, S.Object):
+        return rng.choice([[], "x", 1, None])
+    return rng.choice(["x", None, {}, 1, True])  # lists
+
+
+def out_of_range(fld: S.Field, rng: random.Random, lim: dict[str, int]) -> Any:
+    """A value of the right type but outside the range of field `fld` (None if it has no range)."""
+    if isinstance(fld, S.Int):
+        lo, hi = S._bound(fld.lo, lim), S._bound(fld.hi, lim)
+        return rng.choice([lo - 1, lo - 1000, hi + 1, hi + 10**6, 2**70, -(2**70)])
+    if isinstance(fld, S.Float):
+        return rng.choice([fld.lo - 1.0, fld.hi * 10 + 1.0, 1e300, -1e300])
+    if isinstance(fld, S.OneOf):
+        return "not-" + fld.values[0]
+    if isinstance(fld, S.Text):
+        return "x" * (fld.max_len + 1)
+    if isinstance(fld, S.IntList):
+        return [S._bound(fld.hi, lim) + 1] * max(1, S._bound(fld.length, lim) if fld.length is not None else 1)
+    if isinstance(fld, S.FloatList):
+        return [fld.hi * 10 + 1.0] * (S._bound(fld.length, lim) if fld.length is not None else 1)
+    if isinstance(fld, S.BoolList):
+        return [True] * (S._bound(fld.length, lim) + 1)
+    return None
+
+
+def valid(schema: S.Schema) -> dict[str, Any]:
+    """A fresh copy of the valid record of `schema`."""
+    return json.loads(json.dumps(VALID[schema.name]))
+
+
+def malformed(
+    schema: S.Schema,
+    rng: random.Random,
+    n: int,
+    episodes: tuple[int, int] = (0, 10**6),
+    lim: dict[str, int] | None = None,
+) -> Iterator[str]:
+    """`n` record texts for `schema` that a receiver must reject (or, for the last kinds, drop as past/future):
+    garbage, not JSON, not an object, wrong schema or version, missing/extra fields, wrong types, NaN/inf,
+    out-of-range values, oversized payloads, and well-formed records of episodes outside [lo, hi)."""
+    names = list(schema.fields)
+    lo, hi = episodes
+    lim = PAPER_LIMITS if lim is None else lim
+    ranged = [k for k, f in schema.fields.items() if not isinstance(f, (S.Bool, S.Object))]
+    for i in range(n):
+        kind = i % 14
+        rec = valid(schema)
+        if kind == 0:
+            yield "".join(chr(rng.randrange(1, 0x2FF)) for _ in range(rng.randrange(1, 200)))
+        elif kind == 1:
+            yield json.dumps(rec)[: rng.randrange(1, 40)]  # truncated JSON
+        elif kind == 2:
+            yield json.dumps(rng.choice([[1, 2], 3, "s", None, True, 1.5]))
+        elif kind == 3:
+            yield json.dumps({"schema": rng.choice(["htlm/nope", "", 7, None]), "v": schema.version, **rec})
+        elif kind == 4:
+            yield json.dumps({"schema": schema.name, "v": rng.choice([0, 2, 99, "1", 1.0, True, None]), **rec})
+        elif kind == 5:
+            rec.pop(rng.choice(names))
+            yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
+        elif kind == 6:
+            rec[f"extra{rng.randrange(9)}"] = 1
+            yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
+        elif kind == 7:
+            f = rng.choice(names)
+            rec[f] = wrong_type(schema.fields[f], rng)
+            yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
+        elif kind == 8:  # NaN and infinities as JSON text
+            f = rng.choice(names)
+            body = json.dumps({"schema": schema.name, "v": schema.version, **{k: v for k, v in rec.items() if k != f}})
+            yield body[:-1] + f',"{f}":{rng.choice(["NaN", "Infinity", "-Infinity", "1e400", "-1e999"])}}}'
+        elif kind == 9:  # out-of-range values: levels, agent ids, actions, steps, ...
+            f = rng.choice(ranged)
+            rec[f] = out_of_range(schema.fields[f], rng, lim)
+            yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
+        elif kind == 10:  # oversized payload
+            rec[names[0]] = "x" * (schema.max_bytes + 10)
+            yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
+        elif kind == 11:  # lists of the wrong length or with bad entries
+            lists = [k for k, fld in schema.fields.items() if isinstance(fld, (S.IntList, S.FloatList, S.BoolList))]
+            if lists:
+                k = rng.choice(lists)
+                rec[k] = rng.choice([[1] * 1000, [float("nan")] * 3, ["a"], [None], [[1]]])
+            else:
+                rec[names[-1]] = [[[]]]
+            yield json.dumps({"schema": schema.name, "v": schema.version, **rec}).replace("NaN", "NaN")
+        elif kind == 12 and "episode" in rec:  # well-formed, but an episode before the run
+            rec["episode"] = rng.randrange(0, max(lo, 1))
+            yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
+        elif kind == 13 and "episode" in rec:  # well-formed, but an episode after the run
+            rec["episode"] = rng.randrange(hi + 5, hi + 1000)
+            yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
+        else:
+            yield "{" * rng.randrange(1, 100_000)  # deep nesting / garbage
