@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # tests/: wire_
 import rclpy  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from htlm_msgs_py import schema as S  # noqa: E402
 from htlm_msgs_py import topics  # noqa: E402
@@ -88,7 +89,11 @@ def fuzz(args: argparse.Namespace) -> None:
     node = Node("test_fuzzer")
     lim = S.limits(5, 4, 6, 5, args.horizon)
     targets = subscribed_topics(args.mode)
-    pubs = {t: node.create_publisher(String, t, qos) for t, (_, qos) in targets.items()}
+    # a deep writer history: reliable delivery of the whole burst, also on the state topics (where the team's own
+    # writers keep only the latest value)
+    deep = QoSProfile(depth=2 * args.count, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pubs = {t: node.create_publisher(String, t, deep if qos is STATE else qos) for t, (_, qos) in targets.items()}
     # wait until every topic is matched with its subscribers
     end = time.monotonic() + 20
     while time.monotonic() < end and any(p.get_subscription_count() == 0 for p in pubs.values()):
@@ -120,15 +125,17 @@ def rogue(args: argparse.Namespace) -> None:
     }
     seen: list[int] = []
 
-    def on_step(msg: String) -> None:
+    def on_record(msg: String) -> None:  # anything of the team tells the episode in progress
         try:
-            rec = json.loads(msg.data)
-        except ValueError:
+            e = json.loads(msg.data).get("episode")
+        except (ValueError, AttributeError):
             return
-        if rec.get("phase") == "begin" and rec.get("episode") not in seen:
-            seen.append(rec["episode"])
+        if isinstance(e, int) and e not in seen:
+            seen.append(e)
 
-    node.create_subscription(String, topics.STEP, on_step, EVENTS)
+    node.create_subscription(String, topics.STEP, on_record, EVENTS)
+    for a in AGENTS:
+        node.create_subscription(String, topics.observation(a), on_record, EVENTS)
     rng = random.Random(args.seed)
     count = 0
     stop = []
@@ -150,9 +157,11 @@ def rogue(args: argparse.Namespace) -> None:
                                             "acted": [0, 1, 2, 3, 4]}),
             ]
             for topic, schema, fields in recs:
+                if args.kinds != "all" and schema.name != f"htlm/{args.kinds}":
+                    continue
                 pubs[topic].publish(string(S.encode(schema, fields, signer)))
                 count += 1
-        _spin_for(node, 0.02)
+        _spin_for(node, args.pause)
     Path(args.out).write_text(json.dumps({"sent": count, "episodes": seen}))
 
 
@@ -175,6 +184,8 @@ def main() -> None:
     r.add_argument("--key", default="", help="the rogue's own (wrong) key; empty: unsigned")
     r.add_argument("--horizon", type=int, default=30)
     r.add_argument("--seconds", type=float, default=60.0)
+    r.add_argument("--pause", type=float, default=0.05)
+    r.add_argument("--kinds", default="all", help="all, broadcast, action or observation")
     r.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
     rclpy.init()

@@ -52,3 +52,14 @@ def test_ros_evaluation_of_a_checkpoint_equals_in_process(ros_team: Any, tmp_pat
         return rollout(Team(sc, 1, 3, episode=e), dp)
 
     assert assert_same_as_in_process(team, 3, reference) == 2
+
+
+def test_free_running_clock_equals_in_process(ros_team: Any) -> None:
+    """The world steps every 50 ms instead of as soon as everyone answered; agents that keep up give the same run."""
+    team = ros_team(policy="greedy", seed=1, episodes=2, world_params={"clock": "free", "period": 0.05})
+    team.start()
+    assert team.wait("world", 60) == 0
+    assert team.wait_all(30) == dict.fromkeys(team.procs, 0)
+    assert assert_same_as_in_process(team, 1, "greedy") == 2
+    seconds = [w["metrics"]["seconds"] for w in team.world_episodes()]
+    assert seconds[-1] >= 30 * 0.05 * 0.9, seconds  # paced by the clock, not by the agents

@@ -18,7 +18,7 @@ from .conftest import read_json
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(150)]
 
-FAST = {"act_deadline": 0.5, "update_deadline": 0.5, "begin_deadline": 2.0}
+FAST = {"act_deadline": 1.0, "update_deadline": 1.0, "begin_deadline": 2.0}
 
 
 def test_agent_killed_mid_episode_is_idle_then_rejoins(ros_team: Any) -> None:
@@ -57,7 +57,7 @@ def test_trainer_killed_and_restarted_loses_no_acknowledged_transition(ros_team:
     team = ros_team(
         mode="train",
         policy="auto",
-        episodes=12,
+        episodes=24,
         seed=4,
         learner={"learning_starts": 60, "batch_size": 32, "memory": 5000},
         trainer_params={"checkpoint_every": 2},
@@ -88,8 +88,10 @@ def test_trainer_killed_and_restarted_loses_no_acknowledged_transition(ros_team:
         assert seqs == list(range(played)), f"agent {i}: {len(seqs)} stored of {played}"
     log = team.log("trainer")
     assert "resumed from" in log, log[-2000:]
+    after_restart = log.split("resumed from", 1)[1]
+    assert "episode 2" in after_restart or "episode 1" in after_restart, "the restarted trainer trained on"
     meta = read_json(team.run_dir / "trainer" / "checkpoint" / "meta.json")
-    assert meta["format"] == "htlm-checkpoint" and meta["episodes_done"] >= 10
+    assert meta["format"] == "htlm-checkpoint" and meta["episodes_done"] == 24
     print(f"store held {len(before)} transitions at the kill (all kept); {len(after)} at the end "
           f"= {len(after) // 5} per agent; checkpoint after {meta['episodes_done']} episodes")
     assert Path(team.run_dir / "trainer" / "train_log.jsonl").exists()

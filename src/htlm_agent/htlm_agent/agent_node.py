@@ -29,8 +29,10 @@ from rclpy.signals import SignalHandlerOptions
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import (
+    BULK,
     EVENTS,
     STATE,
+    STATE_READER,
     Health,
     PoseStamped,
     SettingsError,
@@ -102,11 +104,11 @@ class AgentNode(Node):
         self.pub_action = self.create_publisher(String, topics.ACTION, EVENTS)
         self.pub_broadcast = self.create_publisher(String, topics.BROADCAST, EVENTS)
         self.pub_ready = self.create_publisher(String, topics.READY, EVENTS)
-        self.pub_transition = self.create_publisher(String, topics.TRANSITIONS, EVENTS)
+        self.pub_transition = self.create_publisher(String, topics.TRANSITIONS, BULK)
         self.pub_goal = self.create_publisher(PoseStamped, topics.goal_pose(self.name), STATE)
         self.pub_belief = self.create_publisher(String, topics.belief(self.name), STATE)
         # subscriptions
-        self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE)
+        self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
         self.create_subscription(String, topics.STEP, self._on_step, EVENTS)
         self.create_subscription(String, topics.observation(self.name), self._on_observation, EVENTS)
         self.create_subscription(String, topics.BROADCAST, self._on_broadcast, EVENTS)
@@ -191,7 +193,7 @@ class AgentNode(Node):
             self.policy = None
             if self.sub_weights is None:
                 self.sub_weights = self.create_subscription(
-                    String, topics.weights(self.name), self._on_weights, STATE
+                    String, topics.weights(self.name), self._on_weights, STATE_READER
                 )
 
     def _fail(self, why: str) -> None:
@@ -443,7 +445,7 @@ class AgentNode(Node):
                 self.pub_transition.publish(string(item[0]))
                 item[1] = now
                 n += 1
-                if n >= 500:
+                if n >= self.settings.resend_batch:
                     break
         self.health.counters["resent"] += n
 

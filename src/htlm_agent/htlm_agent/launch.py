@@ -262,6 +262,7 @@ def run_team(cfg: LaunchConfig) -> int:
             f"htlm launch {cfg.mode}: {names} on ROS_DOMAIN_ID={cfg.domain_id} "
             f"(discovery {cfg.discovery}{', peers ' + cfg.peers if cfg.peers else ''}); logs in {cfg.run_dir / 'logs'}",
             flush=True,
+            file=sys.stderr,
         )
         tails = (
             [_Tail(p.log, ("episode", "ERROR", "checkpoint", "resumed"), f"[{p.name}] ") for p in procs
@@ -280,7 +281,7 @@ def run_team(cfg: LaunchConfig) -> int:
                 t.poll()
             if got:
                 sig = got[0]
-                print(f"htlm launch: {signal.Signals(sig).name}: stopping the team", flush=True)
+                print(f"htlm launch: {signal.Signals(sig).name}: stopping the team", flush=True, file=sys.stderr)
                 world_first = [p for p in procs if p.name == "world"] + [p for p in procs if p.name != "world"]
                 stop(world_first, signal.SIGINT, wait=cfg.grace if cfg.mode == "train" else 10.0)
                 code = 128 + sig
@@ -289,7 +290,7 @@ def run_team(cfg: LaunchConfig) -> int:
                 rc = p.popen.poll()
                 if rc not in (None, 0) and p.name not in failed and not (rc < 0 and ended_at is not None):
                     failed.append(p.name)
-                    print(f"htlm launch: {p.name} exited with {rc}; see {p.log}", flush=True)
+                    print(f"htlm launch: {p.name} exited with {rc}; see {p.log}", flush=True, file=sys.stderr)
             if world is not None:
                 wrc = world.popen.poll()
                 if wrc is not None and ended_at is None:
@@ -307,12 +308,12 @@ def run_team(cfg: LaunchConfig) -> int:
                 if time.monotonic() - ended_at > cfg.grace:
                     late = [p.name for p in procs if p.popen.poll() is None]
                     print(f"htlm launch: {', '.join(late)} still running {cfg.grace:.0f} s after the world; stopping",
-                          flush=True)
+                          flush=True, file=sys.stderr)
                     stop(procs, signal.SIGINT)
                     code = 1
                     break
             if cfg.timeout and time.monotonic() - start_t > cfg.timeout:
-                print(f"htlm launch: timeout after {cfg.timeout:.0f} s: stopping the team", flush=True)
+                print(f"htlm launch: timeout after {cfg.timeout:.0f} s: stopping the team", flush=True, file=sys.stderr)
                 stop(procs, signal.SIGINT)
                 code = 124
                 break

@@ -45,7 +45,7 @@ from .reward import action_mask
 from .team import Context, Team
 
 # stream tags of SeedSequence([seed, tag, ...]); the simulator uses 0 (world) and 1 (channels) for evaluation
-_INIT, _EXPLORE, _REPLAY, _TRAIN_WORLD, _TRAIN_CHANNEL = 2, 3, 4, 10, 11
+_INIT, _EXPLORE, _REPLAY, _VALIDATE, _TRAIN_WORLD, _TRAIN_CHANNEL = 2, 3, 4, 6, 10, 11
 
 
 def derive_seed(seed: int, *keys: int) -> int:
@@ -79,7 +79,7 @@ class Settings:
     n_step: int = 1
     """n of n-step returns: a stored transition sums n discounted rewards and bootstraps from the knowledge state n
     steps later (shorter at the end of an episode)."""
-    advantage_learning: float = 0.0
+    advantage_learning: float = 0.9
     """α of advantage learning (Bellemare et al. 2016): the target is lowered by α (max_b Q̂(K, b) − Q̂(K, a)), which
     widens the gaps between actions without changing the greedy policy; 0 is plain Q-learning."""
     double_dqn: bool = True
@@ -96,7 +96,9 @@ class Settings:
     """ε after the decay."""
     eps_fraction: float = 0.5
     """Fraction of `episodes` over which ε decays linearly from eps_start to eps_end."""
-    episodes: int = 16_384
+    eps_spread: bool = False
+    """Spread ε over the B parallel episodes, linearly from 0 to 2ε (mean ε), so some run the greedy team."""
+    episodes: int = 32_768
     """Training episodes in total."""
     envs: int = 128
     """B, episodes simulated in parallel; one batch of B episodes runs the whole horizon together."""
@@ -108,8 +110,13 @@ class Settings:
     """torch intra-op threads; results are reproducible for a fixed value."""
     eval_episodes: int = 500
     """Episodes of the greedy evaluation at the end of training."""
-    eval_every: int = 0
-    """Episodes between periodic greedy evaluations logged during training (0: only at the end)."""
+    validate_every: int = 2048
+    """Episodes between greedy validation runs during training (0: none), logged as val_* columns."""
+    validate_episodes: int = 200
+    """Episodes of every validation run (their own random streams, never those of the final evaluation)."""
+    select_best: bool = True
+    """Make the networks with the best validation completion step, among validations after ε has decayed and at the
+    end, the run's policy (the latest networks are kept for resuming)."""
     checkpoint_every: int = 8_192
     """Episodes between checkpoints (always one at the end)."""
 
@@ -119,7 +126,8 @@ class Settings:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be > 0")
-        for name in ("learning_starts", "grad_clip", "eval_episodes", "eval_every", "checkpoint_every", "seed"):
+        for name in ("learning_starts", "grad_clip", "eval_episodes", "validate_every", "validate_episodes",
+                     "checkpoint_every", "seed"):
             if getattr(self, name) < 0:
                 raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be >= 0")
         for name in ("eps_start", "eps_end", "eps_fraction", "advantage_learning"):
@@ -323,13 +331,14 @@ def clip_grad_per_agent(param: torch.Tensor, max_norm: float) -> torch.Tensor:
 
 
 def epsilon_greedy(
-    q: torch.Tensor, mask: torch.Tensor, epsilon: float, rngs: Sequence[np.random.Generator]
+    q: torch.Tensor, mask: torch.Tensor, epsilon: float | FloatArray, rngs: Sequence[np.random.Generator]
 ) -> IntArray:
-    """ε-greedy over Â for every agent: q, mask (N, B, |Ḡ|); agent i draws from rngs[i]. Returns (B, N)."""
+    """ε-greedy over Â for every agent: q, mask (N, B, |Ḡ|); ε a number or one per episode (B,); agent i draws from
+    rngs[i]. Returns (B, N)."""
     greedy = masked_argmax(q, mask).numpy()  # (N, B)
     m = mask.numpy()
     out = greedy.copy()
-    if epsilon > 0:
+    if np.any(np.asarray(epsilon) > 0):
         for i, g in enumerate(rngs):
             u = g.random(m.shape[1:])  # (B, |G|)
             explore = g.random(m.shape[1]) < epsilon
@@ -391,10 +400,14 @@ class Learner:
             return self.net(x).numpy().transpose(1, 0, 2).astype(np.float64)
 
     def act(
-        self, knowledge: FloatArray, mask: BoolArray, epsilon: float, rngs: Sequence[np.random.Generator]
+        self,
+        knowledge: FloatArray,
+        mask: BoolArray,
+        epsilon: float | FloatArray,
+        rngs: Sequence[np.random.Generator],
     ) -> IntArray:
-        """ε-greedy actions (B, N) over Â from knowledge (B, N, K) and masks (B, N, |Ḡ|); agent i explores with
-        rngs[i]."""
+        """ε-greedy actions (B, N) over Â from knowledge (B, N, K) and masks (B, N, |Ḡ|); ε a number or one per
+        episode (B,); agent i explores with rngs[i]."""
         with torch.no_grad():
             x = torch.from_numpy(np.ascontiguousarray(knowledge.transpose(1, 0, 2), dtype=np.float32))
             q = self.net(x)
@@ -448,7 +461,7 @@ class Learner:
         k2 = torch.from_numpy(batch.k2)
         a = torch.from_numpy(batch.a)
         r = torch.from_numpy(batch.r)
-        mask2 = torch.from_numpy(batch.mask2)
+        mask2 = torch.from_numpy(batch.mask2) | ~active[:, None, None]  # padding rows of idle learners: any action
         discount = torch.from_numpy(batch.discount)
         m = k.shape[1]
         if s.double_dqn:  # one pass of the online network over K and K'
@@ -511,14 +524,35 @@ class Learner:
         """The greedy decentralized team policy of the current networks."""
         return QPolicy(self.scenario, self.net)
 
-    def save(self, directory: str | Path, replay: bool = True, extra: dict[str, Any] | None = None) -> Path:
-        """Write a checkpoint directory (see `htlm_agent.checkpoint`) with everything needed to continue exactly."""
+    def save(
+        self,
+        directory: str | Path,
+        replay: bool = True,
+        extra: dict[str, Any] | None = None,
+        policy_flat: torch.Tensor | None = None,
+    ) -> Path:
+        """Write a checkpoint directory (see `htlm_agent.checkpoint`) with everything needed to continue exactly.
+
+        Args:
+            directory: the checkpoint directory.
+            replay: also save the replay memories.
+            extra: JSON-able additions to the checkpoint's info.
+            policy_flat: networks (N, P) to publish as the agents' networks instead of the current ones (a selected
+                best); the current ones then go into the training state, from which training resumes.
+        """
         from .checkpoint import save_checkpoint
 
         train_state = {
             "target": self.target.flat.detach().clone(),
             "adam": self.opt.state(),
         }
+        weights = [self.net.agent_params(i) for i in range(self.n_agents)]
+        if policy_flat is not None:
+            train_state["online"] = self.net.flat.detach().clone()
+            sel = StackedQ(self.sizes, [[torch.zeros(sh) for sh in self.net.shapes]] * self.n_agents)
+            with torch.no_grad():
+                sel.flat.copy_(policy_flat)
+            weights = [sel.agent_params(i) for i in range(self.n_agents)]
         rs = self.replay.state() if replay else None
         info = {
             "updates": self.updates.tolist(),
@@ -531,7 +565,7 @@ class Learner:
             settings=self.settings,
             seed=self.seed,
             episodes_done=self.episodes_done,
-            weights=[self.net.agent_params(i) for i in range(self.n_agents)],
+            weights=weights,
             train_state=train_state,
             replay_state=rs,
             info=info,
@@ -555,6 +589,8 @@ class Learner:
         if ts is not None:
             with torch.no_grad():
                 lr.target.flat.copy_(ts["target"])
+                if "online" in ts:
+                    lr.net.flat.copy_(ts["online"])
             lr.opt.load_state(ts["adam"])
         else:
             lr.target.load_state_dict(lr.net.state_dict())
@@ -624,9 +660,9 @@ LOG_FIELDS = (
     "completion",
     "failure_rate",
     "unused_fraction",
-    "eval_completion",
-    "eval_failure_rate",
-    "eval_unused_fraction",
+    "val_completion",
+    "val_failure_rate",
+    "val_unused_fraction",
 )
 
 
@@ -648,6 +684,9 @@ def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, flo
     ]
     rngs = [np.random.default_rng(np.random.SeedSequence([seed, _EXPLORE, i, batch_index])) for i in range(n)]
     eps = s.epsilon(learner.episodes_done)
+    eps_env: float | FloatArray = eps
+    if s.eps_spread and b > 1:  # from 0 (greedy episodes) to 2ε, mean ε
+        eps_env = np.minimum(1.0, eps * 2.0 * np.arange(b) / (b - 1))
     k = team.reset()
     m = team.mask()
     levels = [team.sim.levels.copy()]
@@ -655,7 +694,7 @@ def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, flo
     rsum = 0.0
     losses: list[float] = []
     for t in range(sc.horizon):
-        a = learner.act(k, m, eps, rngs)
+        a = learner.act(k, m, eps_env, rngs)
         k2, r, info = team.step(a)
         m2 = team.mask()
         learner.store_batch(k, a, r, k2, m2, t == sc.horizon - 1)
@@ -690,6 +729,35 @@ def write_run_files(out_dir: Path, scenario: Scenario, settings: Settings) -> No
     (out_dir / "scenario.yaml").write_text(yaml.safe_dump(scenario.to_dict(), sort_keys=False))
 
 
+RESUMABLE_CHANGES = ("episodes", "eval_episodes", "validate_every", "validate_episodes", "checkpoint_every", "threads")
+"""Settings that may differ when a run is resumed; every other field must match the checkpoint's."""
+
+
+class _Selection:
+    """The best networks by validation completion step (lower is better; the later one wins a tie)."""
+
+    def __init__(self, learner: Learner, info: dict[str, Any]) -> None:
+        self.learner = learner
+        self.score: float = float(info.get("best_score", math.inf))
+        self.episode: int = int(info.get("best_episode", -1))
+        self.flat: torch.Tensor | None = None
+
+    def offer(self, score: float) -> None:
+        if score <= self.score:
+            self.score, self.episode = score, self.learner.episodes_done
+            self.flat = self.learner.net.flat.detach().clone()
+
+    def info(self) -> dict[str, Any]:
+        return {"best_score": None if math.isinf(self.score) else self.score, "best_episode": self.episode}
+
+
+def validate(learner: Learner, episodes: int) -> dict[str, Any]:
+    """Greedy validation of the current networks on episodes of the run's validation stream."""
+    from .evaluate import evaluate
+
+    return evaluate(learner.policy(), learner.scenario, episodes, seed=derive_seed(learner.seed, _VALIDATE))
+
+
 def train(
     scenario: Scenario,
     settings: Settings,
@@ -702,16 +770,17 @@ def train(
     """Train a team in process (Algorithm 1 with B parallel episodes) and evaluate it greedily at the end.
 
     Writes into out_dir: settings.json, scenario.yaml, progress.csv (one row per batch of episodes), tb/ (TensorBoard),
-    checkpoint/ (periodic and final), eval/ (final evaluation: metrics.json, CSVs, histogram PNG).
+    checkpoint/ (periodic and final; with select_best its networks are the best validated ones, the latest are in its
+    training state), eval/ (final evaluation: metrics.json, CSVs, histogram PNG), result.json.
 
     Args:
         scenario: operation and team (ignored when resuming: the checkpoint's is used).
-        settings: learning settings (when resuming, only `episodes` and the logging/evaluation fields may change).
+        settings: learning settings (when resuming, only the fields in RESUMABLE_CHANGES may differ).
         out_dir: the run directory.
         progress: show a progress line on stderr.
         resume: continue the run in out_dir from its checkpoint.
         tensorboard: also write TensorBoard logs.
-        evaluate_at_end: run the final greedy evaluation (settings.eval_episodes episodes).
+        evaluate_at_end: run the final greedy evaluation (settings.eval_episodes episodes, seed settings.seed).
     """
     from . import evaluate as ev
     from .checkpoint import CheckpointError, load_checkpoint
@@ -722,88 +791,96 @@ def train(
     torch.set_num_threads(settings.threads)
     torch.use_deterministic_algorithms(True)
     ckpt_dir = out / "checkpoint"
+    info: dict[str, Any] = {}
     if resume:
         ck = load_checkpoint(ckpt_dir)
         scenario = ck.scenario
-        fixed = {k: v for k, v in ck.settings.to_dict().items()
-                 if k not in ("episodes", "eval_episodes", "eval_every", "checkpoint_every", "threads")}
+        fixed = {k: v for k, v in ck.settings.to_dict().items() if k not in RESUMABLE_CHANGES}
         mine = {k: v for k, v in settings.to_dict().items() if k in fixed}
         if fixed != mine:
             diff = sorted(k for k in fixed if fixed[k] != mine[k])
-            raise CheckpointError(f"{ck.path}: cannot resume with changed settings {diff}; only episodes and "
-                                  "logging fields may change")
+            raise CheckpointError(f"{ck.path}: cannot resume with changed settings {diff}; only "
+                                  f"{list(RESUMABLE_CHANGES)} may change")
         learner = Learner.load(ckpt_dir, settings)
+        info = ck.info
     else:
         if (ckpt_dir / "meta.json").exists():
-            raise FileExistsError(f"{out}: already holds a run; use resume to continue it or choose another --out")
+            raise FileExistsError(f"{out}: already holds a run; resume it or choose another output directory")
         learner = Learner(scenario, settings)
     s = settings
     write_run_files(out, scenario, s)
     team = Team(scenario, s.envs, s.seed)
+    selection = _Selection(learner, info)
+    if selection.episode >= 0 and resume:
+        best = load_checkpoint(ckpt_dir)
+        selection.flat = torch.stack([torch.cat([torch.from_numpy(p).reshape(-1) for p in w]) for w in best.weights])
     writer = None
     if tensorboard:
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(out / "tb"), purge_step=learner.episodes_done if resume else None)
     log_path = out / "progress.csv"
-    new_log = not (resume and log_path.exists())
-    if resume and log_path.exists():  # drop rows written after the checkpoint (an interrupted run)
-        rows = list(csv.DictReader(log_path.open()))
-        rows = [r for r in rows if int(r["episodes"]) <= learner.episodes_done]
-        with log_path.open("w", newline="") as f:
-            w = csv.DictWriter(f, LOG_FIELDS)
-            w.writeheader()
-            w.writerows(rows)
-    log_file = log_path.open("w" if new_log else "a", newline="")
-    log = csv.DictWriter(log_file, LOG_FIELDS)
-    if new_log:
-        log.writeheader()
-    total = s.episodes
-    bar = Progress(total, initial=learner.episodes_done, unit="ep", enabled=progress)
+    rows_before: list[dict[str, str]] = []
+    if resume and log_path.exists():  # keep rows up to the checkpoint (drop those of an interrupted tail)
+        with log_path.open() as f:
+            rows_before = [r for r in csv.DictReader(f) if int(r["episodes"]) <= learner.episodes_done]
+    log_file = log_path.open("w", newline="")
+    log = csv.DictWriter(log_file, LOG_FIELDS, extrasaction="ignore")
+    log.writeheader()
+    log.writerows(rows_before)
+    decayed_at = s.eps_fraction * s.episodes
+
+    def save() -> None:
+        extra = selection.info()
+        if s.select_best and selection.flat is not None:
+            learner.save(ckpt_dir, extra=extra, policy_flat=selection.flat)
+        else:
+            learner.save(ckpt_dir, extra=extra)
+
+    bar = Progress(s.episodes, initial=learner.episodes_done, unit="ep", enabled=progress)
     history: list[dict[str, float]] = []
     train_time = 0.0
-    last_ckpt = learner.episodes_done
-    last_eval = learner.episodes_done
+    last_ckpt = last_val = learner.episodes_done
     try:
-        while learner.episodes_done < total:
+        while learner.episodes_done < s.episodes:
             t0 = time.perf_counter()
-            batch_index = learner.episodes_done // s.envs
-            row: dict[str, float] = train_batch(learner, team, batch_index)
+            row: dict[str, float] = train_batch(learner, team, learner.episodes_done // s.envs)
             train_time += time.perf_counter() - t0
             row["episodes"] = learner.episodes_done
             row["updates"] = int(learner.updates.max())
             row["wall_s"] = round(time.perf_counter() - t_start, 3)
             row["episodes_per_s"] = bar.rate
-            if s.eval_every and learner.episodes_done - last_eval >= s.eval_every:
-                last_eval = learner.episodes_done
-                em = ev.evaluate(learner.policy(), scenario, min(s.eval_episodes, 200) or 200, seed=s.seed)
-                row["eval_completion"] = em["completion"]["mean"]
-                row["eval_failure_rate"] = em["completion"]["failure_rate"]
-                row["eval_unused_fraction"] = em["unused_fraction"]["mean"]
+            final = learner.episodes_done >= s.episodes
+            if s.validate_every and s.validate_episodes and (
+                learner.episodes_done - last_val >= s.validate_every or final
+            ):
+                last_val = learner.episodes_done
+                vm = validate(learner, s.validate_episodes)
+                row["val_completion"] = vm["completion"]["mean"]
+                row["val_failure_rate"] = vm["completion"]["failure_rate"]
+                row["val_unused_fraction"] = vm["unused_fraction"]["mean"]
+                if learner.episodes_done >= decayed_at:
+                    selection.offer(vm["completion"]["mean"])
             history.append(row)
-            log.writerow({k: row.get(k, "") for k in LOG_FIELDS})
+            log.writerow(row)
             log_file.flush()
             if writer is not None:
                 for key, val in row.items():
-                    if key not in ("episodes", "wall_s") and not (isinstance(val, float) and math.isnan(val)):
+                    if key not in ("episodes", "wall_s") and not math.isnan(val):
                         writer.add_scalar(f"train/{key}", val, learner.episodes_done)
-            bar.update(
-                learner.episodes_done,
-                completion=f"{row['completion']:.2f}",
-                unused=f"{row['unused_fraction']:.2f}",
-                eps=f"{row['epsilon']:.2f}",
-            )
-            if s.checkpoint_every and learner.episodes_done - last_ckpt >= s.checkpoint_every and \
-                    learner.episodes_done < total:
+            bar.update(learner.episodes_done, completion=f"{row['completion']:.2f}",
+                       unused=f"{row['unused_fraction']:.2f}", eps=f"{row['epsilon']:.2f}")
+            if s.checkpoint_every and learner.episodes_done - last_ckpt >= s.checkpoint_every and not final:
                 last_ckpt = learner.episodes_done
-                learner.save(ckpt_dir)
+                save()
     finally:
         bar.close()
         log_file.close()
-    learner.save(ckpt_dir)
+    save()
     metrics: dict[str, Any] = {}
     if evaluate_at_end and s.eval_episodes > 0:
-        evaluation = ev.evaluate_run(learner.policy(), scenario, s.eval_episodes, seed=s.seed)
+        policy = QPolicy.from_checkpoint(load_checkpoint(ckpt_dir))
+        evaluation = ev.evaluate_run(policy, scenario, s.eval_episodes, seed=s.seed, policy_name="htlm-dqn")
         ev.write_reports(evaluation, out / "eval")
         metrics = evaluation.metrics
         if writer is not None:
@@ -814,7 +891,7 @@ def train(
         writer.close()
     wall = time.perf_counter() - t_start
     summary = {"episodes": learner.episodes_done, "wall_time_s": round(wall, 2), "train_time_s": round(train_time, 2),
-               "metrics": metrics}
+               "selected_episode": selection.episode if s.select_best else None, "metrics": metrics}
     (out / "result.json").write_text(json.dumps(summary, indent=2) + "\n")
     if progress and metrics:
         c = metrics["completion"]

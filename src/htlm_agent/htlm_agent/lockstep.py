@@ -530,6 +530,8 @@ class AgentSettings:
     """Send transitions to the trainer: auto (in train mode), on, off."""
     resend_period: float = 1.0
     """Seconds before an unacknowledged transition is sent again."""
+    resend_batch: int = 200
+    """Most transitions sent again per resend period (oldest first), so a restarted trainer is not flooded."""
     outbox_limit: int = 100_000
     """Most unacknowledged transitions kept; the oldest are dropped (counted) beyond it."""
     belief_every: int = 1
@@ -575,6 +577,8 @@ def validate_agent_settings(s: AgentSettings) -> list[str]:
             bad.append(f"{name}: {v!r} must be in (0, 3600] seconds")
     if not 0.0 <= s.stop_timeout <= 600.0:
         bad.append(f"stop_timeout: {s.stop_timeout!r} must be in [0, 600] seconds")
+    if s.resend_batch < 1:
+        bad.append(f"resend_batch: {s.resend_batch!r} must be >= 1")
     if s.outbox_limit < 1:
         bad.append(f"outbox_limit: {s.outbox_limit!r} must be >= 1")
     if s.belief_every < 0:

@@ -27,7 +27,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
-from htlm_msgs_py.ros import EVENTS, STATE, Health, SettingsError, String, declare_settings, make_executor, string
+from htlm_msgs_py.ros import BULK, EVENTS, STATE, STATE_READER, Health, SettingsError, String, declare_settings, make_executor, string
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.scenario import Scenario, ScenarioError, from_dict
@@ -80,13 +80,14 @@ class TrainerNode(Node):
         self.updates = 0
         self.last_loss: float | None = None
         self.episodes_seen = 0
+        self.episodes_stored: set[int] = set()
         self.published_updates = -1
         self.version = 0
         self.epoch = self._next_epoch()
         self.log_file: Any = None
         self.pub_ack = self.create_publisher(String, topics.TRANSITION_ACK, EVENTS)
-        self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE)
-        self.create_subscription(String, topics.TRANSITIONS, self._on_transition, EVENTS)
+        self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
+        self.create_subscription(String, topics.TRANSITIONS, self._on_transition, BULK)
         self.create_subscription(String, topics.EPISODE_METRICS, self._on_metrics, EVENTS)
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.create_timer(s.ack_period, self._flush)
@@ -175,8 +176,12 @@ class TrainerNode(Node):
         else:
             self.learner = Learner(sc, settings, seed)
         replayed = 0
-        for r in self.store.records(fed):
-            self._learn(r["agent"], r["k"], r["a"], r["r"], r["k2"], r["mask2"].astype(bool), bool(r["done"]))
+        for i, r in enumerate(self.store.records(0)):
+            if i < fed:  # already in the checkpoint's replay memory
+                self.episodes_stored.add(int(r["episode"]))
+                continue
+            self._learn(r["agent"], r["k"], r["a"], r["r"], r["k2"], r["mask2"].astype(bool), bool(r["done"]),
+                        int(r["episode"]))
             replayed += 1
         (self.dir / "settings.json").write_text(json.dumps(settings.to_dict(), indent=1) + "\n")
         self.pub_weights = [self.create_publisher(String, topics.weights(a.name), STATE) for a in sc.agents]
@@ -192,17 +197,20 @@ class TrainerNode(Node):
         self.get_logger().error(why)
 
     def finished(self) -> bool:
-        """Whether the process should exit: fatal error, or the run stopped and no transition came for 1 s."""
+        """Whether the process should exit: fatal error, or the run stopped and no transition came for a while."""
         if self.fatal is not None:
             return True
         if not (self.stopping and self.settings.exit_on_stop):
             return False
-        return time.monotonic() - max(self.stop_at, self.last_transition_at) > 1.0
+        return time.monotonic() - max(self.stop_at, self.last_transition_at) > self.settings.stop_grace
 
     # ----- messages in ------------------------------------------------------------------------------------------
     def _on_transition(self, msg: String) -> None:
+        if self.store is None:  # no scenario yet: the agents send it again until acknowledged
+            self.health.counters["ignored/transitions/no_scenario"] += 1
+            return
         rec = self.health.decode("transitions", msg, S.TRANSITION, self.lim)
-        if rec is None or self.store is None:
+        if rec is None:
             return
         self.last_transition_at = time.monotonic()
         if not self._in_run(rec["episode"]):
@@ -217,10 +225,11 @@ class TrainerNode(Node):
             self.reack.add((agent, session))
             return
         if self.learner is not None:
-            self._learn(agent, rec["k"], rec["a"], rec["r"], rec["k2"], rec["mask2"], rec["done"])
+            self._learn(agent, rec["k"], rec["a"], rec["r"], rec["k2"], rec["mask2"], rec["done"], rec["episode"])
             self.new_transitions += 1
 
-    def _learn(self, agent: Any, k: Any, a: Any, r: Any, k2: Any, mask2: Any, done: bool) -> None:
+    def _learn(self, agent: Any, k: Any, a: Any, r: Any, k2: Any, mask2: Any, done: bool, episode: int) -> None:
+        self.episodes_stored.add(int(episode))
         self.learner.store(
             int(agent),
             np.asarray(k, dtype=np.float64),
@@ -287,6 +296,10 @@ class TrainerNode(Node):
         s = self.settings
         if self.learner is None or not s.train_every or self.new_transitions < s.train_every:
             return
+        backlog = self.new_transitions // s.train_every
+        if backlog > s.max_backlog:  # far behind (a burst of resent transitions): skip rounds, do not fall further
+            self.health.counters["skipped_rounds"] += backlog - s.max_backlog
+            self.new_transitions -= (backlog - s.max_backlog) * s.train_every
         start = time.monotonic()
         self.health.counters["train_calls"] += 1
         while self.new_transitions >= s.train_every and time.monotonic() - start < s.train_budget:
@@ -329,6 +342,7 @@ class TrainerNode(Node):
         if self.learner is None or self.store is None:
             return
         self._flush()
+        self.learner.episodes_done = max(self.episodes_seen, len(self.episodes_stored))
         t0 = time.monotonic()
         path = self.learner.save(self.dir / "checkpoint", extra={"store_records": self.store.count, "run": self.run})
         self.health.counters["checkpoints"] += 1

@@ -226,14 +226,19 @@ class TrainerSettings:
     """Seconds between store flushes (fsync) and acknowledgements."""
     train_every: int = 5
     """Transitions received per round of learner updates (0: store only, never train)."""
-    train_budget: float = 0.02
-    """Longest stretch of training between two looks at the network, seconds."""
+    train_budget: float = 0.005
+    """Longest stretch of training between two looks at the network, seconds (training gets at most about
+    half of the trainer's time; receiving and acknowledging transitions comes first)."""
+    max_backlog: int = 500
+    """Most rounds of updates the trainer may lag behind the transitions it received; older rounds are skipped."""
     publish_every: int = 1
     """Episodes between weight publications."""
     checkpoint_every: int = 10
     """Episodes between checkpoints (always one when the run stops)."""
     exit_on_stop: bool = True
     """Exit when the world announces the end of the run."""
+    stop_grace: float = 3.0
+    """After the run stopped, seconds without a transition before exiting (agents resend unacknowledged ones)."""
     diagnostics_period: float = 1.0
     """Seconds between /diagnostics messages."""
     executor: str = "events"
@@ -251,11 +256,11 @@ def validate_trainer_settings(s: TrainerSettings) -> list[str]:
                 bad.append(f"settings_json: {s.settings_json!r} must be a JSON object")
         except ValueError as e:
             bad.append(f"settings_json: {s.settings_json!r} is not JSON: {e}")
-    for name in ("ack_period", "train_budget", "diagnostics_period"):
+    for name in ("ack_period", "train_budget", "stop_grace", "diagnostics_period"):
         v = getattr(s, name)
         if not 0.0 < v <= 3600.0:
             bad.append(f"{name}: {v!r} must be in (0, 3600] seconds")
-    for name in ("train_every", "publish_every", "checkpoint_every"):
+    for name in ("train_every", "publish_every", "checkpoint_every", "max_backlog"):
         if getattr(s, name) < 0:
             bad.append(f"{name}: {getattr(s, name)!r} must be >= 0")
     if s.publish_every == 0:

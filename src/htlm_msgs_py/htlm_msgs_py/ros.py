@@ -54,7 +54,9 @@ def qos_profile(spec: _qos.QosSpec) -> QoSProfile:
 
 
 STATE = qos_profile(_qos.STATE)
+STATE_READER = qos_profile(_qos.STATE_READER)
 EVENTS = qos_profile(_qos.EVENTS)
+BULK = qos_profile(_qos.BULK)
 DIAGNOSTICS = qos_profile(_qos.DIAGNOSTICS)
 
 
@@ -94,6 +96,7 @@ class Health:
         self.signer = signer
         self.hardware_id = hardware_id or os.uname().nodename
         self.counters: Counter[str] = Counter()
+        self._warned: dict[str, float] = {}
         self.values: dict[str, str] = {}
         self.level = DiagnosticStatus.OK
         self.message = "starting"
@@ -118,9 +121,11 @@ class Health:
         """Count a rejected or dropped record and warn (at most once every 5 s per node)."""
         self.counters["rejected"] += 1
         self.counters[f"rejected/{topic}/{reason}"] += 1
-        self.node.get_logger().warning(
-            f"rejected a record on {topic}: {reason}: {detail[:200]}", throttle_duration_sec=5.0
-        )
+        now = time.monotonic()
+        if now - self._warned.get(topic, -1e9) >= 5.0:  # at most one warning per topic every 5 s
+            self._warned[topic] = now
+            n = self.counters[f"rejected/{topic}/{reason}"]
+            self.node.get_logger().warning(f"rejected a record on {topic} ({reason}, {n} so far): {detail[:200]}")
 
     def drop(self, topic: str, reason: str) -> None:
         """Count a well-formed record dropped by the protocol (past or future step, duplicate, ...)."""

@@ -111,6 +111,9 @@ class WorldNode(Node):
         if self.phase != phase or e != self.episode or t != self.t:
             if (e, t) < (self.episode, self.t) or (e == self.episode and t == self.t):
                 self.health.drop(topic, "past")
+                if e == self.episode and t == self.t - 1:
+                    # alive but slow: wait for it again from the next phase on, or it would lose every race
+                    self.present.add(rec["agent"])
             else:
                 self.health.drop(topic, "future")
             return False
@@ -245,8 +248,10 @@ class WorldNode(Node):
                 s = self.settings
                 if t > 1:  # the actions of step t, each sent after the agent's update of step t - 1
                     close = tick + s.period if s.clock == "free" else time.monotonic() + s.act_deadline
+                    # wait for the live agents; with none live, for anyone until the deadline (never race ahead)
+                    expect = self.present or set(range(n))
                     full = (lambda: self._stopping()) if s.clock == "free" else (
-                        lambda: self.present <= self.answers.keys() or self._stopping()
+                        lambda: expect <= self.answers.keys() or self._stopping()
                     )
                     spin_until(executor, full, close)
                     tick = close if s.clock == "free" else time.monotonic()

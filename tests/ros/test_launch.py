@@ -1,0 +1,76 @@
+"""The launcher (`launch_scripts/team.sh` = `htlm launch`): a team of 7 processes with a log file each, a summary,
+a clean stop on Ctrl-C with no orphaned process, and an exit code that says how the run ended."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from .conftest import next_domain
+
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
+
+
+def _alive_with(marker: str) -> list[int]:
+    """PIDs of live processes whose command line mentions `marker`."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state = (d / "stat").read_text().split()[2]
+        except OSError:
+            continue
+        if marker in cmd and state != "Z":
+            out.append(int(d.name))
+    return out
+
+
+def test_team_script_runs_an_evaluation(repo_root: Path, tmp_path: Path) -> None:
+    run = tmp_path / "eval"
+    r = subprocess.run(
+        [str(repo_root / "launch_scripts" / "team.sh"), "evaluate", "--policy", "greedy", "--episodes", "2",
+         "--domain-id", str(next_domain()), "--run-dir", str(run), "--json", "--quiet"],
+        capture_output=True, text=True, timeout=100, check=False,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    assert summary["episodes"] == 2 and summary["exit_code"] == 0 and summary["absent_agent_steps"] == 0
+    logs = sorted(p.name for p in (run / "logs").iterdir())
+    assert logs == ["agent1.log", "agent2.log", "agent3.log", "agent4.log", "agent5.log", "trainer.log", "world.log"]
+    assert "episode 1:" in (run / "logs" / "world.log").read_text()
+    assert _alive_with(str(run)) == []
+
+
+def test_ctrl_c_stops_every_process(repo_root: Path, tmp_path: Path) -> None:
+    run = tmp_path / "deploy"
+    launcher = subprocess.Popen(
+        [str(repo_root / ".venv" / "bin" / "htlm"), "launch", "deploy", "--policy", "greedy",
+         "--domain-id", str(next_domain()), "--run-dir", str(run), "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True,
+    )
+    try:
+        end = time.monotonic() + 60
+        while not (run / "world.jsonl").exists() or not (run / "world.jsonl").read_text().strip():
+            assert time.monotonic() < end, "no episode finished"
+            assert launcher.poll() is None, launcher.stdout.read().decode() if launcher.stdout else ""
+            time.sleep(0.1)
+        children = [p for p in _alive_with(str(run)) if p != launcher.pid]
+        assert len(children) == 7, children  # world, trainer, five agents (deploy runs until stopped)
+        os.kill(launcher.pid, signal.SIGINT)  # what Ctrl-C in the terminal does
+        rc = launcher.wait(timeout=30)
+        out = launcher.stdout.read().decode() if launcher.stdout else ""
+        assert rc == 130, out
+        assert "SIGINT" in out  # the launcher says why it stopped (stderr, merged here)
+        time.sleep(0.2)
+        assert _alive_with(str(run)) == [], "orphaned processes"
+    finally:
+        if launcher.poll() is None:
+            os.killpg(launcher.pid, signal.SIGKILL)
