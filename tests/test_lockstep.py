@@ -229,7 +229,7 @@ def test_settings_validation_names_the_parameter(cls: type, check, field: str, b
     good = cls(**base)
     assert check(good) == []
     problems = check(dataclasses.replace(good, **{field: bad}))
-    assert problems and problems[0].startswith(f"{field}:") and repr(bad) in problems[0] or str(bad) in problems[0]
+    assert (problems and problems[0].startswith(f"{field}:") and repr(bad) in problems[0]) or str(bad) in problems[0]
 
 
 def test_launch_specs_and_environment(tmp_path: Path) -> None:

@@ -69,7 +69,6 @@ VALID: dict[str, dict[str, Any]] = {
 PAPER_LIMITS = S.limits(5, 4, 6, 5, 30)
 
 
-
 def wrong_type(fld: S.Field, rng: random.Random) -> Any:
     """A value of another JSON type than field `fld` accepts."""
     if isinstance(fld, S.Int):

@@ -96,8 +96,10 @@ class RosTeam:
         end = time.monotonic() + timeout
         while not what():
             if time.monotonic() > end:
-                pytest.fail(f"timed out after {timeout} s waiting for {why}; world log:\n"
-                            f"{self.log('world')[-3000:] if 'world' in self.procs else ''}")
+                pytest.fail(
+                    f"timed out after {timeout} s waiting for {why}; world log:\n"
+                    f"{self.log('world')[-3000:] if 'world' in self.procs else ''}"
+                )
             time.sleep(0.05)
 
     def cleanup(self) -> None:

@@ -19,15 +19,15 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # tests/: wire_fuzz
 
-import rclpy  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from htlm_msgs_py import schema as S  # noqa: E402
-from htlm_msgs_py import topics  # noqa: E402
-from htlm_msgs_py.ros import EVENTS, STATE, String, string  # noqa: E402
-from htlm_msgs_py.signing import Signer  # noqa: E402
+from htlm_msgs_py import schema as S
+from htlm_msgs_py import topics
+from htlm_msgs_py.ros import EVENTS, STATE, String, string
+from htlm_msgs_py.signing import Signer
 
 AGENTS = [f"agent{i}" for i in range(1, 6)]
 
@@ -63,9 +63,11 @@ def diag(args: argparse.Namespace) -> None:
 
     def on_diag(msg: DiagnosticArray) -> None:
         for st in msg.status:
-            latest[st.name] = {"level": int.from_bytes(st.level, "little") if isinstance(st.level, bytes)
-                               else int(st.level), "message": st.message,
-                               **{kv.key: kv.value for kv in st.values}}
+            latest[st.name] = {
+                "level": int.from_bytes(st.level, "little") if isinstance(st.level, bytes) else int(st.level),
+                "message": st.message,
+                **{kv.key: kv.value for kv in st.values},
+            }
 
     node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diag, 50)
     out = Path(args.out)
@@ -91,8 +93,12 @@ def fuzz(args: argparse.Namespace) -> None:
     targets = subscribed_topics(args.mode)
     # a deep writer history: reliable delivery of the whole burst, also on the state topics (where the team's own
     # writers keep only the latest value)
-    deep = QoSProfile(depth=2 * args.count, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    deep = QoSProfile(
+        depth=2 * args.count,
+        reliability=ReliabilityPolicy.RELIABLE,
+        history=HistoryPolicy.KEEP_LAST,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
     pubs = {t: node.create_publisher(String, t, deep if qos is STATE else qos) for t, (_, qos) in targets.items()}
     # wait until every topic is matched with its subscribers
     end = time.monotonic() + 20
@@ -150,11 +156,17 @@ def rogue(args: argparse.Namespace) -> None:
             k = rng.randrange(5)
             lvl = rng.randrange(5)
             recs = [
-                ("broadcast", S.BROADCAST, {"agent": k, "episode": e, "step": t, "action": rng.randrange(4),
-                                            "level": lvl}),
+                (
+                    "broadcast",
+                    S.BROADCAST,
+                    {"agent": k, "episode": e, "step": t, "action": rng.randrange(4), "level": lvl},
+                ),
                 ("action", S.ACTION, {"agent": k, "episode": e, "step": t, "action": rng.randrange(4)}),
-                (AGENTS[k], S.OBSERVATION, {"agent": k, "episode": e, "step": t, "task": 0, "level": lvl,
-                                            "acted": [0, 1, 2, 3, 4]}),
+                (
+                    AGENTS[k],
+                    S.OBSERVATION,
+                    {"agent": k, "episode": e, "step": t, "task": 0, "level": lvl, "acted": [0, 1, 2, 3, 4]},
+                ),
             ]
             for topic, schema, fields in recs:
                 if args.kinds != "all" and schema.name != f"htlm/{args.kinds}":

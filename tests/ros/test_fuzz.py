@@ -66,8 +66,21 @@ def test_fuzzing_every_subscribed_topic(ros_team: Any) -> None:
     team.start()
     team.wait_for(lambda: len(team.world_episodes()) >= 1, 60, "the first episode (every node up and spinning)")
     out = team.tmp / "fuzz.json"
-    fuzzer = team.helper("fuzz", "--out", str(out), "--count", str(COUNT), "--first", str(FIRST),
-                         "--episodes", str(EPISODES), "--pause", "0.03", "--seed", str(SEED))
+    fuzzer = team.helper(
+        "fuzz",
+        "--out",
+        str(out),
+        "--count",
+        str(COUNT),
+        "--first",
+        str(FIRST),
+        "--episodes",
+        str(EPISODES),
+        "--pause",
+        "0.03",
+        "--seed",
+        str(SEED),
+    )
     assert fuzzer.wait(timeout=90) == 0
     sent = read_json(out)
     fuzz_done_at = len(team.world_episodes())
@@ -100,6 +113,8 @@ def test_fuzzing_every_subscribed_topic(ros_team: Any) -> None:
             if rejected != want:
                 wrong.append((topic, node, rejected, want))
     total = sum(r for subs in report.values() for r, _ in subs.values())
-    print(f"fuzz: {sum(sent['sent'].values())} records on {len(sent['sent'])} topics; "
-          f"{total} rejections counted; per topic (node: rejected, dropped): {dict(report)}")
+    print(
+        f"fuzz: {sum(sent['sent'].values())} records on {len(sent['sent'])} topics; "
+        f"{total} rejections counted; per topic (node: rejected, dropped): {dict(report)}"
+    )
     assert not wrong, f"(topic, node, rejections counted, malformed records sent): {wrong}"

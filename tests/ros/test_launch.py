@@ -36,9 +36,24 @@ def _alive_with(marker: str) -> list[int]:
 def test_team_script_runs_an_evaluation(repo_root: Path, tmp_path: Path) -> None:
     run = tmp_path / "eval"
     r = subprocess.run(
-        [str(repo_root / "launch_scripts" / "team.sh"), "evaluate", "--policy", "greedy", "--episodes", "2",
-         "--domain-id", str(next_domain()), "--run-dir", str(run), "--json", "--quiet"],
-        capture_output=True, text=True, timeout=100, check=False,
+        [
+            str(repo_root / "launch_scripts" / "team.sh"),
+            "evaluate",
+            "--policy",
+            "greedy",
+            "--episodes",
+            "2",
+            "--domain-id",
+            str(next_domain()),
+            "--run-dir",
+            str(run),
+            "--json",
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=100,
+        check=False,
     )
     assert r.returncode == 0, r.stdout + r.stderr
     summary = json.loads(r.stdout.strip().splitlines()[-1])
@@ -52,9 +67,21 @@ def test_team_script_runs_an_evaluation(repo_root: Path, tmp_path: Path) -> None
 def test_ctrl_c_stops_every_process(repo_root: Path, tmp_path: Path) -> None:
     run = tmp_path / "deploy"
     launcher = subprocess.Popen(
-        [str(repo_root / ".venv" / "bin" / "htlm"), "launch", "deploy", "--policy", "greedy",
-         "--domain-id", str(next_domain()), "--run-dir", str(run), "--quiet"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True,
+        [
+            str(repo_root / ".venv" / "bin" / "htlm"),
+            "launch",
+            "deploy",
+            "--policy",
+            "greedy",
+            "--domain-id",
+            str(next_domain()),
+            "--run-dir",
+            str(run),
+            "--quiet",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
     )
     try:
         end = time.monotonic() + 60

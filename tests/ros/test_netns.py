@@ -81,15 +81,38 @@ def test_world_trainer_and_agents_in_separate_network_namespaces(net: Net, repo_
     run = tmp_path / "run"
     script = str(repo_root / "launch_scripts" / "team.sh")
     env = {**os.environ, "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+
     def bridged() -> int:  # bytes the namespaces sent through the bridge
         return sum(int(Path(f"/sys/class/net/hv{net.tag}h{i}/statistics/rx_bytes").read_text()) for i in range(7))
 
     before = bridged()
     procs = {}
     for name in NAMES:
-        cmd = ["ip", "netns", "exec", net.ns[name], script, "evaluate", "--policy", "greedy", "--seed", str(seed),
-               "--episodes", str(episodes), "--only", name, "--discovery", "subnet", "--domain-id", str(domain),
-               "--run-dir", str(run), "--quiet", "--timeout", "100"]
+        cmd = [
+            "ip",
+            "netns",
+            "exec",
+            net.ns[name],
+            script,
+            "evaluate",
+            "--policy",
+            "greedy",
+            "--seed",
+            str(seed),
+            "--episodes",
+            str(episodes),
+            "--only",
+            name,
+            "--discovery",
+            "subnet",
+            "--domain-id",
+            str(domain),
+            "--run-dir",
+            str(run),
+            "--quiet",
+            "--timeout",
+            "100",
+        ]
         procs[name] = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
         codes = {name: p.wait(timeout=120) for name, p in procs.items()}

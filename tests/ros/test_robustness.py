@@ -45,19 +45,21 @@ def test_agent_killed_mid_episode_is_idle_then_rejoins(ros_team: Any) -> None:
     assert absent[2] > 0 and absent[:2] + absent[3:] == [0, 0, 0, 0], absent
     # its missed steps are idle at its site in the joint assignment the world applied
     steps = np.array(hit["actions"])[:, 2]
-    assert (steps[-absent[2]:] >= sc.n_tasks).all()
+    assert (steps[-absent[2] :] >= sc.n_tasks).all()
     rejoined = [e for e in sorted(eps) if e > killed_in and eps[e]["metrics"]["absent"][2] == 0]
     assert rejoined, f"agent3 never rejoined: {[eps[e]['metrics']['absent'] for e in sorted(eps)]}"
     assert {x["episode"] for x in team.agent_episodes("agent3")} >= set(rejoined)
-    print(f"killed in episode {killed_in} after {sc.horizon - absent[2]} steps; absent {absent[2]} steps; "
-          f"rejoined at episode {rejoined[0]}")
+    print(
+        f"killed in episode {killed_in} after {sc.horizon - absent[2]} steps; absent {absent[2]} steps; "
+        f"rejoined at episode {rejoined[0]}"
+    )
 
 
 def test_trainer_killed_and_restarted_loses_no_acknowledged_transition(ros_team: Any) -> None:
     team = ros_team(
         mode="train",
         policy="auto",
-        episodes=24,
+        episodes=40,
         seed=4,
         learner={"learning_starts": 60, "batch_size": 32, "memory": 5000},
         trainer_params={"checkpoint_every": 2},
@@ -91,7 +93,9 @@ def test_trainer_killed_and_restarted_loses_no_acknowledged_transition(ros_team:
     after_restart = log.split("resumed from", 1)[1]
     assert "episode 2" in after_restart or "episode 1" in after_restart, "the restarted trainer trained on"
     meta = read_json(team.run_dir / "trainer" / "checkpoint" / "meta.json")
-    assert meta["format"] == "htlm-checkpoint" and meta["episodes_done"] == 24
-    print(f"store held {len(before)} transitions at the kill (all kept); {len(after)} at the end "
-          f"= {len(after) // 5} per agent; checkpoint after {meta['episodes_done']} episodes")
+    assert meta["format"] == "htlm-checkpoint" and meta["episodes_done"] == 40
+    print(
+        f"store held {len(before)} transitions at the kill (all kept); {len(after)} at the end "
+        f"= {len(after) // 5} per agent; checkpoint after {meta['episodes_done']} episodes"
+    )
     assert Path(team.run_dir / "trainer" / "train_log.jsonl").exists()

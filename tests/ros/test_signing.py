@@ -61,6 +61,6 @@ def test_with_a_team_key_forged_records_change_no_belief(ros_team: Any) -> None:
 def test_without_a_key_the_same_forgeries_do_change_the_run(ros_team: Any) -> None:
     # forged broadcasts alone: they enter the agents' beliefs (forged observations and assignments would too, but
     # they also stall the protocol until its deadlines, which makes this control slow)
-    team, info = _run(ros_team, key=False, kinds="broadcast")
+    team, _info = _run(ros_team, key=False, kinds="broadcast")
     with pytest.raises(AssertionError):
         assert_same_as_in_process(team, SEED, "greedy")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import faulthandler
 import hashlib
 import json
 import secrets
@@ -47,7 +48,15 @@ from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario, ScenarioError, from_dict
 
-from .lockstep import AgentMind, AgentPolicy, AgentSettings, Effects, Transition, builtin_policy, validate_agent_settings
+from .lockstep import (
+    AgentMind,
+    AgentPolicy,
+    AgentSettings,
+    Effects,
+    Transition,
+    builtin_policy,
+    validate_agent_settings,
+)
 
 
 def _validate(s: AgentSettings) -> None:
@@ -492,6 +501,7 @@ def main(args: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    faulthandler.register(signal.SIGUSR1)  # `kill -USR1 <pid>` prints every thread's stack to the log
     executor = make_executor(node.settings.executor)
     executor.add_node(node)
     code = 1

@@ -71,11 +71,8 @@ class GreedyPolicy:
         lv = confident_levels(ctx.marginals, self.threshold)  # (B, N, p)
         b, n = ctx.prev.shape
         prev_site = np.where(ctx.prev >= 0, self.model.action_site[np.maximum(ctx.prev, 0)], 0)
-        if sc.n_idle:
-            out = p + prev_site
-        else:
-            out = np.where(ctx.prev >= 0, ctx.prev, 0)
-        out = out.astype(np.int64)
+        stay = p + prev_site if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
+        out = stay.astype(np.int64)
         chosen = np.zeros((b, n), dtype=bool)
         for i in range(n):
             for j in self.order[i]:
@@ -141,8 +138,9 @@ def make_baseline(
         if ht_policy is not None:
             ck = load_checkpoint(ht_policy)
             if ck.scenario.mode != "ht":
-                raise CheckpointError(f"{ck.path}: not an HT learner (mode {ck.scenario.mode!r}); train one with "
-                                      "`htlm train --mode ht`")
+                raise CheckpointError(
+                    f"{ck.path}: not an HT learner (mode {ck.scenario.mode!r}); train one with `htlm train --mode ht`"
+                )
             return QPolicy.from_checkpoint(ck), ck.scenario
         if ht_out is None:
             raise ValueError("the ht baseline needs a checkpoint (ht_policy) or a directory to train one in (ht_out)")

@@ -113,7 +113,9 @@ def _read_meta(d: Path) -> dict[str, Any]:
     except OSError as e:
         raise CheckpointError(f"{meta_path}: cannot read checkpoint metadata: {e.strerror}") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise CheckpointError(f"{meta_path}: not an HTLM checkpoint (format {meta.get('format') if isinstance(meta, dict) else None!r})")
+        raise CheckpointError(
+            f"{meta_path}: not an HTLM checkpoint (format {meta.get('format') if isinstance(meta, dict) else None!r})"
+        )
     if meta.get("version") != VERSION:
         raise CheckpointError(f"{meta_path}: checkpoint version {meta.get('version')!r}, this build reads {VERSION}")
     for key in ("scenario", "settings", "seed", "layout_hash", "episodes_done", "n_agents", "files"):
@@ -199,8 +201,11 @@ def load_checkpoint(path: str | Path, scenario: Scenario | None = None) -> Check
     weights: list[list[NDArray[np.float32]]] = []
     for i, a in enumerate(agents):
         try:
-            params = [a[f"{kind}{li}"].detach().numpy().astype(np.float32) for li in range(len(shapes) // 2)
-                      for kind in ("W", "b")]
+            params = [
+                a[f"{kind}{li}"].detach().numpy().astype(np.float32)
+                for li in range(len(shapes) // 2)
+                for kind in ("W", "b")
+            ]
         except (KeyError, TypeError, AttributeError) as e:
             raise CheckpointError(f"{agents_path}: agent {i}: corrupt network (missing {e})") from None
         got = [tuple(p.shape) for p in params]
@@ -248,8 +253,10 @@ def save_checkpoint(
     tmp = Path(tempfile.mkdtemp(prefix=f".{d.name}.", dir=d.parent))
     try:
         agents = [
-            {f"{'W' if j % 2 == 0 else 'b'}{j // 2}": torch.from_numpy(np.ascontiguousarray(p, dtype=np.float32))
-             for j, p in enumerate(w)}
+            {
+                f"{'W' if j % 2 == 0 else 'b'}{j // 2}": torch.from_numpy(np.ascontiguousarray(p, dtype=np.float32))
+                for j, p in enumerate(w)
+            }
             for w in weights
         ]
         torch.save({"agents": agents}, tmp / AGENTS)

@@ -35,8 +35,13 @@ TARGETS = {"completion_ratio": 1.25, "failure_rate": 0.01, "unused_fraction": 0.
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm bench`."""
-    p.add_argument("what", nargs="?", choices=["inproc", "ros"], default="inproc",
-                   help="inproc (default): simulator, team and learner in this process; ros: the ROS 2 runtime")
+    p.add_argument(
+        "what",
+        nargs="?",
+        choices=["inproc", "ros"],
+        default="inproc",
+        help="inproc (default): simulator, team and learner in this process; ros: the ROS 2 runtime",
+    )
     p.add_argument("--json", action="store_true", help="print the figures as JSON on stdout")
     p.add_argument("--seconds", type=float, default=2.0, help="measuring time per speed figure (default: 2)")
     p.add_argument("--no-train", action="store_true", help="skip the default training run")
@@ -165,8 +170,9 @@ def run(args: argparse.Namespace) -> int:
         except ModuleNotFoundError as e:
             if e.name != ROS_BENCH:
                 raise
-            raise SystemExit(f"htlm bench ros: the ROS benchmark is not available in this build (no {ROS_BENCH})") \
-                from None
+            raise SystemExit(
+                f"htlm bench ros: the ROS benchmark is not available in this build (no {ROS_BENCH})"
+            ) from None
         res = mod.ros_bench(args)
         print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
         return 0
@@ -174,9 +180,12 @@ def run(args: argparse.Namespace) -> int:
 
     from .learner import Settings
 
-    out: dict[str, Any] = {"cpu_count": os.cpu_count(), "torch_threads": Settings().threads,
-                           "torch": torch.__version__}
-    say = (lambda msg: print(msg, file=sys.stderr)) if not args.json else (lambda msg: None)
+    out: dict[str, Any] = {"cpu_count": os.cpu_count(), "torch_threads": Settings().threads, "torch": torch.__version__}
+
+    def say(msg: str) -> None:
+        if not args.json:
+            print(msg, file=sys.stderr)
+
     for b in (1, 1024):
         out[f"sim_agent_steps_per_s_B{b}"] = round(sim_rate(b, args.seconds))
         say(f"simulator B={b}: {out[f'sim_agent_steps_per_s_B{b}']:,} agent-steps/s")
@@ -189,9 +198,11 @@ def run(args: argparse.Namespace) -> int:
         say("default training run ...")
         out["train"] = training_run(args.episodes, args.out)
         t = out["train"]
-        say(f"default training run: {t['wall_time_s']} s wall ({t['episodes']} episodes), completion "
+        say(
+            f"default training run: {t['wall_time_s']} s wall ({t['episodes']} episodes), completion "
             f"{t['completion_mean']} ± {t['completion_se']} ({t['completion_ratio']} x optimum), failures "
-            f"{t['failure_rate']:.1%}, unused {t['unused_fraction']:.1%}; targets met: {t['targets_met']}")
+            f"{t['failure_rate']:.1%}, unused {t['unused_fraction']:.1%}; targets met: {t['targets_met']}"
+        )
     if args.json:
         print(json.dumps(out))
     return 0

@@ -13,8 +13,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=500, help="episodes E (default: 500)")
     p.add_argument("--seed", type=int, default=None, help="seed of the episodes (default: the run's seed)")
     p.add_argument("--json", action="store_true", help="print the table as JSON on stdout")
-    p.add_argument("--out", default=None, metavar="DIR", help="where to write importance.csv/.json "
-                                                              "(default: RUN/importance/seed{S}-{E})")
+    p.add_argument(
+        "--out",
+        default=None,
+        metavar="DIR",
+        help="where to write importance.csv/.json (default: RUN/importance/seed{S}-{E})",
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -29,32 +29,71 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("mode", choices=("train", "evaluate", "deploy"), help="what the team does")
     p.add_argument("--team", choices=sorted(TEAMS), default=None, help="built-in team (default: heterogeneous)")
     p.add_argument("--scenario", default="", help="scenario YAML file (default: the built-in 'paper')")
-    p.add_argument("--episodes", type=int, default=None,
-                   help="episodes to run (default: train 20, evaluate 10, deploy 0 = until Ctrl-C)")
+    p.add_argument(
+        "--episodes",
+        type=int,
+        default=None,
+        help="episodes to run (default: train 20, evaluate 10, deploy 0 = until Ctrl-C)",
+    )
     p.add_argument("--first-episode", type=int, default=0, help="index of the first episode (seeds derive from it)")
     p.add_argument("--seed", type=int, default=0, help="master seed")
-    p.add_argument("--policy", choices=("auto", "checkpoint", "greedy", "random"), default="auto",
-                   help="agents' policy (auto: the trainer's in train mode, else --checkpoint)")
+    p.add_argument(
+        "--policy",
+        choices=("auto", "checkpoint", "greedy", "random"),
+        default="auto",
+        help="agents' policy (auto: the trainer's in train mode, else --checkpoint)",
+    )
     p.add_argument("--checkpoint", default="", help="checkpoint directory of `htlm train` (evaluate, deploy)")
-    p.add_argument("--eval-episodes", type=int, default=None,
-                   help="train: evaluate the trained checkpoint over ROS for this many episodes afterwards "
-                   "(default 5; 0: no evaluation)")
+    p.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=None,
+        help="train: evaluate the trained checkpoint over ROS for this many episodes afterwards "
+        "(default 5; 0: no evaluation)",
+    )
     p.add_argument("--run-dir", default="", help="run directory (default: runs/launch-MODE__SEED__TIMESTAMP)")
-    p.add_argument("--only", default="",
-                   help="comma-separated processes to start on this host: world, trainer, agent names (default: all)")
+    p.add_argument(
+        "--only",
+        default="",
+        help="comma-separated processes to start on this host: world, trainer, agent names (default: all)",
+    )
     p.add_argument("--domain-id", type=int, default=42, help="ROS_DOMAIN_ID of every process (default 42)")
-    p.add_argument("--discovery", choices=("localhost", "subnet", "system_default", "off"), default="localhost",
-                   help="ROS_AUTOMATIC_DISCOVERY_RANGE (default localhost: nothing leaves this machine)")
+    p.add_argument(
+        "--discovery",
+        choices=("localhost", "subnet", "system_default", "off"),
+        default="localhost",
+        help="ROS_AUTOMATIC_DISCOVERY_RANGE (default localhost: nothing leaves this machine)",
+    )
     p.add_argument("--peers", default="", help="ROS_STATIC_PEERS: 'host1;host2' for unicast discovery of other hosts")
     p.add_argument("--key-file", default="", help="team key file: sign every message, reject unsigned ones")
-    p.add_argument("--set", dest="learner", type=_kv, action="append", default=[], metavar="NAME=VALUE",
-                   help="learner setting (htlm_agent.learner.Settings), e.g. --set learning_starts=500")
-    p.add_argument("--world-param", type=_kv, action="append", default=[], metavar="NAME=VALUE",
-                   help="world_node parameter, e.g. --world-param act_deadline=1.0")
-    p.add_argument("--agent-param", type=_kv, action="append", default=[], metavar="NAME=VALUE",
-                   help="agent_node parameter for every agent")
-    p.add_argument("--trainer-param", type=_kv, action="append", default=[], metavar="NAME=VALUE",
-                   help="trainer_node parameter")
+    p.add_argument(
+        "--set",
+        dest="learner",
+        type=_kv,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="learner setting (htlm_agent.learner.Settings), e.g. --set learning_starts=500",
+    )
+    p.add_argument(
+        "--world-param",
+        type=_kv,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="world_node parameter, e.g. --world-param act_deadline=1.0",
+    )
+    p.add_argument(
+        "--agent-param",
+        type=_kv,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="agent_node parameter for every agent",
+    )
+    p.add_argument(
+        "--trainer-param", type=_kv, action="append", default=[], metavar="NAME=VALUE", help="trainer_node parameter"
+    )
     p.add_argument("--timeout", type=float, default=0.0, help="stop the team after this many seconds (exit 124)")
     p.add_argument("--quiet", action="store_true", help="do not echo the episode lines")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")

@@ -65,13 +65,26 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     """--team, --idle-incentive, --reassign, --scenario, --mode."""
     g = p.add_argument_group("scenario")
     g.add_argument("--team", choices=sorted(TEAMS), default=None, help="built-in team (default: heterogeneous)")
-    g.add_argument("--idle-incentive", type=float, default=None, metavar="X",
-                   help="scale of the idle incentive R_II; 0 turns it off (default: 1.0)")
-    g.add_argument("--reassign", choices=list(REASSIGN_COSTS), default=None,
-                   help="reassignment penalty T_RP level (default: medium)")
+    g.add_argument(
+        "--idle-incentive",
+        type=float,
+        default=None,
+        metavar="X",
+        help="scale of the idle incentive R_II; 0 turns it off (default: 1.0)",
+    )
+    g.add_argument(
+        "--reassign",
+        choices=list(REASSIGN_COSTS),
+        default=None,
+        help="reassignment penalty T_RP level (default: medium)",
+    )
     g.add_argument("--scenario", default=None, metavar="FILE", help="scenario YAML (default: the built-in 'paper')")
-    g.add_argument("--mode", choices=["htlm", "ht"], default=None,
-                   help="htlm (default) or ht: the HT Dec-POMDP baseline (no idle locations, R_LM = 0)")
+    g.add_argument(
+        "--mode",
+        choices=["htlm", "ht"],
+        default=None,
+        help="htlm (default) or ht: the HT Dec-POMDP baseline (no idle locations, R_LM = 0)",
+    )
 
 
 def scenario_from_args(args: argparse.Namespace) -> Scenario:
@@ -106,8 +119,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_scenario_arguments(p)
     p.add_argument("--seed", type=int, default=None, help="master seed (default: 0)")
     p.add_argument("--episodes", type=int, default=None, help="training episodes in total (default: Settings)")
-    p.add_argument("--out", default=None, metavar="DIR",
-                   help="run directory (default: runs/{experiment}__{seed}__{timestamp})")
+    p.add_argument(
+        "--out", default=None, metavar="DIR", help="run directory (default: runs/{experiment}__{seed}__{timestamp})"
+    )
     p.add_argument("--resume", default=None, metavar="DIR", help="continue the run in DIR from its checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
     p.add_argument("--no-tensorboard", action="store_true", help="no TensorBoard logs")
@@ -125,12 +139,17 @@ def run(args: argparse.Namespace) -> int:
     changes = settings_changes(args)
     try:
         if args.resume:
-            given = [k for k in ("team", "idle_incentive", "reassign", "scenario", "mode", "out")
-                     if getattr(args, k) is not None]
+            given = [
+                k
+                for k in ("team", "idle_incentive", "reassign", "scenario", "mode", "out")
+                if getattr(args, k) is not None
+            ]
             bad = sorted(set(changes) - set(RESUMABLE_CHANGES)) + given
             if bad:
-                raise SystemExit(f"htlm train: --resume continues a run as it was; cannot change {bad} "
-                                 f"(only {list(RESUMABLE_CHANGES)})")
+                raise SystemExit(
+                    f"htlm train: --resume continues a run as it was; cannot change {bad} "
+                    f"(only {list(RESUMABLE_CHANGES)})"
+                )
             ck = load_checkpoint(args.resume)
             out = ck.path.parent if ck.path.name == "checkpoint" else Path(args.resume)
             settings = ck.settings.replace(**changes)
@@ -140,17 +159,35 @@ def run(args: argparse.Namespace) -> int:
             settings = Settings(**changes)
             out = Path(args.out) if args.out else Path("runs") / run_name(experiment_name(sc), settings.seed)
         if not args.no_progress:
-            print(f"htlm train: {'resuming' if args.resume else 'run'} {out} ({experiment_name(sc)}, seed "
-                  f"{settings.seed}, {settings.episodes} episodes)", file=sys.stderr)
-        res = train(sc, settings, out, progress=not args.no_progress, resume=bool(args.resume),
-                    tensorboard=not args.no_tensorboard)
+            print(
+                f"htlm train: {'resuming' if args.resume else 'run'} {out} ({experiment_name(sc)}, seed "
+                f"{settings.seed}, {settings.episodes} episodes)",
+                file=sys.stderr,
+            )
+        res = train(
+            sc,
+            settings,
+            out,
+            progress=not args.no_progress,
+            resume=bool(args.resume),
+            tensorboard=not args.no_tensorboard,
+        )
     except (ScenarioError, CheckpointError, FileExistsError) as e:
         raise SystemExit(f"htlm train: {e}") from None
     except ValueError as e:  # bad settings
         raise SystemExit(f"htlm train: {e}") from None
     if args.json:
-        print(json.dumps({"out": str(res.out_dir), "episodes": res.episodes, "wall_time_s": round(res.wall_time, 2),
-                          "train_time_s": round(res.train_time, 2), "metrics": res.metrics}))
+        print(
+            json.dumps(
+                {
+                    "out": str(res.out_dir),
+                    "episodes": res.episodes,
+                    "wall_time_s": round(res.wall_time, 2),
+                    "train_time_s": round(res.train_time, 2),
+                    "metrics": res.metrics,
+                }
+            )
+        )
     else:
         print(f"run directory: {res.out_dir}")
     return 0

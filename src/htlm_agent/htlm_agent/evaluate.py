@@ -59,7 +59,9 @@ def _ms(x: Any) -> dict[str, float]:
     return {"mean": m, "se": se}
 
 
-def summarize(scenario: Scenario, em: EpisodeMetrics, seed: int, inactive: tuple[int, ...], policy_name: str) -> dict[str, Any]:
+def summarize(
+    scenario: Scenario, em: EpisodeMetrics, seed: int, inactive: tuple[int, ...], policy_name: str
+) -> dict[str, Any]:
     """Aggregate per-episode metrics into the report dictionary (team and per agent)."""
     n_ep = int(em.completion.shape[0])
     comp_mean, comp_se = mean_se(em.completion)
@@ -67,16 +69,18 @@ def summarize(scenario: Scenario, em: EpisodeMetrics, seed: int, inactive: tuple
     for i, a in enumerate(scenario.agents):
         cap = a.fire + a.rescue
         unused = em.agent_unused[:, i]
-        agents.append({
-            "agent": a.name,
-            "fire": a.fire,
-            "rescue": a.rescue,
-            "inactive": i in inactive,
-            "unused_capability": _ms(unused),
-            "unused_fraction": _ms(unused / cap) if cap > 0 else {"mean": 0.0, "se": 0.0},
-            "idle_before_completion": _ms(em.agent_idle_before[:, i]),
-            "reassign_before_completion": _ms(em.agent_reassign_before[:, i]),
-        })
+        agents.append(
+            {
+                "agent": a.name,
+                "fire": a.fire,
+                "rescue": a.rescue,
+                "inactive": i in inactive,
+                "unused_capability": _ms(unused),
+                "unused_fraction": _ms(unused / cap) if cap > 0 else {"mean": 0.0, "se": 0.0},
+                "idle_before_completion": _ms(em.agent_idle_before[:, i]),
+                "reassign_before_completion": _ms(em.agent_reassign_before[:, i]),
+            }
+        )
     return {
         "policy": policy_name,
         "scenario": scenario.name,
@@ -133,29 +137,66 @@ def write_reports(ev: Evaluation, out_dir: str | Path) -> dict[str, Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     m = ev.metrics
-    paths = {"json": out / "metrics.json", "summary": out / "summary.csv", "episodes": out / "episodes.csv",
-             "png": out / "completion_hist.png"}
+    paths = {
+        "json": out / "metrics.json",
+        "summary": out / "summary.csv",
+        "episodes": out / "episodes.csv",
+        "png": out / "completion_hist.png",
+    }
     paths["json"].write_text(json.dumps(m, indent=2) + "\n")
-    cols = ["who", "unused_capability", "unused_capability_se", "unused_fraction", "unused_fraction_se",
-            "idle_before_completion", "idle_before_completion_se", "reassign_before_completion",
-            "reassign_before_completion_se", "completion", "completion_se", "failure_rate"]
+    cols = [
+        "who",
+        "unused_capability",
+        "unused_capability_se",
+        "unused_fraction",
+        "unused_fraction_se",
+        "idle_before_completion",
+        "idle_before_completion_se",
+        "reassign_before_completion",
+        "reassign_before_completion_se",
+        "completion",
+        "completion_se",
+        "failure_rate",
+    ]
     with paths["summary"].open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(cols)
         for a in m["agents"]:
             w.writerow([a["agent"]] + [a[k][s] for k in cols[1:9:2] for s in ("mean", "se")] + ["", "", ""])
-        w.writerow(["team"] + [m[k][s] for k in cols[1:9:2] for s in ("mean", "se")]
-                   + [m["completion"]["mean"], m["completion"]["se"], m["completion"]["failure_rate"]])
+        w.writerow(
+            ["team"]
+            + [m[k][s] for k in cols[1:9:2] for s in ("mean", "se")]
+            + [m["completion"]["mean"], m["completion"]["se"], m["completion"]["failure_rate"]]
+        )
     em = ev.episodes
     names = [a.name for a in ev.scenario.agents]
     with paths["episodes"].open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["episode", "completion", "failed", "unused_capability", "unused_fraction", "idle_before_completion",
-                    "reassign_before_completion"] + [f"unused_{n}" for n in names])
+        w.writerow(
+            [
+                "episode",
+                "completion",
+                "failed",
+                "unused_capability",
+                "unused_fraction",
+                "idle_before_completion",
+                "reassign_before_completion",
+            ]
+            + [f"unused_{n}" for n in names]
+        )
         for e in range(em.completion.shape[0]):
-            w.writerow([e, int(em.completion[e]), int(em.failed[e]), f"{em.unused_capability[e]:.6g}",
-                        f"{em.unused_fraction[e]:.6g}", int(em.idle_before[e]), int(em.reassign_before[e])]
-                       + [f"{x:.6g}" for x in em.agent_unused[e]])
+            w.writerow(
+                [
+                    e,
+                    int(em.completion[e]),
+                    int(em.failed[e]),
+                    f"{em.unused_capability[e]:.6g}",
+                    f"{em.unused_fraction[e]:.6g}",
+                    int(em.idle_before[e]),
+                    int(em.reassign_before[e]),
+                ]
+                + [f"{x:.6g}" for x in em.agent_unused[e]]
+            )
     plot_completion(ev, paths["png"])
     return paths
 
@@ -170,12 +211,15 @@ def plot_completion(ev: Evaluation, path: Path) -> None:
     h = ev.scenario.horizon
     m = ev.metrics["completion"]
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.hist(ev.episodes.completion, bins=np.arange(0.5, h + 1.5), color="tab:blue", edgecolor="white")
+    ax.hist(ev.episodes.completion, bins=[x + 0.5 for x in range(h + 1)], color="tab:blue", edgecolor="white")
     ax.axvline(m["mean"], color="k", ls="--", lw=1)
     ax.set_xlabel("completion step")
     ax.set_ylabel("episodes")
-    ax.set_title(f"{ev.metrics['policy']} ({ev.scenario.team}): mean {m['mean']:.2f} ± {m['se']:.2f}, "
-                 f"failures {m['failure_rate']:.1%}", fontsize=9)
+    ax.set_title(
+        f"{ev.metrics['policy']} ({ev.scenario.team}): mean {m['mean']:.2f} ± {m['se']:.2f}, "
+        f"failures {m['failure_rate']:.1%}",
+        fontsize=9,
+    )
     ax.set_xlim(0.5, h + 0.5)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -185,9 +229,7 @@ def plot_completion(ev: Evaluation, path: Path) -> None:
 # ----- agent importance -------------------------------------------------------------------------------------------
 
 
-def importance_table(
-    policy: Policy, scenario: Scenario, episodes: int = 500, seed: int = 0
-) -> dict[str, Any]:
+def importance_table(policy: Policy, scenario: Scenario, episodes: int = 500, seed: int = 0) -> dict[str, Any]:
     """The agent importance table (Eqs. 6-9) from `episodes` greedy episodes: per agent C_fire, C_rescue, U_fire,
     U_rescue, ζ; per task type ω."""
     _, actions = run_episodes(policy, scenario, episodes, seed)
@@ -219,11 +261,15 @@ def format_importance(table: dict[str, Any]) -> str:
     lines = [f"{'agent':<10} {'C_fire':>6} {'C_rescue':>8} {'U_fire':>8} {'U_rescue':>8} {'zeta':>8}"]
     for i, r in enumerate(rows):
         mark = " *" if i == top else ""
-        lines.append(f"{r['agent']:<10} {r['C_fire']:>6.0f} {r['C_rescue']:>8.0f} {r['U_fire']:>8.2f} "
-                     f"{r['U_rescue']:>8.2f} {r['zeta']:>8.2f}{mark}")
+        lines.append(
+            f"{r['agent']:<10} {r['C_fire']:>6.0f} {r['C_rescue']:>8.0f} {r['U_fire']:>8.2f} "
+            f"{r['U_rescue']:>8.2f} {r['zeta']:>8.2f}{mark}"
+        )
     om = table["omega"]
-    lines.append(f"omega_fire = {om['fire']:.2f}, omega_rescue = {om['rescue']:.2f}  "
-                 f"({table['team']}, {table['episodes']} episodes; * most important)")
+    lines.append(
+        f"omega_fire = {om['fire']:.2f}, omega_rescue = {om['rescue']:.2f}  "
+        f"({table['team']}, {table['episodes']} episodes; * most important)"
+    )
     return "\n".join(lines)
 
 
@@ -237,6 +283,16 @@ def write_importance(table: dict[str, Any], out_dir: str | Path) -> dict[str, Pa
         w = csv.writer(f)
         w.writerow(["agent", "C_fire", "C_rescue", "U_fire", "U_rescue", "zeta", "omega_fire", "omega_rescue"])
         for r in table["agents"]:
-            w.writerow([r["agent"], r["C_fire"], r["C_rescue"], r["U_fire"], r["U_rescue"], r["zeta"],
-                        table["omega"]["fire"], table["omega"]["rescue"]])
+            w.writerow(
+                [
+                    r["agent"],
+                    r["C_fire"],
+                    r["C_rescue"],
+                    r["U_fire"],
+                    r["U_rescue"],
+                    r["zeta"],
+                    table["omega"]["fire"],
+                    table["omega"]["rescue"],
+                ]
+            )
     return paths

@@ -38,7 +38,7 @@ EXIT_CODES = {
 DISCOVERY = {"localhost": "LOCALHOST", "subnet": "SUBNET", "off": "OFF", "system_default": "SYSTEM_DEFAULT"}
 
 DEFAULT_LEARNER = {
-    "learning_starts": 300,
+    "learning_starts": 150,
     "batch_size": 64,
     "memory": 20_000,
     "envs": 1,
@@ -197,14 +197,14 @@ def start(cfg: LaunchConfig) -> list[Proc]:
         cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__node:={node}", "--params-file", str(pfile)]
         log = logs / f"{name}.log"
         with open(log, "ab") as out:
-            popen = subprocess.Popen(  # noqa: S603 - our own interpreter and modules
+            popen = subprocess.Popen(
                 cmd,
                 stdin=subprocess.DEVNULL,
                 stdout=out,
                 stderr=subprocess.STDOUT,
                 env=env,
                 start_new_session=True,  # Ctrl-C reaches the launcher only; it forwards the signal in order
-                preexec_fn=_die_with_parent,  # noqa: PLW1509
+                preexec_fn=_die_with_parent,
             )
         procs.append(Proc(name, popen, log))
     return procs
@@ -265,8 +265,11 @@ def run_team(cfg: LaunchConfig) -> int:
             file=sys.stderr,
         )
         tails = (
-            [_Tail(p.log, ("episode", "ERROR", "checkpoint", "resumed"), f"[{p.name}] ") for p in procs
-             if p.name in ("world", "trainer")]
+            [
+                _Tail(p.log, ("episode", "ERROR", "checkpoint", "resumed"), f"[{p.name}] ")
+                for p in procs
+                if p.name in ("world", "trainer")
+            ]
             if cfg.echo
             else []
         )
@@ -307,8 +310,11 @@ def run_team(cfg: LaunchConfig) -> int:
                     break
                 if time.monotonic() - ended_at > cfg.grace:
                     late = [p.name for p in procs if p.popen.poll() is None]
-                    print(f"htlm launch: {', '.join(late)} still running {cfg.grace:.0f} s after the world; stopping",
-                          flush=True, file=sys.stderr)
+                    print(
+                        f"htlm launch: {', '.join(late)} still running {cfg.grace:.0f} s after the world; stopping",
+                        flush=True,
+                        file=sys.stderr,
+                    )
                     stop(procs, signal.SIGINT)
                     code = 1
                     break

@@ -13,6 +13,13 @@ Two ways to feed the learner:
 Random streams (STYLE.md 4), all derived from the run's seed: network initialisation per agent, replay sampling per
 agent, exploration per agent and batch, and the world and channels per batch of training episodes. The same seed
 gives the same learning curve and the same weights (on CPU, for the same `threads`).
+
+Two departures from textbook DQN, both measured on the heterogeneous team (see `Settings`):
+- the horizon is not a terminal state in the target (`horizon_terminal=False`): the knowledge state holds no time, so
+  a terminal at h gives one knowledge state targets anywhere between r and r/(1-γ);
+- advantage learning (`advantage_learning=0.9`): with the idle incentive, idling now and working next step is worth
+  almost as much to one agent as working now (a gap of about 1 in Q-values near 200), so plain Q-learning's greedy
+  policy often stalls with every agent idle; widening the gaps keeps the greedy team working.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ import ast
 import csv
 import dataclasses
 import inspect
+import itertools
 import json
 import math
 import sys
@@ -36,7 +44,6 @@ import numpy as np
 import torch
 
 from htlm_world.scenario import Scenario
-from htlm_world.simulator import channel_rng
 from htlm_world.types import BoolArray, FloatArray, IntArray
 
 from .qnet import StackedQ, layer_sizes, masked_argmax, masked_max, pack_weights
@@ -122,12 +129,29 @@ class Settings:
 
     def __post_init__(self) -> None:
         """Validate every field (STYLE.md 3): a bad value raises ValueError naming it."""
-        positive = ("n_step", "lr", "batch_size", "memory", "target_sync", "episodes", "envs", "updates_per_step", "threads")
+        positive = (
+            "n_step",
+            "lr",
+            "batch_size",
+            "memory",
+            "target_sync",
+            "episodes",
+            "envs",
+            "updates_per_step",
+            "threads",
+        )
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be > 0")
-        for name in ("learning_starts", "grad_clip", "eval_episodes", "validate_every", "validate_episodes",
-                     "checkpoint_every", "seed"):
+        for name in (
+            "learning_starts",
+            "grad_clip",
+            "eval_episodes",
+            "validate_every",
+            "validate_episodes",
+            "checkpoint_every",
+            "seed",
+        ):
             if getattr(self, name) < 0:
                 raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be >= 0")
         for name in ("eps_start", "eps_end", "eps_fraction", "advantage_learning"):
@@ -136,8 +160,9 @@ class Settings:
         if not self.hidden or any(int(h) < 1 for h in self.hidden):
             raise ValueError(f"settings.hidden: {self.hidden!r} needs at least one layer, every size >= 1")
         if not self.reward_scale > 0 or not self.huber_delta > 0:
-            raise ValueError(f"settings: reward_scale {self.reward_scale!r} and huber_delta {self.huber_delta!r} "
-                             "must be > 0")
+            raise ValueError(
+                f"settings: reward_scale {self.reward_scale!r} and huber_delta {self.huber_delta!r} must be > 0"
+            )
         if self.envs > self.memory:
             raise ValueError(f"settings.envs: {self.envs!r} must not exceed settings.memory {self.memory!r}")
 
@@ -198,7 +223,7 @@ def field_docs(cls: type) -> dict[str, str]:
     tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
     body = tree.body[0].body  # type: ignore[attr-defined]
     out: dict[str, str] = {}
-    for prev, node in zip(body, body[1:], strict=False):
+    for prev, node in itertools.pairwise(body):
         if (
             isinstance(prev, ast.AnnAssign)
             and isinstance(prev.target, ast.Name)
@@ -278,10 +303,15 @@ class StackedAdam:
     and an agent's parameters and moments change only on updates it takes part in."""
 
     def __init__(
-        self, param: torch.Tensor, lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8
+        self,
+        param: torch.Tensor,
+        grad: torch.Tensor,
+        lr: float,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
     ) -> None:
-        """Moments start at zero, step counts at zero."""
-        self.param = param
+        """Moments start at zero, step counts at zero; `grad` is where the gradient of `param` lands."""
+        self.param, self.grad = param, grad
         self.lr, self.betas, self.eps = lr, betas, eps
         self.m = torch.zeros_like(param)
         self.v = torch.zeros_like(param)
@@ -291,8 +321,7 @@ class StackedAdam:
     def step(self, active: torch.Tensor) -> None:
         """Apply the gradient rows of the agents marked in `active` (N,) bool."""
         b1, b2 = self.betas
-        g = self.param.grad
-        assert g is not None
+        g = self.grad
         self.t += active.to(self.t.dtype)
         t = self.t.clamp(min=1.0)
         c1 = (1.0 - b1**t).to(torch.float32)[:, None]
@@ -319,15 +348,14 @@ class StackedAdam:
         self.t.copy_(st["t"])
 
 
-def clip_grad_per_agent(param: torch.Tensor, max_norm: float) -> torch.Tensor:
-    """Scale each agent's gradient row of the stacked parameters (N, P) to norm <= max_norm (0: no clipping);
-    returns the norms (N,) before clipping."""
-    g = param.grad
-    assert g is not None
+def clip_grad_per_agent(g: torch.Tensor, max_norm: float) -> torch.Tensor:
+    """Scale each agent's row of the stacked gradient (N, P) to norm <= max_norm in place (0: no clipping); returns
+    the norms (N,) before clipping."""
     norm = g.norm(dim=1)
     if max_norm > 0:
         g.mul_((max_norm / (norm + 1e-6)).clamp(max=1.0)[:, None])
-    return norm
+    out: torch.Tensor = norm
+    return out
 
 
 def epsilon_greedy(
@@ -368,9 +396,9 @@ class Learner:
         self.sizes = layer_sizes(scenario, settings.hidden)
         self.net = StackedQ.fresh(self.sizes, [derive_seed(self.seed, _INIT, i) for i in range(n)])
         self.target = StackedQ.fresh(self.sizes, [0] * n)
-        self.target.load_state_dict(self.net.state_dict())
+        self.target.flat.copy_(self.net.flat)
         self.target.requires_grad_(False)
-        self.opt = StackedAdam(self.net.flat, settings.lr)
+        self.opt = StackedAdam(self.net.flat, self.net.grad, settings.lr)
         self.replay = Replay(
             n,
             settings.memory,
@@ -397,7 +425,8 @@ class Learner:
         """Q-values (B, N, |Ḡ|) of every agent's own knowledge state (B, N, K)."""
         with torch.no_grad():
             x = torch.from_numpy(np.ascontiguousarray(knowledge.transpose(1, 0, 2), dtype=np.float32))
-            return self.net(x).numpy().transpose(1, 0, 2).astype(np.float64)
+            q: FloatArray = self.net(x).numpy().transpose(1, 0, 2).astype(np.float64)
+        return q
 
     def act(
         self,
@@ -415,9 +444,7 @@ class Learner:
             return epsilon_greedy(q, m, epsilon, rngs)
 
     # ----- storing ---------------------------------------------------------------------------------------------
-    def store(
-        self, agent: int, k: FloatArray, a: int, r: float, k2: FloatArray, mask2: BoolArray, done: bool
-    ) -> None:
+    def store(self, agent: int, k: FloatArray, a: int, r: float, k2: FloatArray, mask2: BoolArray, done: bool) -> None:
         """Store one transition <K, a, K', f_R> of one agent (from an agent process), with Â of K' and whether K'
         ends the episode (the horizon: terminal in the target only with settings.horizon_terminal). Invalid input
         raises ValueError naming the bad value."""
@@ -497,9 +524,9 @@ class Learner:
         active = torch.from_numpy(ready)
         batch = self.replay.sample(self.settings.batch_size, ready)
         total, per_agent = self.loss(batch, active)
-        self.net.flat.grad = None
-        total.backward()
-        clip_grad_per_agent(self.net.flat, self.settings.grad_clip)
+        self.net.zero_grad_()
+        total.backward()  # type: ignore[no-untyped-call]
+        clip_grad_per_agent(self.net.grad, self.settings.grad_clip)
         self.opt.step(active)
         self.updates += ready
         sync = ready & (self.updates % self.settings.target_sync == 0)
@@ -593,7 +620,7 @@ class Learner:
                     lr.net.flat.copy_(ts["online"])
             lr.opt.load_state(ts["adam"])
         else:
-            lr.target.load_state_dict(lr.net.state_dict())
+            lr.target.flat.copy_(lr.net.flat)
         lr.updates[:] = ck.info.get("updates", [0] * lr.n_agents)
         rs = ck.replay_state()
         if rs is not None and ck.info.get("replay_rngs") is not None and s.memory == ck.settings.memory:
@@ -615,8 +642,9 @@ class QPolicy:
     @staticmethod
     def from_checkpoint(ckpt: Any) -> QPolicy:
         """The policy of a loaded checkpoint (`checkpoint.Checkpoint`)."""
-        net = StackedQ(layer_sizes(ckpt.scenario, ckpt.settings.hidden),
-                       [[torch.from_numpy(p) for p in w] for w in ckpt.weights])
+        net = StackedQ(
+            layer_sizes(ckpt.scenario, ckpt.settings.hidden), [[torch.from_numpy(p) for p in w] for w in ckpt.weights]
+        )
         net.requires_grad_(False)
         return QPolicy(ckpt.scenario, net)
 
@@ -668,7 +696,7 @@ LOG_FIELDS = (
 
 def _batch_completion(levels_hist: list[IntArray], horizon: int) -> tuple[FloatArray, BoolArray]:
     done = np.stack([(lv == 0).all(axis=1) for lv in levels_hist[1:]])  # (h, B)
-    failed = ~done.any(axis=0)
+    failed: BoolArray = np.asarray(~done.any(axis=0))
     return np.where(failed, horizon, done.argmax(axis=0) + 1).astype(np.float64), failed
 
 
@@ -799,8 +827,9 @@ def train(
         mine = {k: v for k, v in settings.to_dict().items() if k in fixed}
         if fixed != mine:
             diff = sorted(k for k in fixed if fixed[k] != mine[k])
-            raise CheckpointError(f"{ck.path}: cannot resume with changed settings {diff}; only "
-                                  f"{list(RESUMABLE_CHANGES)} may change")
+            raise CheckpointError(
+                f"{ck.path}: cannot resume with changed settings {diff}; only {list(RESUMABLE_CHANGES)} may change"
+            )
         learner = Learner.load(ckpt_dir, settings)
         info = ck.info
     else:
@@ -851,8 +880,10 @@ def train(
             row["wall_s"] = round(time.perf_counter() - t_start, 3)
             row["episodes_per_s"] = bar.rate
             final = learner.episodes_done >= s.episodes
-            if s.validate_every and s.validate_episodes and (
-                learner.episodes_done - last_val >= s.validate_every or final
+            if (
+                s.validate_every
+                and s.validate_episodes
+                and (learner.episodes_done - last_val >= s.validate_every or final)
             ):
                 last_val = learner.episodes_done
                 vm = validate(learner, s.validate_episodes)
@@ -868,8 +899,12 @@ def train(
                 for key, val in row.items():
                     if key not in ("episodes", "wall_s") and not math.isnan(val):
                         writer.add_scalar(f"train/{key}", val, learner.episodes_done)
-            bar.update(learner.episodes_done, completion=f"{row['completion']:.2f}",
-                       unused=f"{row['unused_fraction']:.2f}", eps=f"{row['epsilon']:.2f}")
+            bar.update(
+                learner.episodes_done,
+                completion=f"{row['completion']:.2f}",
+                unused=f"{row['unused_fraction']:.2f}",
+                eps=f"{row['epsilon']:.2f}",
+            )
             if s.checkpoint_every and learner.episodes_done - last_ckpt >= s.checkpoint_every and not final:
                 last_ckpt = learner.episodes_done
                 save()
@@ -890,12 +925,20 @@ def train(
     if writer is not None:
         writer.close()
     wall = time.perf_counter() - t_start
-    summary = {"episodes": learner.episodes_done, "wall_time_s": round(wall, 2), "train_time_s": round(train_time, 2),
-               "selected_episode": selection.episode if s.select_best else None, "metrics": metrics}
+    summary = {
+        "episodes": learner.episodes_done,
+        "wall_time_s": round(wall, 2),
+        "train_time_s": round(train_time, 2),
+        "selected_episode": selection.episode if s.select_best else None,
+        "metrics": metrics,
+    }
     (out / "result.json").write_text(json.dumps(summary, indent=2) + "\n")
     if progress and metrics:
         c = metrics["completion"]
-        print(f"final greedy evaluation ({metrics['episodes']} episodes): completion {c['mean']:.2f} ± {c['se']:.2f}"
-              f", failures {c['failure_rate']:.1%}, unused capability {metrics['unused_fraction']['mean']:.1%}"
-              f" ({wall:.0f} s)", file=sys.stderr)
+        print(
+            f"final greedy evaluation ({metrics['episodes']} episodes): completion {c['mean']:.2f} ± {c['se']:.2f}"
+            f", failures {c['failure_rate']:.1%}, unused capability {metrics['unused_fraction']['mean']:.1%}"
+            f" ({wall:.0f} s)",
+            file=sys.stderr,
+        )
     return TrainResult(out, scenario, s, learner.episodes_done, wall, train_time, metrics, history)

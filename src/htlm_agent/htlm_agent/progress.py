@@ -15,7 +15,7 @@ def format_duration(seconds: float) -> str:
     """Seconds as m:ss or h:mm:ss."""
     if seconds != seconds or seconds == float("inf"):  # NaN or infinite
         return "?"
-    s = int(round(seconds))
+    s = round(seconds)
     h, rem = divmod(s, 3600)
     m, sec = divmod(rem, 60)
     return f"{h}:{m:02d}:{sec:02d}" if h else f"{m}:{sec:02d}"
@@ -77,12 +77,13 @@ class Progress:
     def line(self) -> str:
         """The current status line."""
         frac = min(self.done / self.total, 1.0)
-        fill = int(round(frac * self.width))
+        fill = round(frac * self.width)
         bar = "#" * fill + "-" * (self.width - fill)
         extra = " ".join(f"{k} {v}" for k, v in self.fields.items())
         return (
             f"[{bar}] {self.done}/{self.total} {frac:4.0%} {self.rate:.0f} {self.unit}/s "
-            f"elapsed {format_duration(self.elapsed)} ETA {format_duration(self.eta)}" + (f" | {extra}" if extra else "")
+            f"elapsed {format_duration(self.elapsed)} ETA {format_duration(self.eta)}"
+            + (f" | {extra}" if extra else "")
         )
 
     def update(self, done: int, **fields: object) -> None:

@@ -61,24 +61,43 @@ def init_agent_params(sizes: Sequence[int], seed: int) -> list[torch.Tensor]:
 class StackedQ(torch.nn.Module):
     """The Q-networks of N agents: ReLU MLPs whose parameters are the rows of one flat (N, P) tensor.
 
-    Row i holds agent i's parameters (per layer the weight (in, out) then the bias (out,), C order); the layers are
-    views of it, W_l (N, in, out) and b_l (N, 1, out), so one optimizer step and one gradient clip treat every agent
-    row by row, and a forward pass is one `torch.baddbmm` per layer.
+    Row i holds agent i's parameters (per layer the weight (in, out) then the bias (out,), C order). The layers,
+    W_l (N, in, out) and b_l (N, 1, out), are leaf parameters aliasing `flat`, and their gradients alias the rows of
+    `grad` (N, P), so one optimizer step and one gradient clip treat every agent row by row, and a forward pass is one
+    `torch.baddbmm` per layer.
     """
 
     def __init__(self, sizes: Sequence[int], agent_params: Sequence[Sequence[torch.Tensor]]) -> None:
         """Stack per-agent parameter lists (each in `param_shapes(sizes)` order) into one module."""
         super().__init__()
         self.sizes = tuple(int(s) for s in sizes)
-        self.n_agents = len(agent_params)
+        self.n_agents = n = len(agent_params)
         self.shapes = param_shapes(self.sizes)
         for k, params in enumerate(agent_params):
             got = [tuple(p.shape) for p in params]
             assert got == self.shapes, f"agent {k}: parameter shapes {got} != {self.shapes}"
         self.offsets = np.cumsum([0] + [int(np.prod(s)) for s in self.shapes]).tolist()
-        rows = [torch.cat([torch.as_tensor(p, dtype=torch.float32).reshape(-1) for p in params])
-                for params in agent_params]
-        self.flat = torch.nn.Parameter(torch.stack(rows).contiguous())
+        rows = [
+            torch.cat([torch.as_tensor(p, dtype=torch.float32).reshape(-1) for p in params]) for params in agent_params
+        ]
+        self.flat = torch.stack(rows).contiguous()
+        self.grad = torch.zeros_like(self.flat)
+        self.weights = torch.nn.ParameterList()
+        self.biases = torch.nn.ParameterList()
+        o = self.offsets
+        for li in range(len(self.sizes) - 1):
+            fan_in, fan_out = self.sizes[li], self.sizes[li + 1]
+            for j, shape, dst in (
+                (2 * li, (n, fan_in, fan_out), self.weights),
+                (2 * li + 1, (n, 1, fan_out), self.biases),
+            ):
+                p = torch.nn.Parameter(self.flat[:, o[j] : o[j + 1]].view(shape))
+                p.grad = self.grad[:, o[j] : o[j + 1]].view(shape)
+                dst.append(p)
+
+    def zero_grad_(self) -> None:
+        """Clear the flat gradient (gradients accumulate into it in place)."""
+        self.grad.zero_()
 
     @property
     def n_params(self) -> int:
@@ -90,23 +109,12 @@ class StackedQ(torch.nn.Module):
         """New networks, agent i initialised from seeds[i]."""
         return StackedQ(sizes, [init_agent_params(sizes, s) for s in seeds])
 
-    def layers(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """Views (W (N, in, out), b (N, 1, out)) of every layer."""
-        n, o = self.n_agents, self.offsets
-        out = []
-        for li in range(len(self.sizes) - 1):
-            fan_in, fan_out = self.sizes[li], self.sizes[li + 1]
-            w = self.flat[:, o[2 * li] : o[2 * li + 1]].view(n, fan_in, fan_out)
-            b = self.flat[:, o[2 * li + 1] : o[2 * li + 2]].view(n, 1, fan_out)
-            out.append((w, b))
-        return out
-
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Q-values (N, M, |Ḡ|) of inputs (N, M, K): agent i's network on row i."""
-        layers = self.layers()
-        for li, (w, b) in enumerate(layers):
-            x = torch.baddbmm(b, x, w)
-            if li < len(layers) - 1:
+        n_layers = len(self.weights)
+        for li in range(n_layers):
+            x = torch.baddbmm(self.biases[li], x, self.weights[li])
+            if li < n_layers - 1:
                 x = torch.relu(x)
         return x
 
@@ -250,7 +258,8 @@ class AgentQ:
     def q_values(self, knowledge: NDArray[Any]) -> F32:
         """Q-values (B, |Ḡ|) of knowledge states (B, K)."""
         with torch.no_grad():
-            return self.net(self._input(knowledge))[0].numpy().copy()
+            q: F32 = self.net(self._input(knowledge))[0].numpy().copy()
+        return q
 
     def act(self, knowledge: NDArray[Any], mask: NDArray[np.bool_]) -> NDArray[np.int64]:
         """Greedy action (B,) over Â: masked argmax of the Q-values, ties to the lowest index."""

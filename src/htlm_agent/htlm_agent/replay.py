@@ -66,7 +66,7 @@ class Replay:
         self, k: FloatArray, a: Any, r: Any, k2: FloatArray, mask2: BoolArray, discount: Any
     ) -> NDArray[np.float32]:
         lead = np.shape(a)
-        rec = np.empty(lead + (self.width,), dtype=np.float32)
+        rec = np.empty((*lead, self.width), dtype=np.float32)
         c = self.cols
         rec[..., c["k"]] = k
         rec[..., c["k2"]] = k2

@@ -21,10 +21,18 @@ TARGET_STEPS_PER_S = 100.0
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of the ROS benchmark (added to `htlm bench`)."""
     p.add_argument("--ros-episodes", type=int, default=20, help="ros: episodes of the timed run (default 20)")
-    p.add_argument("--ros-mode", choices=("evaluate", "train"), default="evaluate",
-                   help="ros: evaluate (greedy policy per agent, default) or train (Q-networks, ε-greedy, learner)")
-    p.add_argument("--ros-policy", choices=("greedy", "random"), default="greedy",
-                   help="ros, evaluate: the agents' built-in policy (default greedy)")
+    p.add_argument(
+        "--ros-mode",
+        choices=("evaluate", "train"),
+        default="evaluate",
+        help="ros: evaluate (greedy policy per agent, default) or train (Q-networks, ε-greedy, learner)",
+    )
+    p.add_argument(
+        "--ros-policy",
+        choices=("greedy", "random"),
+        default="greedy",
+        help="ros, evaluate: the agents' built-in policy (default greedy)",
+    )
     p.add_argument("--domain-id", type=int, default=99, help="ros: ROS_DOMAIN_ID of the timed team (default 99)")
     p.add_argument("--keep", default="", metavar="DIR", help="ros: keep the run directory here")
 
@@ -81,8 +89,10 @@ def ros_bench(args: argparse.Namespace) -> dict[str, Any]:
     lines = (run_dir / "world.jsonl").read_text().splitlines() if (run_dir / "world.jsonl").exists() else []
     eps = [json.loads(x)["metrics"] for x in lines]
     if code != 0 or len(eps) < episodes:
-        raise SystemExit(f"htlm bench ros: the team failed (exit {code}, {len(eps)} of {episodes} episodes); "
-                         f"logs in {run_dir / 'logs'}")
+        raise SystemExit(
+            f"htlm bench ros: the team failed (exit {code}, {len(eps)} of {episodes} episodes); "
+            f"logs in {run_dir / 'logs'}"
+        )
     timed = eps[1:]  # the first episode includes the start-up of the processes
     seconds = sum(e["seconds"] for e in timed)
     steps = len(timed) * sc.horizon

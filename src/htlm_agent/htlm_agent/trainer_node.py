@@ -11,6 +11,7 @@ came after it. Run: `ros2 run htlm_agent trainer_node --ros-args -p run_dir:=run
 from __future__ import annotations
 
 import base64
+import faulthandler
 import hashlib
 import json
 import signal
@@ -27,7 +28,18 @@ from rclpy.signals import SignalHandlerOptions
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
-from htlm_msgs_py.ros import BULK, EVENTS, STATE, STATE_READER, Health, SettingsError, String, declare_settings, make_executor, string
+from htlm_msgs_py.ros import (
+    BULK,
+    EVENTS,
+    STATE,
+    STATE_READER,
+    Health,
+    SettingsError,
+    String,
+    declare_settings,
+    make_executor,
+    string,
+)
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.scenario import Scenario, ScenarioError, from_dict
@@ -180,8 +192,9 @@ class TrainerNode(Node):
             if i < fed:  # already in the checkpoint's replay memory
                 self.episodes_stored.add(int(r["episode"]))
                 continue
-            self._learn(r["agent"], r["k"], r["a"], r["r"], r["k2"], r["mask2"].astype(bool), bool(r["done"]),
-                        int(r["episode"]))
+            self._learn(
+                r["agent"], r["k"], r["a"], r["r"], r["k2"], r["mask2"].astype(bool), bool(r["done"]), int(r["episode"])
+            )
             replayed += 1
         (self.dir / "settings.json").write_text(json.dumps(settings.to_dict(), indent=1) + "\n")
         self.pub_weights = [self.create_publisher(String, topics.weights(a.name), STATE) for a in sc.agents]
@@ -353,6 +366,12 @@ class TrainerNode(Node):
         if self.store is not None:
             self._flush()
             if self.fatal is None:
+                end = time.monotonic() + 3.0  # catch up on the rounds of updates still owed, briefly
+                every = self.settings.train_every
+                while self.learner is not None and every and self.new_transitions >= every:
+                    if time.monotonic() > end:
+                        break
+                    self._train()
                 self._checkpoint()
             self.store.close()
             self.store = None
@@ -394,6 +413,7 @@ def main(args: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    faulthandler.register(signal.SIGUSR1)  # `kill -USR1 <pid>` prints every thread's stack to the log
     executor = make_executor(node.settings.executor)
     executor.add_node(node)
     code = 1

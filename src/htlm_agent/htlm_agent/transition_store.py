@@ -114,8 +114,9 @@ class TransitionStore:
                 os.fsync(f.fileno())
         if good:
             arr = np.frombuffer(body[: good * self.size], dtype=self.dtype)
-            for agent, session, seq in zip(arr["agent"].tolist(), arr["session"].tolist(), arr["seq"].tolist(),
-                                           strict=True):
+            for agent, session, seq in zip(
+                arr["agent"].tolist(), arr["session"].tolist(), arr["seq"].tolist(), strict=True
+            ):
                 self._mark(int(agent), session, int(seq))
             self.count = good
 

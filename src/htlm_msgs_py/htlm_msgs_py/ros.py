@@ -7,6 +7,7 @@ rest of the package (and the whole model core) imports without them.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import time
 import typing
@@ -111,7 +112,7 @@ class Health:
         except WireError as e:
             self.reject(topic, e.reason, str(e))
             return None
-        except Exception as e:  # noqa: BLE001 - a received message must never crash a node
+        except Exception as e:
             self.reject(topic, "error", f"{type(e).__name__}: {e}")
             return None
         self.counters[f"received/{topic}"] += 1
@@ -196,7 +197,7 @@ def field_docs(cls: type) -> dict[str, str]:
     assert isinstance(body, ast.ClassDef)
     docs: dict[str, str] = {}
     stmts = body.body
-    for a, b in zip(stmts, stmts[1:], strict=False):
+    for a, b in itertools.pairwise(stmts):
         if (
             isinstance(a, ast.AnnAssign)
             and isinstance(a.target, ast.Name)
@@ -218,9 +219,8 @@ def _coerce(name: str, value: Any, tp: Any) -> Any:
     elif tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
-    elif tp is str:
-        if isinstance(value, str):
-            return value
+    elif tp is str and isinstance(value, str):
+        return value
     raise SettingsError(f"parameter {name}: expected {tp.__name__}, got {type(value).__name__} {value!r}")
 
 

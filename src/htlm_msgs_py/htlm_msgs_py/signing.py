@@ -67,7 +67,11 @@ class Signer:
         if self._key is None:
             return text, None
         n = len(text)
-        if n < _SUFFIX_LEN + 2 or not text.endswith('"}') or text[n - _SUFFIX_LEN : n - _SUFFIX_LEN + 8] != _SUFFIX_HEAD:
+        if (
+            n < _SUFFIX_LEN + 2
+            or not text.endswith('"}')
+            or text[n - _SUFFIX_LEN : n - _SUFFIX_LEN + 8] != _SUFFIX_HEAD
+        ):
             return text, "missing signature"
         sig = text[n - SIG_HEX - 2 : n - 2]
         body = text[: n - _SUFFIX_LEN] + "}"

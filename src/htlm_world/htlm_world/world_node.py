@@ -10,6 +10,7 @@ clock steps at a fixed period instead of as soon as everyone answered. Run: `ros
 
 from __future__ import annotations
 
+import faulthandler
 import json
 import signal
 import sys
@@ -90,6 +91,7 @@ class WorldNode(Node):
         self.create_timer(s.diagnostics_period, self._publish_health)
         # protocol state
         self.phase = "idle"
+        self.joining = False
         self.episode = -1
         self.t = 0
         self.answers: dict[int, int] = {}
@@ -170,9 +172,7 @@ class WorldNode(Node):
         )
 
     def _step(self, t: int, phase: str) -> None:
-        self.pub_step.publish(
-            string(encode(S.STEP, {"episode": self.episode, "step": t, "phase": phase}, self.signer))
-        )
+        self.pub_step.publish(string(encode(S.STEP, {"episode": self.episode, "step": t, "phase": phase}, self.signer)))
 
     def _publish_health(self) -> None:
         h = self.health
@@ -190,7 +190,9 @@ class WorldNode(Node):
         )
         n = self.scenario.n_agents
         status = f"{self.phase} episode {self.episode} step {self.t}"
-        if self.phase in ("act", "end") and len(self.present) < n:
+        if self.joining:
+            h.ok(f"episode {self.episode}: waiting for agents {sorted(set(range(n)) - self.answers.keys())} to begin")
+        elif self.phase in ("act", "end") and len(self.present) < n:
             h.warn(f"{status}: agents {sorted(set(range(n)) - self.present)} absent")
         else:
             h.ok(status)
@@ -208,6 +210,7 @@ class WorldNode(Node):
         """Announce the episode until every agent answered with its action for step 1, or `wait` seconds."""
         everyone = set(range(self.scenario.n_agents))
         deadline = time.monotonic() + wait
+        self.joining = True
         while not self._stopping():
             self._step(0, "begin")
             nudge = min(deadline, time.monotonic() + 0.5)
@@ -216,7 +219,12 @@ class WorldNode(Node):
                 return (everyone <= self.answers.keys() and self._discovered()) or self._stopping()
 
             if spin_until(executor, done, nudge) or time.monotonic() >= deadline:
-                return
+                break
+        self.joining = False
+
+    def _wait_answers(self, executor: Executor, expect: set[int], deadline: float) -> None:
+        """Spin until every agent in `expect` (a live set that late agents may join) answered, or the deadline."""
+        spin_until(executor, lambda: expect <= self.answers.keys() or self._stopping(), deadline)
 
     def run(self, executor: Executor) -> int:
         """Run every episode; returns the exit code (0 done, 128 + signal number when stopped by a signal)."""
@@ -248,13 +256,11 @@ class WorldNode(Node):
                 s = self.settings
                 if t > 1:  # the actions of step t, each sent after the agent's update of step t - 1
                     close = tick + s.period if s.clock == "free" else time.monotonic() + s.act_deadline
-                    # wait for the live agents; with none live, for anyone until the deadline (never race ahead)
-                    expect = self.present or set(range(n))
-                    full = (lambda: self._stopping()) if s.clock == "free" else (
-                        lambda: expect <= self.answers.keys() or self._stopping()
-                    )
-                    spin_until(executor, full, close)
-                    tick = close if s.clock == "free" else time.monotonic()
+                    if s.clock == "free":
+                        spin_until(executor, self._stopping, close)
+                        tick = close
+                    else:  # the live agents; with none live, anyone until the deadline (never race ahead)
+                        self._wait_answers(executor, self.present or set(range(n)), close)
                 if self._stopping():
                     break
                 chosen = dict(self.answers)
@@ -279,11 +285,7 @@ class WorldNode(Node):
                 break
             s = self.settings
             expected = set(out.acted)
-            spin_until(
-                executor,
-                lambda: expected <= self.answers.keys() or self._stopping(),
-                time.monotonic() + s.update_deadline,
-            )
+            self._wait_answers(executor, expected, time.monotonic() + s.update_deadline)
             late = expected - self.answers.keys()
             if late:
                 self.health.counters["late_ready"] += len(late)
@@ -360,6 +362,7 @@ def main(args: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    faulthandler.register(signal.SIGUSR1)  # `kill -USR1 <pid>` prints every thread's stack to the log
     executor = make_executor(node.settings.executor)
     executor.add_node(node)
     code = 1
