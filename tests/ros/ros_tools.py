@@ -3,7 +3,8 @@
 - diag: record the latest /diagnostics status of every node into a JSON file, rewritten every 0.3 s;
 - fuzz: publish malformed records on every subscribed topic of a team, then write how many went out per topic;
 - rogue: a stranger without the team key publishing plausible, well-formed forged observations, broadcasts and
-  actions for every step of the episodes it sees begin.
+  actions for every step of the episodes it sees begin;
+- setparam: set a parameter of a running node (what `ros2 param set` does).
 """
 
 from __future__ import annotations
@@ -111,6 +112,7 @@ def fuzz(args: argparse.Namespace) -> None:
         for t, (schema, _) in targets.items()
     }
     sent = dict.fromkeys(targets, 0)
+    t0 = time.monotonic()
     for i in range(args.count):
         for t, pub in pubs.items():
             pub.publish(string(texts[t][i]))
@@ -118,7 +120,8 @@ def fuzz(args: argparse.Namespace) -> None:
         if i % 10 == 9:
             _spin_for(node, args.pause)
     _spin_for(node, 1.0)
-    Path(args.out).write_text(json.dumps({"sent": sent, "unmatched": unmatched}))
+    took = time.monotonic() - t0
+    Path(args.out).write_text(json.dumps({"sent": sent, "unmatched": unmatched, "seconds": round(took, 2)}))
 
 
 def rogue(args: argparse.Namespace) -> None:
@@ -177,6 +180,23 @@ def rogue(args: argparse.Namespace) -> None:
     Path(args.out).write_text(json.dumps({"sent": count, "episodes": seen}))
 
 
+def setparam(args: argparse.Namespace) -> None:
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    node = Node("test_setparam")
+    client = AsyncParameterClient(node, args.node)
+    if not client.wait_for_services(timeout_sec=20.0):
+        raise SystemExit(f"no parameter services of {args.node}")
+    value = json.loads(args.value)
+    future = client.set_parameters([Parameter(args.name, value=value)])
+    rclpy.spin_until_future_complete(node, future, timeout_sec=20.0)
+    result = future.result()
+    ok = result is not None and all(r.successful for r in result.results)
+    reasons = [r.reason for r in result.results] if result is not None else ["no answer"]
+    Path(args.out).write_text(json.dumps({"successful": ok, "reasons": reasons}))
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -199,10 +219,15 @@ def main() -> None:
     r.add_argument("--pause", type=float, default=0.05)
     r.add_argument("--kinds", default="all", help="all, broadcast, action or observation")
     r.add_argument("--seed", type=int, default=0)
+    sp = sub.add_parser("setparam")
+    sp.add_argument("--out", required=True)
+    sp.add_argument("--node", default="/htlm_world")
+    sp.add_argument("--name", required=True)
+    sp.add_argument("--value", required=True, help="JSON value")
     args = p.parse_args()
     rclpy.init()
     try:
-        {"diag": diag, "fuzz": fuzz, "rogue": rogue}[args.cmd](args)
+        {"diag": diag, "fuzz": fuzz, "rogue": rogue, "setparam": setparam}[args.cmd](args)
     finally:
         rclpy.try_shutdown()
 

@@ -117,15 +117,18 @@ class Settings:
     """torch intra-op threads; results are reproducible for a fixed value."""
     eval_episodes: int = 500
     """Episodes of the greedy evaluation at the end of training."""
-    validate_every: int = 2048
+    validate_every: int = 4096
     """Episodes between greedy validation runs during training (0: none), logged as val_* columns."""
-    validate_episodes: int = 200
+    validate_episodes: int = 500
     """Episodes of every validation run (their own random streams, never those of the final evaluation)."""
     select_best: bool = True
     """Make the networks with the best validation completion step, among validations after ε has decayed and at the
     end, the run's policy (the latest networks are kept for resuming)."""
     checkpoint_every: int = 8_192
     """Episodes between checkpoints (always one at the end)."""
+    keep_replay: bool = True
+    """Save the replay memories in checkpoints (about 60 MB with the defaults), so that a resumed run continues exactly;
+    without them a resumed run refills its memories first."""
 
     def __post_init__(self) -> None:
         """Validate every field (STYLE.md 3): a bad value raises ValueError naming it."""
@@ -525,7 +528,7 @@ class Learner:
         batch = self.replay.sample(self.settings.batch_size, ready)
         total, per_agent = self.loss(batch, active)
         self.net.zero_grad_()
-        total.backward()  # type: ignore[no-untyped-call]
+        self.net.backward(total)
         clip_grad_per_agent(self.net.grad, self.settings.grad_clip)
         self.opt.step(active)
         self.updates += ready
@@ -757,7 +760,15 @@ def write_run_files(out_dir: Path, scenario: Scenario, settings: Settings) -> No
     (out_dir / "scenario.yaml").write_text(yaml.safe_dump(scenario.to_dict(), sort_keys=False))
 
 
-RESUMABLE_CHANGES = ("episodes", "eval_episodes", "validate_every", "validate_episodes", "checkpoint_every", "threads")
+RESUMABLE_CHANGES = (
+    "episodes",
+    "eval_episodes",
+    "validate_every",
+    "validate_episodes",
+    "checkpoint_every",
+    "keep_replay",
+    "threads",
+)
 """Settings that may differ when a run is resumed; every other field must match the checkpoint's."""
 
 
@@ -861,10 +872,8 @@ def train(
 
     def save() -> None:
         extra = selection.info()
-        if s.select_best and selection.flat is not None:
-            learner.save(ckpt_dir, extra=extra, policy_flat=selection.flat)
-        else:
-            learner.save(ckpt_dir, extra=extra)
+        policy = selection.flat if s.select_best else None
+        learner.save(ckpt_dir, replay=s.keep_replay, extra=extra, policy_flat=policy)
 
     bar = Progress(s.episodes, initial=learner.episodes_done, unit="ep", enabled=progress)
     history: list[dict[str, float]] = []

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import struct
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -27,6 +28,10 @@ from numpy.typing import NDArray
 from htlm_world.scenario import Scenario
 
 F32 = NDArray[np.float32]
+
+LAYOUT_WARNING = "grad and param do not obey the gradient layout contract"
+"""Autograd's note on StackedQ's strided parameter and gradient views (on purpose: it accumulates into them in place;
+the note is only about speed). `backward` silences it."""
 
 WEIGHTS_MAGIC = b"HTQW"
 WEIGHTS_VERSION = 1
@@ -98,6 +103,17 @@ class StackedQ(torch.nn.Module):
     def zero_grad_(self) -> None:
         """Clear the flat gradient (gradients accumulate into it in place)."""
         self.grad.zero_()
+
+    @staticmethod
+    def backward(loss: torch.Tensor) -> None:
+        """loss.backward(), the gradient landing in `grad` of the networks involved."""
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=LAYOUT_WARNING)
+            loss.backward()  # type: ignore[no-untyped-call]
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        """Clear the flat gradient; the layer gradients stay views of it whatever `set_to_none` says."""
+        self.zero_grad_()
 
     @property
     def n_params(self) -> int:

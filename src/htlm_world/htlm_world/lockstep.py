@@ -33,7 +33,7 @@ class WorldSettings:
     mode: str = "evaluate"
     """train (agents explore and send transitions), evaluate or deploy (greedy policies)."""
     episodes: int = 10
-    """Episodes to run; 0 runs until stopped."""
+    """Episodes to run; 0 runs until stopped (may be changed while running: the run ends after that many)."""
     first_episode: int = 0
     """Index of the first episode (seeds are derived from the episode index)."""
     clock: str = "lockstep"

@@ -60,7 +60,7 @@ class WorldNode(Node):
             self,
             WorldSettings,
             _validate,
-            tunable=("act_deadline", "update_deadline", "begin_deadline", "period"),
+            tunable=("act_deadline", "update_deadline", "begin_deadline", "period", "episodes"),
             on_change=self._on_settings,
         )
         s = self.settings
