@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import json
 import random
 import signal
@@ -92,15 +93,22 @@ def fuzz(args: argparse.Namespace) -> None:
     node = Node("test_fuzzer")
     lim = S.limits(5, 4, 6, 5, args.horizon)
     targets = subscribed_topics(args.mode)
-    # a deep writer history: reliable delivery of the whole burst, also on the state topics (where the team's own
-    # writers keep only the latest value)
-    deep = QoSProfile(
-        depth=2 * args.count,
-        reliability=ReliabilityPolicy.RELIABLE,
-        history=HistoryPolicy.KEEP_LAST,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL,
-    )
-    pubs = {t: node.create_publisher(String, t, deep if qos is STATE else qos) for t, (_, qos) in targets.items()}
+    if args.topics:
+        keep = args.topics.split(",")
+        targets = {t: v for t, v in targets.items() if any(t.endswith(k) for k in keep)}
+
+    # writers that keep the whole burst: reliable delivery of every record, also on the state topics (where the
+    # team's own writers keep only the latest value), and publishing never waits for acknowledgements
+    def deep(state: bool) -> QoSProfile:
+        durability = DurabilityPolicy.TRANSIENT_LOCAL if state else DurabilityPolicy.VOLATILE
+        return QoSProfile(
+            depth=2 * args.count,
+            reliability=ReliabilityPolicy.RELIABLE,
+            history=HistoryPolicy.KEEP_LAST,
+            durability=durability,
+        )
+
+    pubs = {t: node.create_publisher(String, t, deep(qos is STATE)) for t, (_, qos) in targets.items()}
     # wait until every topic is matched with its subscribers
     end = time.monotonic() + 20
     while time.monotonic() < end and any(p.get_subscription_count() == 0 for p in pubs.values()):
@@ -119,6 +127,8 @@ def fuzz(args: argparse.Namespace) -> None:
             sent[t] += 1
         if i % 10 == 9:
             _spin_for(node, args.pause)
+        if i % 100 == 99:
+            print(f"{i + 1} records per topic after {time.monotonic() - t0:.1f} s", flush=True)
     _spin_for(node, 1.0)
     took = time.monotonic() - t0
     Path(args.out).write_text(json.dumps({"sent": sent, "unmatched": unmatched, "seconds": round(took, 2)}))
@@ -211,6 +221,7 @@ def main() -> None:
     f.add_argument("--horizon", type=int, default=30)
     f.add_argument("--pause", type=float, default=0.005)
     f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--topics", default="", help="comma-separated topic name endings to fuzz (default: all)")
     r = sub.add_parser("rogue")
     r.add_argument("--out", required=True)
     r.add_argument("--key", default="", help="the rogue's own (wrong) key; empty: unsigned")
@@ -225,6 +236,7 @@ def main() -> None:
     sp.add_argument("--name", required=True)
     sp.add_argument("--value", required=True, help="JSON value")
     args = p.parse_args()
+    faulthandler.register(signal.SIGUSR1)
     rclpy.init()
     try:
         {"diag": diag, "fuzz": fuzz, "rogue": rogue, "setparam": setparam}[args.cmd](args)

@@ -30,7 +30,6 @@ from rclpy.signals import SignalHandlerOptions
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import (
-    BULK,
     EVENTS,
     STATE,
     STATE_READER,
@@ -113,7 +112,7 @@ class AgentNode(Node):
         self.pub_action = self.create_publisher(String, topics.ACTION, EVENTS)
         self.pub_broadcast = self.create_publisher(String, topics.BROADCAST, EVENTS)
         self.pub_ready = self.create_publisher(String, topics.READY, EVENTS)
-        self.pub_transition = self.create_publisher(String, topics.TRANSITIONS, BULK)
+        self.pub_transition = self.create_publisher(String, topics.TRANSITIONS, EVENTS)
         self.pub_goal = self.create_publisher(PoseStamped, topics.goal_pose(self.name), STATE)
         self.pub_belief = self.create_publisher(String, topics.belief(self.name), STATE)
         # subscriptions

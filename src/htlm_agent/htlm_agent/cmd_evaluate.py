@@ -76,7 +76,9 @@ def format_metrics(m: dict[str, Any]) -> str:
         f"{m['policy']} · {m['team']} · {m['mode']} · R_II x{m['idle_incentive']:g} · tc {m['reassign_cost']:g} · "
         f"{m['episodes']} episodes (seed {m['seed']})"
         + (f" · inactive: {', '.join(m['inactive'])}" if m["inactive"] else ""),
-        f"completion step {c['mean']:.2f} ± {c['se']:.2f} (failure rate {c['failure_rate']:.1%})",
+        f"completion step {c['mean']:.2f} ± {c['se']:.2f} (failure rate {c['failure_rate']:.1%}, of which every agent "
+        f"believed the operation complete {c['false_completion_rate']:.1%}; completed episodes "
+        f"{c['mean_completed']:.2f})",
         f"unused capability per agent per step {m['unused_capability']['mean']:.3f} ± "
         f"{m['unused_capability']['se']:.3f} (fraction {m['unused_fraction']['mean']:.1%})",
         f"team idle count before completion {m['idle_before_completion']['mean']:.2f} · team reassignment count "

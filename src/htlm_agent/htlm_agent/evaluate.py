@@ -16,8 +16,9 @@ import numpy as np
 
 from htlm_world.metrics import EpisodeMetrics, episode_metrics, importance, mean_se
 from htlm_world.scenario import Scenario
-from htlm_world.types import IntArray
+from htlm_world.types import BoolArray, IntArray
 
+from .reward import confident_levels
 from .team import Policy, Team, rollout
 
 MAX_BATCH = 1024
@@ -32,15 +33,17 @@ class Evaluation:
     episodes: EpisodeMetrics
     actions: IntArray  # (h, E, N)
     scenario: Scenario
+    believed_complete: BoolArray  # (E,) every agent's belief says every task is at level 0 after the last step
 
 
 def run_episodes(
     policy: Policy, scenario: Scenario, episodes: int, seed: int = 0, inactive: tuple[int, ...] = ()
-) -> tuple[IntArray, IntArray]:
-    """Run `episodes` episodes of `policy`; returns true levels (h+1, E, p) and actions (h, E, N)."""
+) -> tuple[IntArray, IntArray, BoolArray]:
+    """Run `episodes` episodes of `policy`; returns true levels (h+1, E, p), actions (h, E, N) and whether every
+    agent believes, after the last step, that every task is at level 0 (confident levels of the reward, (E,))."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes!r}")
-    levels, actions = [], []
+    levels, actions, believed = [], [], []
     chunk = 0
     left = episodes
     while left > 0:
@@ -49,9 +52,10 @@ def run_episodes(
         tr = rollout(team, policy)
         levels.append(tr.levels)
         actions.append(tr.actions)
+        believed.append((confident_levels(team.marg, team.tables.threshold) == 0).all(axis=(1, 2)))
         left -= b
         chunk += 1
-    return np.concatenate(levels, axis=1), np.concatenate(actions, axis=1)
+    return np.concatenate(levels, axis=1), np.concatenate(actions, axis=1), np.concatenate(believed)
 
 
 def _ms(x: Any) -> dict[str, float]:
@@ -60,11 +64,24 @@ def _ms(x: Any) -> dict[str, float]:
 
 
 def summarize(
-    scenario: Scenario, em: EpisodeMetrics, seed: int, inactive: tuple[int, ...], policy_name: str
+    scenario: Scenario,
+    em: EpisodeMetrics,
+    seed: int,
+    inactive: tuple[int, ...],
+    policy_name: str,
+    believed_complete: BoolArray | None = None,
 ) -> dict[str, Any]:
-    """Aggregate per-episode metrics into the report dictionary (team and per agent)."""
+    """Aggregate per-episode metrics into the report dictionary (team and per agent).
+
+    Besides the metrics of MODEL.md, "completion" holds `mean_completed` (mean over the episodes that completed) and
+    `false_completion_rate` (episodes that failed although every agent's belief says every task is done: agents that
+    idle on a wrong belief, which no learning from the belief-based reward can correct).
+    """
     n_ep = int(em.completion.shape[0])
     comp_mean, comp_se = mean_se(em.completion)
+    ok = ~em.failed
+    mean_completed = float(em.completion[ok].mean()) if ok.any() else float("nan")
+    false_completion = float((em.failed & believed_complete).mean()) if believed_complete is not None else None
     agents = []
     for i, a in enumerate(scenario.agents):
         cap = a.fire + a.rescue
@@ -91,7 +108,13 @@ def summarize(
         "episodes": n_ep,
         "seed": seed,
         "inactive": [scenario.agents[i].name for i in inactive],
-        "completion": {"mean": comp_mean, "se": comp_se, "failure_rate": float(em.failed.mean())},
+        "completion": {
+            "mean": comp_mean,
+            "se": comp_se,
+            "failure_rate": float(em.failed.mean()),
+            "mean_completed": mean_completed,
+            "false_completion_rate": false_completion,
+        },
         "unused_capability": _ms(em.unused_capability),
         "unused_fraction": _ms(em.unused_fraction),
         "idle_before_completion": _ms(em.idle_before),
@@ -118,10 +141,10 @@ def evaluate_run(
         inactive: agent indices forced to idle whatever they decide (no retraining).
         policy_name: label for reports.
     """
-    levels, actions = run_episodes(policy, scenario, episodes, seed, inactive)
+    levels, actions, believed = run_episodes(policy, scenario, episodes, seed, inactive)
     em = episode_metrics(scenario, levels, actions)
-    metrics = summarize(scenario, em, seed, inactive, policy_name or type(policy).__name__)
-    return Evaluation(metrics, em, actions, scenario)
+    metrics = summarize(scenario, em, seed, inactive, policy_name or type(policy).__name__, believed)
+    return Evaluation(metrics, em, actions, scenario, believed)
 
 
 def evaluate(
@@ -232,7 +255,7 @@ def plot_completion(ev: Evaluation, path: Path) -> None:
 def importance_table(policy: Policy, scenario: Scenario, episodes: int = 500, seed: int = 0) -> dict[str, Any]:
     """The agent importance table (Eqs. 6-9) from `episodes` greedy episodes: per agent C_fire, C_rescue, U_fire,
     U_rescue, ζ; per task type ω."""
-    _, actions = run_episodes(policy, scenario, episodes, seed)
+    _, actions, _ = run_episodes(policy, scenario, episodes, seed)
     imp = importance(scenario, actions)
     return {
         "scenario": scenario.name,

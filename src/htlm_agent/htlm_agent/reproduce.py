@@ -84,7 +84,7 @@ class Budget:
 
 
 FULL = Budget(seeds=(0, 1, 2), episodes=None, envs=None, eval_episodes=500, inactivation_episodes=200)
-QUICK = Budget(seeds=(0, 1), episodes=256, envs=64, eval_episodes=40, inactivation_episodes=40)
+QUICK = Budget(seeds=(0, 1), episodes=128, envs=32, eval_episodes=20, inactivation_episodes=20)
 
 
 # ----- training (cached) ------------------------------------------------------------------------------------------
@@ -511,7 +511,7 @@ def write_report(out: Path, data: dict[str, Any], command: str, wall: float) -> 
 
 
 def reproduce(out: Path, quick: bool = False, force: bool = False, seeds: tuple[int, ...] | None = None,
-              command: str = "htlm reproduce") -> dict[str, Any]:
+              command: str = "htlm reproduce", jobs_in_parallel: int = 1) -> dict[str, Any]:
     """Train (or reuse) every configuration, then compute every figure and table and write the report."""
     t0 = time.perf_counter()
     budget = QUICK if quick else FULL
@@ -523,13 +523,29 @@ def reproduce(out: Path, quick: bool = False, force: bool = False, seeds: tuple[
     jobs = [(c, s) for c in configs for s in budget.seeds]
     bar = Progress(len(jobs), unit="run", log_interval=0.0)
     res: dict[str, list[dict[str, Any]]] = {c.name: [] for c in configs}
-    for k, (c, s) in enumerate(jobs):
-        bar.update(k, training=f"{c.name} seed {s}")
-        r = train_config(c, s, budget, runs, force)
-        res[c.name].append(r)
+    results: dict[tuple[str, int], dict[str, Any]] = {}
+
+    def record(k: int, c: Config, s: int, r: dict[str, Any]) -> None:
+        results[(c.name, s)] = r
         m = r["metrics"]
-        bar.update(k + 1, last=f"{c.name}/{s}: completion {m['completion']['mean']:.2f}, unused "
+        bar.update(k, last=f"{c.name}/{s}: completion {m['completion']['mean']:.2f}, unused "
                    f"{m['unused_fraction']['mean']:.0%}")
+
+    if jobs_in_parallel <= 1:
+        for k, (c, s) in enumerate(jobs):
+            bar.update(k, training=f"{c.name} seed {s}")
+            record(k + 1, c, s, train_config(c, s, budget, runs, force))
+    else:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(jobs_in_parallel, mp_context=mp.get_context("spawn")) as pool:
+            futures = {pool.submit(train_config, c, s, budget, runs, force): (c, s) for c, s in jobs}
+            for k, fut in enumerate(as_completed(futures)):
+                c, s = futures[fut]
+                record(k + 1, c, s, fut.result())
+    for c, s in jobs:
+        res[c.name].append(results[(c.name, s)])
     bar.close()
     print("reproduce: computing figures", file=sys.stderr)
     idle = figure_idle_effect(res, out)

@@ -29,7 +29,6 @@ from rclpy.signals import SignalHandlerOptions
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import (
-    BULK,
     EVENTS,
     STATE,
     STATE_READER,
@@ -99,7 +98,7 @@ class TrainerNode(Node):
         self.log_file: Any = None
         self.pub_ack = self.create_publisher(String, topics.TRANSITION_ACK, EVENTS)
         self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
-        self.create_subscription(String, topics.TRANSITIONS, self._on_transition, BULK)
+        self.create_subscription(String, topics.TRANSITIONS, self._on_transition, EVENTS)
         self.create_subscription(String, topics.EPISODE_METRICS, self._on_metrics, EVENTS)
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.create_timer(s.ack_period, self._flush)

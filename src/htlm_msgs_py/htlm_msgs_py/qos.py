@@ -31,13 +31,12 @@ STATE_READER = QosSpec("STATE_READER", "reliable", "transient_local", 100)
 """How nodes subscribe to state topics: the writer keeps only the latest value (STATE), the reader queues a burst
 of updates instead of overwriting them unread, so every update (and every bad record) is seen and counted."""
 
-EVENTS = QosSpec("EVENTS", "reliable", "volatile", 100)
-"""Per-step events: reliable, not replayed to late joiners; the queue holds a few steps of a whole team."""
-
-BULK = QosSpec("BULK", "reliable", "volatile", 1000)
-"""Transitions to the trainer: reliable with a deep queue, for the bursts of resent transitions after a restart."""
+EVENTS = QosSpec("EVENTS", "reliable", "volatile", 1000)
+"""Per-step events: reliable, not replayed to late joiners. The queue is deep enough for bursts (transitions resent
+to a restarted trainer, a flood of bad records) so that a slow reader does not lose the records in between: a
+record the protocol no longer needs is dropped (and counted) when read, never silently overwritten."""
 
 DIAGNOSTICS = QosSpec("DIAGNOSTICS", "reliable", "volatile", 10)
 """/diagnostics, as the ROS diagnostics tools expect it."""
 
-PROFILES: dict[str, QosSpec] = {q.name: q for q in (STATE, STATE_READER, EVENTS, BULK, DIAGNOSTICS)}
+PROFILES: dict[str, QosSpec] = {q.name: q for q in (STATE, STATE_READER, EVENTS, DIAGNOSTICS)}

@@ -57,7 +57,6 @@ def qos_profile(spec: _qos.QosSpec) -> QoSProfile:
 STATE = qos_profile(_qos.STATE)
 STATE_READER = qos_profile(_qos.STATE_READER)
 EVENTS = qos_profile(_qos.EVENTS)
-BULK = qos_profile(_qos.BULK)
 DIAGNOSTICS = qos_profile(_qos.DIAGNOSTICS)
 
 

@@ -78,7 +78,7 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(observation("<agent>"), "std_msgs/msg/String", "EVENTS", "htlm/observation", "world", "<agent>"),
     TopicSpec(BROADCAST, "std_msgs/msg/String", "EVENTS", "htlm/broadcast", "agents", "agents"),
     TopicSpec(READY, "std_msgs/msg/String", "EVENTS", "htlm/ready", "agents", "world"),
-    TopicSpec(TRANSITIONS, "std_msgs/msg/String", "BULK", "htlm/transition", "agents", "trainer"),
+    TopicSpec(TRANSITIONS, "std_msgs/msg/String", "EVENTS", "htlm/transition", "agents", "trainer"),
     TopicSpec(TRANSITION_ACK, "std_msgs/msg/String", "EVENTS", "htlm/transition_ack", "trainer", "agents"),
     TopicSpec(weights("<agent>"), "std_msgs/msg/String", "STATE", "htlm/weights", "trainer", "<agent>"),
     TopicSpec(belief("<agent>"), "std_msgs/msg/String", "STATE", "htlm/belief", "<agent>", "monitoring"),
