@@ -154,7 +154,7 @@ def malformed(
             f = rng.choice(ranged)
             rec[f] = out_of_range(schema.fields[f], rng, lim)
             yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
-        elif kind == 10:  # oversized payload: beyond the schema's limit (70 kB for the 48 MB weights records)
+        elif kind == 10:  # oversized payload: beyond the schema's limit (70 kB for the 16 MB weights records)
             rec[names[0]] = "x" * (schema.max_bytes + 10 if schema.max_bytes <= 1 << 20 else 70_000)
             yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
         elif kind == 11:  # lists of the wrong length or with bad entries

@@ -122,6 +122,10 @@ def ros_team(tmp_path: Path) -> Iterator[Callable[..., RosTeam]]:
         kw.setdefault("run_dir", tmp_path / f"run{len(teams)}")
         kw.setdefault("domain_id", next_domain())
         kw.setdefault("echo", False)
+        # generous deadlines: on a loaded machine a slow step must not turn into an absent agent (which would change
+        # the run); when every agent answers, no deadline is ever waited for, so this costs nothing
+        kw["world_params"] = {"act_deadline": 10.0, "update_deadline": 10.0, **kw.get("world_params", {})}
+        kw["agent_params"] = {"broadcast_timeout": 5.0, **kw.get("agent_params", {})}
         team = RosTeam(tmp_path, LaunchConfig(**kw))
         teams.append(team)
         return team

@@ -78,7 +78,7 @@ def format_metrics(m: dict[str, Any]) -> str:
         + (f" · inactive: {', '.join(m['inactive'])}" if m["inactive"] else ""),
         f"completion step {c['mean']:.2f} ± {c['se']:.2f} (failure rate {c['failure_rate']:.1%}, of which every agent "
         f"believed the operation complete {c['false_completion_rate']:.1%}; completed episodes "
-        f"{c['mean_completed']:.2f})",
+        f"{'-' if c['mean_completed'] is None else format(c['mean_completed'], '.2f')})",
         f"unused capability per agent per step {m['unused_capability']['mean']:.3f} ± "
         f"{m['unused_capability']['se']:.3f} (fraction {m['unused_fraction']['mean']:.1%})",
         f"team idle count before completion {m['idle_before_completion']['mean']:.2f} · team reassignment count "

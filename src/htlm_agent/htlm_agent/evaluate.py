@@ -80,7 +80,7 @@ def summarize(
     n_ep = int(em.completion.shape[0])
     comp_mean, comp_se = mean_se(em.completion)
     ok = ~em.failed
-    mean_completed = float(em.completion[ok].mean()) if ok.any() else float("nan")
+    mean_completed = float(em.completion[ok].mean()) if ok.any() else None
     false_completion = float((em.failed & believed_complete).mean()) if believed_complete is not None else None
     agents = []
     for i, a in enumerate(scenario.agents):

@@ -405,11 +405,11 @@ WEIGHTS = Schema(
         "version": Int(0, SEQ_MAX),
         "episode": Int(-1, EPISODE_MAX),
         "encoding": OneOf(("base64",)),
-        "data": Text(48 * 1024 * 1024),
+        "data": Text(16 * 1024 * 1024),
         "sha256": Text(64, r"[0-9a-f]{64}"),
         "settings": Object(),
     },
-    max_bytes=48 * 1024 * 1024 + 64 * 1024,
+    max_bytes=16 * 1024 * 1024 + 64 * 1024,
     doc="The agent's Q-network weights (AgentQ.get_weights bytes, base64) and the learner settings "
     "(for the exploration schedule); `episode` is the last episode the trainer had seen.",
 )
