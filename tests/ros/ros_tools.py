@@ -53,6 +53,21 @@ def subscribed_topics(mode: str) -> dict[str, tuple[S.Schema, Any]]:
     return out
 
 
+SUBSCRIBERS: dict[str, list[tuple[str, str]]] = {
+    topics.SCENARIO: [(a, "scenario") for a in AGENTS] + [("trainer", "scenario")],
+    topics.STEP: [(a, "step") for a in AGENTS],
+    topics.ACTION: [("world", "action")],
+    topics.READY: [("world", "ready")],
+    topics.BROADCAST: [(a, "broadcast") for a in AGENTS],
+    topics.TRANSITIONS: [("trainer", "transitions")],
+    topics.TRANSITION_ACK: [(a, "transition_ack") for a in AGENTS],
+    topics.EPISODE_METRICS: [("trainer", "episode_metrics")],
+    **{topics.observation(a): [(a, "observation")] for a in AGENTS},
+    **{topics.weights(a): [(a, "weights")] for a in AGENTS},
+}
+"""Which node (its /diagnostics status name without "htlm: ") subscribes to each topic, and its counter tag."""
+
+
 def _spin_for(node: Node, seconds: float) -> None:
     end = time.monotonic() + seconds
     while time.monotonic() < end:
@@ -119,6 +134,28 @@ def fuzz(args: argparse.Namespace) -> None:
         t: list(malformed(schema, rng, args.count, (args.first, args.first + args.episodes), lim))
         for t, (schema, _) in targets.items()
     }
+    # flow control: after each batch, wait until every subscriber has read what was sent (its /diagnostics
+    # counters received/<tag> + rejected/<tag>/* grew by as much), so that no reader queue overflows however
+    # loaded the machine is; a reader that makes no progress for 3 s is not waited for any longer
+    status: dict[str, dict[str, str]] = {}
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        for st in msg.status:
+            status[st.name.split(": ", 1)[-1]] = {kv.key: kv.value for kv in st.values}
+
+    node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diag, 50)
+
+    def arrivals(name: str, tag: str) -> int:
+        st = status.get(name, {})
+        return int(st.get(f"received/{tag}", 0)) + sum(
+            int(v) for k, v in st.items() if k.startswith(f"rejected/{tag}/")
+        )
+
+    readers = [(t, name, tag) for t in targets for name, tag in SUBSCRIBERS.get(t, [])]
+    end = time.monotonic() + 20
+    while time.monotonic() < end and not all(name in status for _, name, _ in readers):
+        _spin_for(node, 0.1)
+    base = {(name, tag): arrivals(name, tag) for _, name, tag in readers}
     sent = dict.fromkeys(targets, 0)
     t0 = time.monotonic()
     for i in range(args.count):
@@ -127,8 +164,17 @@ def fuzz(args: argparse.Namespace) -> None:
             sent[t] += 1
         if i % 10 == 9:
             _spin_for(node, args.pause)
-        if i % 100 == 99:
-            print(f"{i + 1} records per topic after {time.monotonic() - t0:.1f} s", flush=True)
+        if i % args.batch == args.batch - 1 or i == args.count - 1:
+            last, progress = time.monotonic(), -1
+            while True:
+                behind = [(t, n, g) for t, n, g in readers if arrivals(n, g) - base[(n, g)] < sent[t]]
+                done = sum(min(arrivals(n, g) - base[(n, g)], sent[t]) for t, n, g in readers)
+                if not behind or time.monotonic() - last > 3.0:
+                    break
+                if done > progress:
+                    progress, last = done, time.monotonic()
+                _spin_for(node, 0.05)
+            print(f"{i + 1} records per topic after {time.monotonic() - t0:.1f} s; behind: {behind}", flush=True)
     _spin_for(node, 1.0)
     took = time.monotonic() - t0
     Path(args.out).write_text(json.dumps({"sent": sent, "unmatched": unmatched, "seconds": round(took, 2)}))
@@ -222,6 +268,7 @@ def main() -> None:
     f.add_argument("--pause", type=float, default=0.005)
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--topics", default="", help="comma-separated topic name endings to fuzz (default: all)")
+    f.add_argument("--batch", type=int, default=50, help="records per topic between two flow-control waits")
     r = sub.add_parser("rogue")
     r.add_argument("--out", required=True)
     r.add_argument("--key", default="", help="the rogue's own (wrong) key; empty: unsigned")

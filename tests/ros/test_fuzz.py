@@ -21,10 +21,9 @@ import pytest
 
 from htlm_agent.transition_store import read_store
 from htlm_msgs_py import schema as S
-from htlm_msgs_py import topics
 
 from .conftest import RosTeam, assert_same_as_in_process, read_json
-from .ros_tools import subscribed_topics
+from .ros_tools import SUBSCRIBERS, subscribed_topics
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
 
@@ -32,20 +31,10 @@ COUNT = 1000
 FIRST, LONG, SEED = 100, 1000, 6
 AGENTS = [f"agent{i}" for i in range(1, 6)]
 
-# who subscribes to what, and the tag it files its counters under
-SUBSCRIBERS: dict[str, list[tuple[str, str]]] = {
-    topics.SCENARIO: [(a, "scenario") for a in AGENTS] + [("trainer", "scenario")],
-    topics.STEP: [(a, "step") for a in AGENTS],
-    topics.ACTION: [("world", "action")],
-    topics.READY: [("world", "ready")],
-    topics.BROADCAST: [(a, "broadcast") for a in AGENTS],
-    topics.TRANSITIONS: [("trainer", "transitions")],
-    topics.TRANSITION_ACK: [(a, "transition_ack") for a in AGENTS],
-    topics.EPISODE_METRICS: [("trainer", "episode_metrics")],
-    **{topics.observation(a): [(a, "observation")] for a in AGENTS},
-    **{topics.weights(a): [(a, "weights")] for a in AGENTS},
-}
 TRAINING_TOPICS = "weights,transitions,transition_ack"
+FAST_DIAGNOSTICS: dict[str, Any] = {
+    f"{who}_params": {"diagnostics_period": 0.2} for who in ("world", "agent", "trainer")
+}  # the fuzzer paces itself on the subscribers' counters
 
 
 def _expected_rejections(mode: str, only: str) -> dict[str, int]:
@@ -70,7 +59,7 @@ def _expected_rejections(mode: str, only: str) -> dict[str, int]:
     return out
 
 
-def _fuzz(team: RosTeam, mode: str, only: str = "", pause: float = 0.03) -> tuple[dict[str, Any], int]:
+def _fuzz(team: RosTeam, mode: str, only: str = "", pause: float = 0.01) -> tuple[dict[str, Any], int]:
     """Fuzz the running team, then end its run after the episode in progress and one more (as an operator would,
     `ros2 param set /htlm_world episodes N`). Returns the fuzzer's report and the number of episodes run."""
     team.wait_for(lambda: len(team.world_episodes()) >= 1, 90, "the first episode (every node up and spinning)")
@@ -126,7 +115,7 @@ def _check_counters(team: RosTeam, mode: str, only: str, sent: dict[str, Any]) -
 
 
 def test_fuzzing_every_topic_of_an_evaluation(ros_team: Any) -> None:
-    team = ros_team(policy="greedy", seed=SEED, episodes=LONG, first_episode=FIRST)
+    team = ros_team(policy="greedy", seed=SEED, episodes=LONG, first_episode=FIRST, **FAST_DIAGNOSTICS)
     team.helper("diag", "--out", str(team.tmp / "diag.json"))
     team.start()
     sent, episodes = _fuzz(team, "evaluate")
@@ -168,14 +157,13 @@ def test_fuzzing_the_training_topics(ros_team: Any) -> None:
         seed=SEED,
         episodes=LONG,
         first_episode=FIRST,
-        trainer_params={"train_every": 0},
-        agent_params={"epsilon": 0.0},
+        trainer_params={"train_every": 0, "diagnostics_period": 0.2},
+        agent_params={"epsilon": 0.0, "diagnostics_period": 0.2},
+        world_params={"diagnostics_period": 0.2},
     )
     team.helper("diag", "--out", str(team.tmp / "diag.json"))
     team.start()
-    # paced: an agent queues at most 100 weights records (they may be megabytes each), a flood beyond that would
-    # be dropped unread by DDS and could not be counted
-    sent, episodes = _fuzz(team, "train", TRAINING_TOPICS, pause=0.08)
+    sent, episodes = _fuzz(team, "train", TRAINING_TOPICS)
     assert len(sent["sent"]) == 7
     assert assert_same_as_in_process(team, SEED, _initial_networks(team)) == episodes
     assert all(sum(w["metrics"]["absent"]) == 0 for w in team.world_episodes())

@@ -105,6 +105,7 @@ class Health:
 
     def decode(self, topic: str, msg: Any, schema: Schema, lim: Any = None) -> dict[str, Any] | None:
         """The validated fields of a received String, or None (counted and logged) when it is rejected."""
+        self.counters[f"arrived/{topic}"] += 1
         try:
             data = msg.data
             rec = decode(data, schema, lim, self.signer)
