@@ -107,6 +107,8 @@ def train_config(cfg: Config, seed: int, budget: Budget, runs: Path, force: bool
 
         shutil.rmtree(run_dir)
     changes: dict[str, Any] = {"seed": seed, "eval_episodes": budget.eval_episodes}
+    if "keep_replay" in Settings.__dataclass_fields__:  # the report needs the networks, not the replay memories
+        changes["keep_replay"] = False
     if budget.episodes is not None:
         changes["episodes"] = budget.episodes
         changes["checkpoint_every"] = budget.episodes
@@ -449,7 +451,8 @@ def write_report(out: Path, data: dict[str, Any], command: str, wall: float) -> 
         "# HTLM: reproduction of the paper's results",
         "",
         f"Command: `{command}` · commit `{data['commit']}` · wall time {wall / 60:.1f} min · seeds {list(seeds)} · "
-        f"{data['eval_episodes']} evaluation episodes per configuration · {budget_note}.",
+        f"{data['eval_episodes']} evaluation episodes per configuration · training episodes per run: "
+        f"{data['train_episodes'] or 'the learner default'} · {budget_note}.",
         "",
         "Values are mean ± standard error across training seeds (with one seed: across evaluation episodes).",
         "",
@@ -511,12 +514,14 @@ def write_report(out: Path, data: dict[str, Any], command: str, wall: float) -> 
 
 
 def reproduce(out: Path, quick: bool = False, force: bool = False, seeds: tuple[int, ...] | None = None,
-              command: str = "htlm reproduce", jobs_in_parallel: int = 1) -> dict[str, Any]:
+              command: str = "htlm reproduce", jobs_in_parallel: int = 1, episodes: int | None = None) -> dict[str, Any]:
     """Train (or reuse) every configuration, then compute every figure and table and write the report."""
     t0 = time.perf_counter()
     budget = QUICK if quick else FULL
     if seeds is not None:
         budget = Budget(seeds, budget.episodes, budget.envs, budget.eval_episodes, budget.inactivation_episodes)
+    if episodes is not None:
+        budget = Budget(budget.seeds, episodes, budget.envs, budget.eval_episodes, budget.inactivation_episodes)
     out.mkdir(parents=True, exist_ok=True)
     runs = out / "runs"
     configs = all_configs()
@@ -554,7 +559,7 @@ def reproduce(out: Path, quick: bool = False, force: bool = False, seeds: tuple[
     inact = importance_and_inactivation(runs, budget.seeds, budget, out)
     base = baselines(budget, res, out)
     learning_curves(runs, budget.seeds, out)
-    data = {"quick": quick, "seeds": list(budget.seeds), "eval_episodes": budget.eval_episodes,
+    data = {"quick": quick, "seeds": list(budget.seeds), "train_episodes": budget.episodes, "eval_episodes": budget.eval_episodes,
             "commit": _git_commit(), "idle_effect": idle, "reassign_effect": reassign, "behaviour": behaviour,
             "importance": inact, "baselines": base}
     data["claims"] = claims(idle, reassign, inact)
