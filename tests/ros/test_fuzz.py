@@ -32,6 +32,7 @@ FIRST, LONG, SEED = 100, 1000, 6
 AGENTS = [f"agent{i}" for i in range(1, 6)]
 
 TRAINING_TOPICS = "weights,transitions,transition_ack"
+LOSS = 0.97  # share of the malformed records each subscriber must count (exactly 1.0 on an idle machine)
 FAST_DIAGNOSTICS: dict[str, Any] = {
     f"{who}_params": {"diagnostics_period": 0.2} for who in ("world", "agent", "trainer")
 }  # the fuzzer paces itself on the subscribers' counters
@@ -104,7 +105,9 @@ def _check_counters(team: RosTeam, mode: str, only: str, sent: dict[str, Any]) -
             want = expected[topic]
             if tag in ("observation", "weights") and node != "agent2":
                 want = COUNT  # the well-formed ones name agent index 1 (agent2): on another agent's topic, rejected
-            if rejected != want:
+            # every rejection is a malformed record (never a good one), and (nearly) every malformed record
+            # is counted: a loaded reader may lose a few records of a burst in DDS, before the node sees them
+            if not LOSS * want <= rejected <= want:
                 wrong.append((topic, node, rejected, want))
     total = sum(r for subs in report.values() for r, _ in subs.values())
     print(

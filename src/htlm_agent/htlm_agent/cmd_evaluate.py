@@ -115,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
             ck = load_checkpoint(args.policy)
             sc = ck.scenario
             policy: Any = QPolicy.from_checkpoint(ck)
+            learner_settings: Any = ck.settings
             name = "htlm-dqn" if sc.mode == "htlm" else "ht-dqn"
             seed = ck.seed if args.seed is None else args.seed
             run_dir = ck.path.parent if ck.path.name == "checkpoint" else ck.path
@@ -125,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
             out = Path(args.out) if args.out else run_dir / "evaluations" / tag
         else:
             seed = 0 if args.seed is None else args.seed
+            learner_settings = None
             base = scenario_from_args(args)
             ht_out = None
             if args.baseline == "ht" and args.ht_policy is None:
@@ -147,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
     except (ScenarioError, CheckpointError, ValueError) as e:
         raise SystemExit(f"htlm evaluate: {e}") from None
     ev = evaluate_run(policy, sc, args.episodes, seed=seed, inactive=inactive, policy_name=name)
-    paths = write_reports(ev, out)
+    paths = write_reports(ev, out, settings=learner_settings)
     if args.json:
         print(json.dumps(ev.metrics))
     else:

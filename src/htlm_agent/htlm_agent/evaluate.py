@@ -154,11 +154,17 @@ def evaluate(
     return evaluate_run(policy, scenario, episodes, seed, inactive).metrics
 
 
-def write_reports(ev: Evaluation, out_dir: str | Path) -> dict[str, Path]:
-    """Write metrics.json, summary.csv (one row per agent and one for the team), episodes.csv (one row per episode)
-    and completion_hist.png into out_dir; returns the paths."""
+def write_reports(ev: Evaluation, out_dir: str | Path, settings: Any = None) -> dict[str, Path]:
+    """Write metrics.json, summary.csv (one row per agent and one for the team), episodes.csv (one row per episode),
+    completion_hist.png and scenario.yaml (and settings.json of the learner, when given) into out_dir; returns the
+    paths."""
+    import yaml
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    (out / "scenario.yaml").write_text(yaml.safe_dump(ev.scenario.to_dict(), sort_keys=False))
+    if settings is not None:
+        (out / "settings.json").write_text(json.dumps(settings.to_dict(), indent=2) + "\n")
     m = ev.metrics
     paths = {
         "json": out / "metrics.json",

@@ -289,11 +289,17 @@ def run_team(cfg: LaunchConfig) -> int:
                 stop(world_first, signal.SIGINT, wait=cfg.grace if cfg.mode == "train" else 10.0)
                 code = 128 + sig
                 break
+            bad_settings = False
             for p in procs:
                 rc = p.popen.poll()
                 if rc not in (None, 0) and p.name not in failed and not (rc < 0 and ended_at is not None):
                     failed.append(p.name)
                     print(f"htlm launch: {p.name} exited with {rc}; see {p.log}", flush=True, file=sys.stderr)
+                    bad_settings = bad_settings or rc == 2
+            if bad_settings:  # a parameter, scenario or checkpoint that cannot work: the team cannot either
+                stop(procs, signal.SIGINT)
+                code = 2
+                break
             if world is not None:
                 wrc = world.popen.poll()
                 if wrc is not None and ended_at is None:

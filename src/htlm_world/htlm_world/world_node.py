@@ -1,10 +1,11 @@
-"""world_node: the simulated operation over ROS 2, driving the lockstep protocol (ARCHITECTURE.md).
+"""world_node: the simulated operation over ROS 2, driving the lockstep protocol (docs/ros.md).
 
-Per episode: step(begin) and wait for the agents' ready; per step t: step(act), wait for the actions of the live
-agents until the phase deadline (a silent agent idles at its site for the step and is counted absent), apply T
-with the model core (htlm_world.lockstep.WorldEpisode), send every agent its observation and publish the ground
-truth, wait for the agents' ready until the deadline; at the end publish the episode metrics. The free-running
-clock steps at a fixed period instead of as soon as everyone answered. Run: `ros2 run htlm_world world_node` or
+Per episode: announce `begin` until every agent answered with its action for step 1; per step t: wait for the
+actions of the live agents until the phase deadline (a silent agent idles at its site for the step and is counted
+absent), apply T with the model core (htlm_world.lockstep.WorldEpisode), send every agent its observation and
+publish the ground truth; each agent's next action (sent after its belief update) is also its "ready"; after the
+last step wait for the agents' ready, then publish `end` and the episode metrics. The free-running clock steps at a
+fixed period instead of as soon as everyone answered. Run: `ros2 run htlm_world world_node` or
 `python -m htlm_world.world_node --ros-args -p episodes:=5`.
 """
 
