@@ -137,7 +137,7 @@ def fuzz(args: argparse.Namespace) -> None:
     }
     # flow control: after each batch, wait until every subscriber has read what was sent (its /diagnostics
     # counter arrived/<tag> grew by as much), so that no reader queue overflows however loaded the machine is;
-    # a reader that makes no progress for 1.5 s is not waited for any longer
+    # a reader that makes no progress for 1 s is not waited for any longer (the end waits for repairs)
     status: dict[str, dict[str, str]] = {}
 
     def on_diag(msg: DiagnosticArray) -> None:
@@ -167,13 +167,22 @@ def fuzz(args: argparse.Namespace) -> None:
             while True:
                 behind = [(t, n, g) for t, n, g in readers if arrivals(n, g) - base[(n, g)] < sent[t]]
                 done = sum(min(arrivals(n, g) - base[(n, g)], sent[t]) for t, n, g in readers)
-                if not behind or time.monotonic() - last > 1.5:
+                if not behind or time.monotonic() - last > 1.0:
                     break
                 if done > progress:
                     progress, last = done, time.monotonic()
                 _spin_for(node, 0.05)
             print(f"{i + 1} records per topic after {time.monotonic() - t0:.1f} s; behind: {behind}", flush=True)
-    _spin_for(node, 1.0)
+    # the writers must outlive the repair of whatever DDS lost on the way (reliable delivery retransmits from the
+    # writer): wait until every reader acknowledged every record, and every node has read them
+    from rclpy.duration import Duration
+
+    for pub in pubs.values():
+        pub.wait_for_all_acked(Duration(seconds=10))
+    end = time.monotonic() + 10
+    while time.monotonic() < end and any(arrivals(n, g) - base[(n, g)] < sent[t] for t, n, g in readers):
+        _spin_for(node, 0.1)
+    _spin_for(node, 0.5)
     took = time.monotonic() - t0
     Path(args.out).write_text(json.dumps({"sent": sent, "unmatched": unmatched, "seconds": round(took, 2)}))
 

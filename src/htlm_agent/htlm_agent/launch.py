@@ -219,7 +219,14 @@ def stop(procs: list[Proc], sig: int = signal.SIGINT, wait: float = 10.0) -> Non
     end = time.monotonic() + wait
     while time.monotonic() < end and any(p.popen.poll() is None for p in procs):
         time.sleep(0.05)
-    for p in procs:
+    stuck = [p for p in procs if p.popen.poll() is None]
+    if stuck and sig != signal.SIGKILL:
+        for p in stuck:  # a node that ignores the signal: its stack goes to its log (faulthandler on SIGUSR1)
+            print(f"htlm launch: {p.name} did not stop; its stacks are in {p.log}", flush=True, file=sys.stderr)
+            with contextlib.suppress(ProcessLookupError):
+                p.popen.send_signal(signal.SIGUSR1)
+        time.sleep(0.3)
+    for p in stuck:
         if p.popen.poll() is None:
             with contextlib.suppress(ProcessLookupError):
                 p.popen.kill()

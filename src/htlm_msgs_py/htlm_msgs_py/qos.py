@@ -27,7 +27,7 @@ class QosSpec:
 STATE = QosSpec("STATE", "reliable", "transient_local", 1)
 """State topics (scenario, weights, beliefs, goal poses): a late joiner gets the latest value."""
 
-STATE_READER = QosSpec("STATE_READER", "reliable", "transient_local", 100)
+STATE_READER = QosSpec("STATE_READER", "reliable", "transient_local", 1000)
 """How nodes subscribe to state topics: the writer keeps only the latest value (STATE), the reader queues a burst
 of updates instead of overwriting them unread, so every update (and every bad record) is seen and counted."""
 
