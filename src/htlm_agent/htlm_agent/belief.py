@@ -33,7 +33,8 @@ def predict(model: Model, belief: Belief, caps: IntArray) -> Belief:
     rescue = model.rescue[cr]  # (..., S, f, r, r')
     fire = model.fire[cf]  # (..., S, f, f')
     tmp = np.einsum("...fr,...frs->...fs", belief, rescue)
-    return np.einsum("...fg,...fs->...gs", fire, tmp)
+    out: Belief = np.einsum("...fg,...fs->...gs", fire, tmp)
+    return out
 
 
 def agent_evidence(

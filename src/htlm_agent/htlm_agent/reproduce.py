@@ -98,11 +98,7 @@ def train_config(cfg: Config, seed: int, budget: Budget, runs: Path, force: bool
     done = run_dir / "result.json"
     if done.exists() and not force:
         return dict(json.loads(done.read_text()))
-    if force and run_dir.exists():
-        import shutil
-
-        shutil.rmtree(run_dir)
-    elif run_dir.exists():  # an unfinished run: start it again cleanly
+    if run_dir.exists():  # forced, or an unfinished run: start it again cleanly
         import shutil
 
         shutil.rmtree(run_dir)
@@ -514,7 +510,8 @@ def write_report(out: Path, data: dict[str, Any], command: str, wall: float) -> 
 
 
 def reproduce(out: Path, quick: bool = False, force: bool = False, seeds: tuple[int, ...] | None = None,
-              command: str = "htlm reproduce", jobs_in_parallel: int = 1, episodes: int | None = None) -> dict[str, Any]:
+              command: str = "htlm reproduce", jobs_in_parallel: int = 1,
+              episodes: int | None = None) -> dict[str, Any]:
     """Train (or reuse) every configuration, then compute every figure and table and write the report."""
     t0 = time.perf_counter()
     budget = QUICK if quick else FULL
@@ -559,7 +556,8 @@ def reproduce(out: Path, quick: bool = False, force: bool = False, seeds: tuple[
     inact = importance_and_inactivation(runs, budget.seeds, budget, out)
     base = baselines(budget, res, out)
     learning_curves(runs, budget.seeds, out)
-    data = {"quick": quick, "seeds": list(budget.seeds), "train_episodes": budget.episodes, "eval_episodes": budget.eval_episodes,
+    data = {"quick": quick, "seeds": list(budget.seeds), "train_episodes": budget.episodes,
+            "eval_episodes": budget.eval_episodes,
             "commit": _git_commit(), "idle_effect": idle, "reassign_effect": reassign, "behaviour": behaviour,
             "importance": inact, "baselines": base}
     data["claims"] = claims(idle, reassign, inact)

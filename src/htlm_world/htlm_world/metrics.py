@@ -94,7 +94,7 @@ class Importance:
 
 def importance(sc: Scenario, actions: IntArray) -> Importance:
     """Agent importance from the greedy policy's actions (h, E, N) over E episodes (Eqs. 6-9)."""
-    h, e, n = actions.shape
+    e = actions.shape[1]
     p = sc.n_tasks
     working = (actions >= 0) & (actions < p)
     ttype = np.where(working, actions % 2, -1)  # 0 fire, 1 rescue

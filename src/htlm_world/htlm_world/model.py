@@ -178,7 +178,8 @@ class Model:
     def sample_observation(self, true_level: IntArray, sensing: IntArray, u: FloatArray) -> IntArray:
         """Observed levels of O by inverse CDF: true levels, sensing and uniforms of one shape."""
         cdf = self.obs_cdf[sensing, true_level]
-        return np.minimum((u[..., None] >= cdf).sum(-1), self.scenario.levels - 1)
+        z: IntArray = np.minimum((u[..., None] >= cdf).sum(-1), self.scenario.levels - 1)
+        return z
 
     def apply_channel(self, level: IntArray, keep: FloatArray, u_keep: FloatArray, u_level: FloatArray) -> IntArray:
         """The simulated channel: with probability 1 - tau replace the level by a uniformly random one."""

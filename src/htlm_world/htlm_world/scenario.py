@@ -190,7 +190,8 @@ class Scenario:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form (lists, dicts) that from_dict reads back."""
-        return _to_plain(dataclasses.asdict(self))
+        plain: dict[str, Any] = _to_plain(dataclasses.asdict(self))
+        return plain
 
     def layout_hash(self) -> str:
         """Hash of the knowledge-state and action layout, to refuse checkpoints of another layout."""
@@ -258,7 +259,7 @@ def _convert(value: Any, tp: Any, where: str, src: str) -> Any:
             return tuple(_convert(v, args[0], f"{where}[{k}]", src) for k, v in enumerate(value))
         if len(value) != len(args):
             raise ScenarioError(f"{src}: {where}: expected {len(args)} entries, got {len(value)}: {value!r}")
-        return tuple(_convert(v, a, f"{where}[{k}]", src) for k, (v, a) in enumerate(zip(value, args)))
+        return tuple(_convert(v, a, f"{where}[{k}]", src) for k, (v, a) in enumerate(zip(value, args, strict=True)))
     if dataclasses.is_dataclass(tp):
         return _from_mapping(tp, value, where, src)
     if tp is bool:
