@@ -24,9 +24,9 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from . import qos as _qos
-from .schema import Schema, WireError, decode, encode
-from .signing import Signer
+from .. import qos as _qos
+from ..schema import Schema, WireError, decode, encode
+from ..signing import Signer
 
 __all__ = [
     "DiagnosticArray",
