@@ -12,20 +12,15 @@ from __future__ import annotations
 
 import base64
 import binascii
-import faulthandler
 import hashlib
 import json
 import secrets
-import signal
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
@@ -38,8 +33,9 @@ from htlm_msgs_py.ros import (
     SettingsError,
     String,
     declare_settings,
-    make_executor,
     pose,
+    run_node,
+    spin_until_finished,
     string,
 )
 from htlm_msgs_py.schema import encode, limits
@@ -485,38 +481,15 @@ class AgentNode(Node):
         h.publish()
 
 
+def _cleanup(node: AgentNode) -> None:
+    node._publish_health()
+    if node.log_file is not None:
+        node.log_file.close()
+
+
 def main(args: list[str] | None = None) -> int:
     """Entry point of `agent_node` (exit code: 0 done, 2 bad parameters or policy, 130/143 SIGINT/SIGTERM)."""
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = AgentNode()
-    except SettingsError as e:
-        print(f"agent_node: {e}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        node.stop_signal = signum
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    faulthandler.register(signal.SIGUSR1)  # `kill -USR1 <pid>` prints every thread's stack to the log
-    executor = make_executor(node.settings.executor)
-    executor.add_node(node)
-    code = 1
-    try:
-        while not node.stop_signal and not node.finished():
-            executor.spin_once(timeout_sec=0.25)
-        code = 128 + node.stop_signal if node.stop_signal else (2 if node.fatal else 0)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        code = 130
-    finally:
-        node._publish_health()
-        if node.log_file is not None:
-            node.log_file.close()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node("agent_node", AgentNode, spin_until_finished, _cleanup, args)
 
 
 if __name__ == "__main__":

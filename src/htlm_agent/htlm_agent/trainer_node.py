@@ -11,20 +11,15 @@ came after it. Run: `ros2 run htlm_agent trainer_node --ros-args -p run_dir:=run
 from __future__ import annotations
 
 import base64
-import faulthandler
 import hashlib
 import json
-import signal
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
@@ -36,7 +31,8 @@ from htlm_msgs_py.ros import (
     SettingsError,
     String,
     declare_settings,
-    make_executor,
+    run_node,
+    spin_until_finished,
     string,
 )
 from htlm_msgs_py.schema import encode, limits
@@ -397,37 +393,14 @@ class TrainerNode(Node):
         h.publish()
 
 
+def _cleanup(node: TrainerNode) -> None:
+    node.shutdown()
+    node._publish_health()
+
+
 def main(args: list[str] | None = None) -> int:
     """Entry point of `trainer_node` (exit code: 0 done, 2 bad parameters or store, 130/143 SIGINT/SIGTERM)."""
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = TrainerNode()
-    except SettingsError as e:
-        print(f"trainer_node: {e}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        node.stop_signal = signum
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    faulthandler.register(signal.SIGUSR1)  # `kill -USR1 <pid>` prints every thread's stack to the log
-    executor = make_executor(node.settings.executor)
-    executor.add_node(node)
-    code = 1
-    try:
-        while not node.stop_signal and not node.finished():
-            executor.spin_once(timeout_sec=0.25)
-        code = 128 + node.stop_signal if node.stop_signal else (2 if node.fatal else 0)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        code = 130
-    finally:
-        node.shutdown()
-        node._publish_health()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node("trainer_node", TrainerNode, spin_until_finished, _cleanup, args)
 
 
 if __name__ == "__main__":

@@ -11,18 +11,14 @@ fixed period instead of as soon as everyone answered. Run: `ros2 run htlm_world 
 
 from __future__ import annotations
 
-import faulthandler
 import json
-import signal
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-import rclpy
-from rclpy.executors import Executor, ExternalShutdownException
+from rclpy.executors import Executor
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
@@ -33,7 +29,7 @@ from htlm_msgs_py.ros import (
     SettingsError,
     String,
     declare_settings,
-    make_executor,
+    run_node,
     spin_until,
     string,
 )
@@ -350,31 +346,7 @@ class WorldNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of `world_node` (exit code: 0 done, 2 bad parameters, 130/143 stopped by SIGINT/SIGTERM)."""
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        node = WorldNode()
-    except SettingsError as e:
-        print(f"world_node: {e}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        node.stop_signal = signum
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    faulthandler.register(signal.SIGUSR1)  # `kill -USR1 <pid>` prints every thread's stack to the log
-    executor = make_executor(node.settings.executor)
-    executor.add_node(node)
-    code = 1
-    try:
-        code = node.run(executor)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        code = 130
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node("world_node", WorldNode, lambda node, executor: node.run(executor), lambda node: None, args)
 
 
 if __name__ == "__main__":

@@ -284,3 +284,65 @@ def spin_until(executor: Executor, done: Callable[[], bool], deadline: float) ->
 
             raise ExternalShutdownException()
     return True
+
+
+def spin_until_finished(node: Any, executor: Executor) -> int:
+    """Spin until the node says it is finished or a signal arrived; exit code 128 + signal, 2 fatal, 0 done.
+
+    `node` has `stop_signal` (0 or the signal number), `fatal` (None or a reason) and `finished()`.
+    """
+    while not node.stop_signal and not node.finished():
+        executor.spin_once(timeout_sec=0.25)
+    if node.stop_signal:
+        return 128 + int(node.stop_signal)
+    return 2 if node.fatal else 0
+
+
+def run_node(
+    name: str,
+    make_node: Callable[[], Any],
+    run: Callable[[Any, Executor], int],
+    cleanup: Callable[[Any], None],
+    args: list[str] | None = None,
+) -> int:
+    """The Jazzy node skeleton shared by every HTLM node's `main` (STYLE.md 8).
+
+    Construct the node before `try` (bad parameters exit with code 2 and the reason on stderr), route SIGINT and
+    SIGTERM into `node.stop_signal` so `run` can stop cleanly, let SIGUSR1 dump every thread's stack to the log,
+    then `cleanup(node)`, `destroy_node()` and `try_shutdown()` whatever happened.
+
+    Returns the process exit code: what `run` returned, 130 on KeyboardInterrupt / external shutdown.
+    """
+    import faulthandler
+    import signal
+    import sys
+
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        node = make_node()
+    except SettingsError as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        node.stop_signal = signum
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    faulthandler.register(signal.SIGUSR1)  # `kill -USR1 <pid>` prints every thread's stack to the log
+    executor = make_executor(node.settings.executor)
+    executor.add_node(node)
+    code = 1
+    try:
+        code = run(node, executor)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        code = 130
+    finally:
+        cleanup(node)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return code
