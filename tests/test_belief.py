@@ -13,8 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from htlm_agent import belief as bf
-from htlm_agent.team import Team
+from htlm_agent.mind import belief as bf
+from htlm_agent.runtime.team import Team
 from htlm_world.model import Model
 from htlm_world.scenario import AgentSpec, Scenario, builtin
 from test_model import L, ref_fire, ref_info, ref_obs, ref_rescue

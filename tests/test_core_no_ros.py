@@ -1,5 +1,5 @@
-"""The core imports without ROS (STYLE.md 1): every module of htlm_world and htlm_agent except the *_node.py
-adapters, and the htlm_msgs_py modules that do not need rclpy, import in a process where rclpy is unavailable."""
+"""The core imports without ROS: every module outside a `ros/` folder, in all three packages, imports in a process
+where rclpy is unavailable, and no source outside a `ros/` folder mentions an rclpy import."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 SRC = Path(__file__).resolve().parent.parent / "src"
-CORE_PACKAGES = ("htlm_world", "htlm_agent")
+PACKAGES = ("htlm_msgs_py", "htlm_world", "htlm_agent")
 RCLPY_IMPORT = re.compile(r"^\s*(import\s+rclpy\b|from\s+rclpy\b)", re.MULTILINE)
 
 
@@ -24,22 +24,18 @@ def _module_name(pkg: str, path: Path) -> str:
 
 
 def core_files() -> list[tuple[str, Path]]:
-    """(package, source file) of the ROS-free core: htlm_world and htlm_agent without the *_node.py adapters."""
+    """(package, source file) of the ROS-free core: every module of the three packages outside a `ros/` folder."""
     return [
         (pkg, p)
-        for pkg in CORE_PACKAGES
+        for pkg in PACKAGES
         for p in sorted((SRC / pkg / pkg).rglob("*.py"))
-        if not p.name.endswith("_node.py")
+        if "ros" not in p.relative_to(SRC / pkg / pkg).parts[:-1]
     ]
 
 
 def importable_without_ros() -> list[str]:
-    """Modules that must import without rclpy: the core, and htlm_msgs_py modules whose source has no rclpy."""
-    names = [_module_name(pkg, p) for pkg, p in core_files()]
-    for p in sorted((SRC / "htlm_msgs_py" / "htlm_msgs_py").rglob("*.py")):
-        if not RCLPY_IMPORT.search(p.read_text()):
-            names.append(_module_name("htlm_msgs_py", p))
-    return names
+    """Modules that must import without rclpy: the whole core (a `__main__` runs its command when imported)."""
+    return [_module_name(pkg, p) for pkg, p in core_files() if p.name != "__main__.py"]
 
 
 PROBE = """
@@ -58,10 +54,11 @@ print(json.dumps({"failed": failed, "rclpy_loaded": loaded}))
 
 def test_core_modules_import_without_rclpy() -> None:
     modules = importable_without_ros()
-    assert "htlm_world.model" in modules and "htlm_agent.team" in modules and "htlm_agent.pz_env" in modules
+    assert {"htlm_world.model", "htlm_agent.runtime.team", "htlm_agent.cli", "htlm_msgs_py.schema"} <= set(modules)
+    assert not any("ros" in m.split(".") for m in modules)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
-        [str(SRC / pkg) for pkg in (*CORE_PACKAGES, "htlm_msgs_py")] + [p for p in [env.get("PYTHONPATH")] if p]
+        [str(SRC / pkg) for pkg in PACKAGES] + [p for p in [env.get("PYTHONPATH")] if p]
     )
     proc = subprocess.run(
         [sys.executable, "-c", PROBE, json.dumps(modules)], capture_output=True, text=True, env=env, timeout=120

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from htlm_agent.baselines import GreedyPolicy, RandomPolicy
-from htlm_agent.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from htlm_agent.evaluate import evaluate
-from htlm_agent.learner import (
+from htlm_agent.baselines.heuristics import GreedyPolicy, RandomPolicy
+from htlm_agent.experiments.evaluate import evaluate
+from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from htlm_agent.learning.dqn import (
     Learner,
     NStep,
     QPolicy,
@@ -23,13 +23,13 @@ from htlm_agent.learner import (
     advantage_gap,
     bellman_targets,
     epsilon_greedy,
-    field_docs,
     train,
     train_batch,
 )
-from htlm_agent.qnet import AgentQ, StackedQ, layer_sizes, masked_argmax, pack_weights, unpack_weights
-from htlm_agent.replay import Replay
-from htlm_agent.team import Team
+from htlm_agent.learning.qnet import AgentQ, StackedQ, layer_sizes, masked_argmax, pack_weights, unpack_weights
+from htlm_agent.learning.replay import Replay
+from htlm_agent.learning.settings import field_docs
+from htlm_agent.runtime.team import Team
 from htlm_world.scenario import builtin
 
 TINY = Settings(

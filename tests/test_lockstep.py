@@ -9,9 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from htlm_agent.baselines import GreedyPolicy
-from htlm_agent.launch import LaunchConfig, process_specs, ros_env, write_params
-from htlm_agent.lockstep import (
+from htlm_agent.baselines.heuristics import GreedyPolicy
+from htlm_agent.learning.transition_store import (
+    StoreError,
+    TrainerSettings,
+    TransitionStore,
+    read_store,
+    validate_trainer_settings,
+)
+from htlm_agent.mind.agent import (
     AgentMind,
     AgentSettings,
     DecentralizedPolicy,
@@ -19,16 +25,10 @@ from htlm_agent.lockstep import (
     loopback_episode,
     validate_agent_settings,
 )
-from htlm_agent.team import Team, rollout
-from htlm_agent.transition_store import (
-    StoreError,
-    TrainerSettings,
-    TransitionStore,
-    read_store,
-    validate_trainer_settings,
-)
-from htlm_world.lockstep import WorldEpisode, WorldSettings, validate_world_settings
+from htlm_agent.ros.launch import LaunchConfig, process_specs, ros_env, write_params
+from htlm_agent.runtime.team import Team, rollout
 from htlm_world.model import Model
+from htlm_world.protocol import WorldEpisode, WorldSettings, validate_world_settings
 from htlm_world.scenario import builtin
 
 FIELDS = ("levels", "actions", "observations", "messages", "rewards")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from htlm_agent.optimal import solve
+from htlm_agent.baselines.optimal import solve
 from htlm_world.scenario import builtin
 
 REFERENCE = {"heterogeneous": 7.09, "semi-heterogeneous": 6.70, "homogeneous": 7.61}

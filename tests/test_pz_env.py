@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
-from htlm_agent.pz_env import HTLMParallelEnv
-from htlm_agent.team import Team
+from htlm_agent.runtime.pz_env import HTLMParallelEnv
+from htlm_agent.runtime.team import Team
 from htlm_world.scenario import builtin
 
 

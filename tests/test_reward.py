@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from htlm_agent.reward import RewardTables, action_mask, confident_levels, reward
+from htlm_agent.mind.reward import RewardTables, action_mask, confident_levels, reward
 from htlm_world.model import Model
 from htlm_world.scenario import AgentSpec, RewardParams, Scenario, builtin
 

@@ -218,7 +218,8 @@ def test_wire_contract_imports_without_rclpy() -> None:
     code = (
         "import sys; sys.modules['rclpy'] = None\n"
         "import htlm_msgs_py, htlm_msgs_py.schema, htlm_msgs_py.signing, htlm_msgs_py.topics, htlm_msgs_py.qos\n"
-        "import htlm_world.lockstep, htlm_agent.lockstep, htlm_agent.transition_store, htlm_agent.launch\n"
+        "import htlm_world.protocol, htlm_agent.mind.agent, htlm_agent.learning.transition_store\n"
+        "import htlm_agent.ros.launch\n"
         "assert 'rclpy' not in [m for m in sys.modules if sys.modules[m] is not None]\n"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)

@@ -25,8 +25,8 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "agent_node = htlm_agent.agent_node:main",
-            "trainer_node = htlm_agent.trainer_node:main",
+            "agent_node = htlm_agent.ros.agent_node:main",
+            "trainer_node = htlm_agent.ros.trainer_node:main",
             "htlm = htlm_agent.cli:main",
         ],
     },

@@ -28,7 +28,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "world_node = htlm_world.world_node:main",
+            "world_node = htlm_world.ros.world_node:main",
         ],
     },
 )

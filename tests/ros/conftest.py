@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from htlm_agent.launch import LaunchConfig, Proc, start, stop
-from htlm_agent.lockstep import DecentralizedPolicy, builtin_policy
-from htlm_agent.team import Team, rollout
+from htlm_agent.mind.agent import DecentralizedPolicy, builtin_policy
+from htlm_agent.ros.launch import LaunchConfig, Proc, start, stop
+from htlm_agent.runtime.team import Team, rollout
 from htlm_world.scenario import Scenario, builtin
 
 TOOLS = Path(__file__).resolve().parent / "ros_tools.py"
@@ -34,7 +34,7 @@ def next_domain() -> int:
 
 
 class RosTeam:
-    """The world, the agents and the trainer as processes (via htlm_agent.launch), plus helper processes."""
+    """The world, the agents and the trainer as processes (via htlm_agent.ros.launch), plus helper processes."""
 
     def __init__(self, tmp: Path, cfg: LaunchConfig) -> None:
         self.tmp = tmp
@@ -47,7 +47,7 @@ class RosTeam:
         return self.cfg.run_dir
 
     def env(self) -> dict[str, str]:
-        from htlm_agent.launch import ros_env
+        from htlm_agent.ros.launch import ros_env
 
         return ros_env(self.cfg)
 

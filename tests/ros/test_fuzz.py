@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 
-from htlm_agent.transition_store import read_store
+from htlm_agent.learning.transition_store import read_store
 from htlm_msgs_py import schema as S
 
 from .conftest import RosTeam, assert_same_as_in_process, read_json
@@ -131,10 +131,10 @@ def test_fuzzing_every_topic_of_an_evaluation(ros_team: Any) -> None:
 
 def _initial_networks(team: RosTeam) -> Callable[[int], Any]:
     """The in-process rollout of episode e with the learner's initial Q-networks (greedy), as the trainer sent them."""
-    from htlm_agent.learner import Learner, Settings
-    from htlm_agent.lockstep import DecentralizedPolicy
-    from htlm_agent.qnet import AgentQ, layer_sizes
-    from htlm_agent.team import Team, rollout
+    from htlm_agent.learning.dqn import Learner, Settings
+    from htlm_agent.learning.qnet import AgentQ, layer_sizes
+    from htlm_agent.mind.agent import DecentralizedPolicy
+    from htlm_agent.runtime.team import Team, rollout
 
     sc = team.cfg.scenario
     settings = Settings.from_dict(json.loads((team.run_dir / "trainer" / "settings.json").read_text()))

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from htlm_agent.launch import LaunchConfig
+from htlm_agent.ros.launch import LaunchConfig
 from htlm_world.scenario import builtin
 
 from .conftest import RosTeam, assert_same_as_in_process, next_domain

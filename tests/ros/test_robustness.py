@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from htlm_agent.transition_store import read_store
+from htlm_agent.learning.transition_store import read_store
 from htlm_world.scenario import builtin
 
 from .conftest import read_json

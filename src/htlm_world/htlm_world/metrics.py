@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .scenario import Scenario
-from .types import FloatArray, IntArray
+from htlm_world.scenario import Scenario
+from htlm_world.types import FloatArray, IntArray
 
 
 def completion_step(levels: IntArray) -> tuple[IntArray, np.ndarray]:

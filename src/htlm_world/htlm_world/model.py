@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .scenario import Scenario
-from .types import FloatArray, IntArray
+from htlm_world.scenario import Scenario
+from htlm_world.types import FloatArray, IntArray
 
 
 def p_drop_table(sc: Scenario) -> FloatArray:

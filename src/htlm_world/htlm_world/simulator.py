@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import Model
-from .scenario import Scenario
-from .types import Actions, IntArray, Levels, Messages, Observations
+from htlm_world.model import Model
+from htlm_world.scenario import Scenario
+from htlm_world.types import Actions, IntArray, Levels, Messages, Observations
 
 
 def world_rng(seed: int, episode: int) -> np.random.Generator:

@@ -1,0 +1,205 @@
+"""`htlm bench`: speed of the in-process runtime, all measured in one run so that ratios are meaningful.
+
+- simulator agent-steps/s (`htlm_world.simulator.BatchSim`) at B = 1 and B = 1024;
+- team agent-steps/s (simulator + every agent's belief filter and reward, `team.Team`) at B = 1 and B = 1024;
+- learner gradient updates/s of the default settings (every agent's network, one update each);
+- the wall time of a default training run (`htlm train` defaults, heterogeneous team, R_II on, medium T_RP) and
+  whether it reached the quality targets.
+
+`htlm bench ros` measures the ROS 2 runtime: it calls `ros_bench(args) -> dict` of the module named in ROS_BENCH,
+which the ROS runtime provides; this module does not depend on it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import sys
+import tempfile
+import time
+from typing import Any
+
+import numpy as np
+
+ROS_BENCH = "htlm_agent.experiments.ros_bench"
+"""Module providing `ros_bench(args: argparse.Namespace) -> dict` and optionally `add_arguments(parser)`."""
+
+OPTIMUM = {"heterogeneous": 7.09, "semi-heterogeneous": 6.70, "homogeneous": 7.61}
+"""Expected completion step of the centralized optimum (MODEL.md, Reference figures)."""
+
+TARGETS = {"completion_ratio": 1.25, "failure_rate": 0.01, "unused_fraction": 0.71}
+"""Quality targets of a default run: completion <= 1.25 x optimum, failures <= 1 %, unused capability >= 71 %."""
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of `htlm bench`."""
+    p.add_argument(
+        "what",
+        nargs="?",
+        choices=["inproc", "ros"],
+        default="inproc",
+        help="inproc (default): simulator, team and learner in this process; ros: the ROS 2 runtime",
+    )
+    p.add_argument("--json", action="store_true", help="print the figures as JSON on stdout")
+    p.add_argument("--seconds", type=float, default=2.0, help="measuring time per speed figure (default: 2)")
+    p.add_argument("--no-train", action="store_true", help="skip the default training run")
+    p.add_argument("--episodes", type=int, default=None, help="episodes of the training run (default: Settings)")
+    p.add_argument("--out", default=None, metavar="DIR", help="keep the training run here (default: a temp dir)")
+    try:
+        mod = importlib.import_module(ROS_BENCH)
+    except ModuleNotFoundError as e:
+        if e.name != ROS_BENCH:
+            raise
+    else:
+        if hasattr(mod, "add_arguments"):
+            mod.add_arguments(p)
+
+
+def _rate(step: Any, seconds: float) -> tuple[float, int]:
+    """Calls of step() per second over about `seconds` (after one warm-up call)."""
+    step()
+    n, t0 = 0, time.perf_counter()
+    while True:
+        step()
+        n += 1
+        el = time.perf_counter() - t0
+        if el >= seconds:
+            return n / el, n
+
+
+def sim_rate(batch: int, seconds: float) -> float:
+    """Simulator agent-steps/s at batch B with uniformly random joint actions."""
+    from htlm_world.scenario import builtin
+    from htlm_world.simulator import BatchSim
+
+    sc = builtin()
+    sim = BatchSim(sc, batch, np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    actions = rng.integers(0, sc.n_actions, (64, batch, sc.n_agents))
+    i = [0]
+
+    def step() -> None:
+        if sim.t >= sc.horizon:
+            sim.reset()
+        sim.step(actions[i[0] % 64])
+        i[0] += 1
+
+    r, _ = _rate(step, seconds)
+    return r * batch * sc.n_agents
+
+
+def team_rate(batch: int, seconds: float) -> float:
+    """Team agent-steps/s (simulator + belief filters + rewards) at batch B with random actions from Â."""
+    from htlm_agent.baselines.heuristics import RandomPolicy
+    from htlm_agent.runtime.team import Team
+    from htlm_world.scenario import builtin
+
+    sc = builtin()
+    team = Team(sc, batch, 0)
+    pol = RandomPolicy(sc, 0)
+
+    def step() -> None:
+        if team.t >= sc.horizon:
+            team.reset()
+        team.step(pol.act(team.context()))
+
+    r, _ = _rate(step, seconds)
+    return r * batch * sc.n_agents
+
+
+def learner_rate(seconds: float) -> float:
+    """Gradient updates/s of the default learner (each update trains every agent's network once)."""
+    import torch
+
+    from htlm_agent.learning.dqn import Learner, Settings, train_batch
+    from htlm_agent.runtime.team import Team
+    from htlm_world.scenario import builtin
+
+    s = Settings()
+    torch.set_num_threads(s.threads)
+    sc = builtin()
+    lr = Learner(sc, s.replace(learning_starts=1, updates_per_step=1))
+    team = Team(sc, s.envs, 0)
+    while int(lr.replay.size.min()) < s.batch_size:
+        train_batch(lr, team, 0)
+    r, _ = _rate(lambda: lr.train_step(), seconds)
+    return r
+
+
+def training_run(episodes: int | None, out: str | None) -> dict[str, Any]:
+    """A default `htlm train` run (no TensorBoard, no progress) and its final evaluation against the targets."""
+    from htlm_agent.learning.dqn import Settings, train
+    from htlm_world.scenario import builtin
+
+    s = Settings() if episodes is None else Settings(episodes=episodes)
+    sc = builtin()
+    with tempfile.TemporaryDirectory(prefix="htlm-bench-") as tmp:
+        res = train(sc, s, out or os.path.join(tmp, "run"), progress=False, tensorboard=False)
+    m = res.metrics
+    opt = OPTIMUM[sc.team]
+    comp, fail, unused = m["completion"]["mean"], m["completion"]["failure_rate"], m["unused_fraction"]["mean"]
+    return {
+        "episodes": res.episodes,
+        "wall_time_s": round(res.wall_time, 2),
+        "train_time_s": round(res.train_time, 2),
+        "completion_mean": round(comp, 3),
+        "completion_se": round(m["completion"]["se"], 3),
+        "failure_rate": round(fail, 4),
+        "unused_fraction": round(unused, 4),
+        "optimum": opt,
+        "completion_ratio": round(comp / opt, 3),
+        "targets": TARGETS,
+        "targets_met": {
+            "completion": comp <= TARGETS["completion_ratio"] * opt,
+            "failure_rate": fail <= TARGETS["failure_rate"],
+            "unused_fraction": unused >= TARGETS["unused_fraction"],
+        },
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    """Measure and print."""
+    if args.what == "ros":
+        try:
+            mod = importlib.import_module(ROS_BENCH)
+        except ModuleNotFoundError as e:
+            if e.name != ROS_BENCH:
+                raise
+            raise SystemExit(
+                f"htlm bench ros: the ROS benchmark is not available in this build (no {ROS_BENCH})"
+            ) from None
+        res = mod.ros_bench(args)
+        print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
+        return 0
+    import torch
+
+    from htlm_agent.learning.settings import Settings
+
+    out: dict[str, Any] = {"cpu_count": os.cpu_count(), "torch_threads": Settings().threads, "torch": torch.__version__}
+
+    def say(msg: str) -> None:
+        if not args.json:
+            print(msg, file=sys.stderr)
+
+    for b in (1, 1024):
+        out[f"sim_agent_steps_per_s_B{b}"] = round(sim_rate(b, args.seconds))
+        say(f"simulator B={b}: {out[f'sim_agent_steps_per_s_B{b}']:,} agent-steps/s")
+    for b in (1, 1024):
+        out[f"team_agent_steps_per_s_B{b}"] = round(team_rate(b, args.seconds))
+        say(f"team (simulator + beliefs + rewards) B={b}: {out[f'team_agent_steps_per_s_B{b}']:,} agent-steps/s")
+    out["learner_updates_per_s"] = round(learner_rate(args.seconds), 1)
+    say(f"learner: {out['learner_updates_per_s']} updates/s (5 agents, minibatch {Settings().batch_size} each)")
+    if not args.no_train:
+        say("default training run ...")
+        out["train"] = training_run(args.episodes, args.out)
+        t = out["train"]
+        say(
+            f"default training run: {t['wall_time_s']} s wall ({t['episodes']} episodes), completion "
+            f"{t['completion_mean']} ± {t['completion_se']} ({t['completion_ratio']} x optimum), failures "
+            f"{t['failure_rate']:.1%}, unused {t['unused_fraction']:.1%}; targets met: {t['targets_met']}"
+        )
+    if args.json:
+        print(json.dumps(out))
+    return 0

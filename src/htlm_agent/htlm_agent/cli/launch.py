@@ -1,0 +1,191 @@
+"""`htlm launch {train,evaluate,deploy}`: run a team over ROS 2, one OS process per agent (htlm_agent.ros.launch)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from htlm_world.scenario import TEAMS, ScenarioError, builtin, load
+
+
+def _kv(text: str) -> tuple[str, Any]:
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected NAME=VALUE")
+    k, v = text.split("=", 1)
+    try:
+        val = json.loads(v)
+    except ValueError:
+        val = v
+    return k.strip(), val
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of `htlm launch`."""
+    from htlm_agent.ros.launch import EXIT_CODES
+
+    p.add_argument("mode", choices=("train", "evaluate", "deploy"), help="what the team does")
+    p.add_argument("--team", choices=sorted(TEAMS), default=None, help="built-in team (default: heterogeneous)")
+    p.add_argument("--scenario", default="", help="scenario YAML file (default: the built-in 'paper')")
+    p.add_argument(
+        "--episodes",
+        type=int,
+        default=None,
+        help="episodes to run (default: train 20, evaluate 10, deploy 0 = until Ctrl-C)",
+    )
+    p.add_argument("--first-episode", type=int, default=0, help="index of the first episode (seeds derive from it)")
+    p.add_argument("--seed", type=int, default=0, help="master seed")
+    p.add_argument(
+        "--policy",
+        choices=("auto", "checkpoint", "greedy", "random"),
+        default="auto",
+        help="agents' policy (auto: the trainer's in train mode, else --checkpoint)",
+    )
+    p.add_argument("--checkpoint", default="", help="checkpoint directory of `htlm train` (evaluate, deploy)")
+    p.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=None,
+        help="train: evaluate the trained checkpoint over ROS for this many episodes afterwards "
+        "(default 5; 0: no evaluation)",
+    )
+    p.add_argument("--run-dir", default="", help="run directory (default: runs/launch-MODE__SEED__TIMESTAMP)")
+    p.add_argument(
+        "--only",
+        default="",
+        help="comma-separated processes to start on this host: world, trainer, agent names (default: all)",
+    )
+    p.add_argument("--domain-id", type=int, default=42, help="ROS_DOMAIN_ID of every process (default 42)")
+    p.add_argument(
+        "--discovery",
+        choices=("localhost", "subnet", "system_default", "off"),
+        default="localhost",
+        help="ROS_AUTOMATIC_DISCOVERY_RANGE (default localhost: nothing leaves this machine)",
+    )
+    p.add_argument("--peers", default="", help="ROS_STATIC_PEERS: 'host1;host2' for unicast discovery of other hosts")
+    p.add_argument("--key-file", default="", help="team key file: sign every message, reject unsigned ones")
+    p.add_argument(
+        "--set",
+        dest="learner",
+        type=_kv,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="learner setting (htlm_agent.learning.dqn.Settings), e.g. --set learning_starts=500",
+    )
+    p.add_argument(
+        "--world-param",
+        type=_kv,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="world_node parameter, e.g. --world-param act_deadline=1.0",
+    )
+    p.add_argument(
+        "--agent-param",
+        type=_kv,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="agent_node parameter for every agent",
+    )
+    p.add_argument(
+        "--trainer-param", type=_kv, action="append", default=[], metavar="NAME=VALUE", help="trainer_node parameter"
+    )
+    p.add_argument("--timeout", type=float, default=0.0, help="stop the team after this many seconds (exit 124)")
+    p.add_argument("--quiet", action="store_true", help="do not echo the episode lines")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.epilog = "exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
+
+
+def run(args: argparse.Namespace) -> int:
+    """Launch the team and print a summary."""
+    from htlm_agent.ros.launch import LaunchConfig, run_team, summarize
+
+    try:
+        sc = load(args.scenario) if args.scenario else builtin(args.team or "heterogeneous")
+        if args.scenario and args.team:
+            raise ScenarioError("give --scenario or --team, not both")
+    except ScenarioError as e:
+        print(f"htlm launch: {e}")
+        return 2
+    if args.mode in ("evaluate", "deploy") and args.policy in ("auto", "checkpoint") and not args.checkpoint:
+        print(f"htlm launch {args.mode}: needs --checkpoint DIR (or --policy greedy / random)")
+        return 2
+    episodes = args.episodes if args.episodes is not None else {"train": 20, "evaluate": 10, "deploy": 0}[args.mode]
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    run_dir = Path(args.run_dir or f"runs/launch-{args.mode}__{args.seed}__{stamp}")
+    only = tuple(x.strip() for x in args.only.split(",") if x.strip())
+    known = {"world", "trainer", *(a.name for a in sc.agents)}
+    if set(only) - known:
+        print(f"htlm launch: --only {sorted(set(only) - known)}: unknown; choose from {sorted(known)}")
+        return 2
+    cfg = LaunchConfig(
+        mode=args.mode,
+        scenario=sc,
+        scenario_file=args.scenario,
+        episodes=episodes,
+        first_episode=args.first_episode,
+        seed=args.seed,
+        run_dir=run_dir,
+        policy=args.policy,
+        checkpoint=args.checkpoint,
+        only=only,
+        domain_id=args.domain_id,
+        discovery=args.discovery,
+        peers=args.peers,
+        key_file=args.key_file,
+        learner=dict(args.learner),
+        world_params=dict(args.world_param),
+        agent_params=dict(args.agent_param),
+        trainer_params=dict(args.trainer_param),
+        timeout=args.timeout,
+        echo=not args.quiet,
+    )
+    code = run_team(cfg)
+    out: dict[str, Any] = {"mode": args.mode, "run_dir": str(run_dir), "exit_code": code, **summarize(run_dir)}
+    ckpt = run_dir / "trainer" / "checkpoint"
+    eval_episodes = 5 if args.eval_episodes is None else args.eval_episodes
+    if args.mode == "train" and code == 0 and (ckpt / "meta.json").exists():
+        out["checkpoint"] = str(ckpt)
+        if eval_episodes > 0 and (not only or "world" in only):
+            print(f"htlm launch: evaluating {ckpt} over ROS for {eval_episodes} episodes", flush=True)
+            ecfg = LaunchConfig(
+                **{
+                    **cfg.__dict__,
+                    "mode": "evaluate",
+                    "episodes": eval_episodes,
+                    "first_episode": 1_000_000,  # evaluation episodes apart from the training ones
+                    "run_dir": run_dir / "evaluate",
+                    "policy": "checkpoint",
+                    "checkpoint": str(ckpt),
+                    "echo": False,
+                }
+            )
+            code = run_team(ecfg)
+            out["evaluation"] = {"exit_code": code, **summarize(ecfg.run_dir)}
+    if args.json:
+        print(json.dumps(out))
+    else:
+        _print_summary(out)
+    return code
+
+
+def _print_summary(out: dict[str, Any]) -> None:
+    def line(tag: str, s: dict[str, Any]) -> str:
+        if not s.get("episodes"):
+            return f"{tag}: no episode finished"
+        return (
+            f"{tag}: {s['episodes']} episodes, completion step {s['completion_mean']:.2f} "
+            f"(failure rate {s['failure_rate']:.2f}), unused capability {s['unused_fraction_mean']:.3f}, "
+            f"absent agent-steps {s['absent_agent_steps']}, {s['seconds']:.1f} s"
+        )
+
+    print(line(out["mode"], out))
+    if "evaluation" in out:
+        print(line("evaluation of the trained team", out["evaluation"]))
+    if "checkpoint" in out:
+        print(f"checkpoint: {out['checkpoint']}")
+    print(f"run directory: {out['run_dir']} (exit code {out['exit_code']})")

@@ -1,0 +1,326 @@
+"""Greedy evaluation of a team policy in the batched runtime, and the reports of `htlm evaluate` / `htlm importance`.
+
+Every figure is a metric of MODEL.md (Metrics of one episode) computed by `htlm_world.metrics` from the recorded
+trajectories; this module only runs the episodes, aggregates and writes files.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from htlm_agent.mind.reward import confident_levels
+from htlm_agent.runtime.team import Policy, Team, rollout
+from htlm_world.metrics import EpisodeMetrics, episode_metrics, importance, mean_se
+from htlm_world.scenario import Scenario
+from htlm_world.types import BoolArray, IntArray
+
+MAX_BATCH = 1024
+"""Episodes simulated at once; more are run in chunks (chunk c uses the episode index c for its seeds)."""
+
+
+@dataclass
+class Evaluation:
+    """Result of `evaluate_run`: the aggregate metrics and the per-episode data."""
+
+    metrics: dict[str, Any]
+    episodes: EpisodeMetrics
+    actions: IntArray  # (h, E, N)
+    scenario: Scenario
+    believed_complete: BoolArray  # (E,) every agent's belief says every task is at level 0 after the last step
+
+
+def run_episodes(
+    policy: Policy, scenario: Scenario, episodes: int, seed: int = 0, inactive: tuple[int, ...] = ()
+) -> tuple[IntArray, IntArray, BoolArray]:
+    """Run `episodes` episodes of `policy`; returns true levels (h+1, E, p), actions (h, E, N) and whether every
+    agent believes, after the last step, that every task is at level 0 (confident levels of the reward, (E,))."""
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes!r}")
+    levels, actions, believed = [], [], []
+    chunk = 0
+    left = episodes
+    while left > 0:
+        b = min(left, MAX_BATCH)
+        team = Team(scenario, b, seed, episode=chunk, inactive=inactive)
+        tr = rollout(team, policy)
+        levels.append(tr.levels)
+        actions.append(tr.actions)
+        believed.append((confident_levels(team.marg, team.tables.threshold) == 0).all(axis=(1, 2)))
+        left -= b
+        chunk += 1
+    return np.concatenate(levels, axis=1), np.concatenate(actions, axis=1), np.concatenate(believed)
+
+
+def _ms(x: Any) -> dict[str, float]:
+    m, se = mean_se(np.asarray(x, dtype=np.float64))
+    return {"mean": m, "se": se}
+
+
+def summarize(
+    scenario: Scenario,
+    em: EpisodeMetrics,
+    seed: int,
+    inactive: tuple[int, ...],
+    policy_name: str,
+    believed_complete: BoolArray | None = None,
+) -> dict[str, Any]:
+    """Aggregate per-episode metrics into the report dictionary (team and per agent).
+
+    Besides the metrics of MODEL.md, "completion" holds `mean_completed` (mean over the episodes that completed) and
+    `false_completion_rate` (episodes that failed although every agent's belief says every task is done: agents that
+    idle on a wrong belief, which no learning from the belief-based reward can correct).
+    """
+    n_ep = int(em.completion.shape[0])
+    comp_mean, comp_se = mean_se(em.completion)
+    ok = ~em.failed
+    mean_completed = float(em.completion[ok].mean()) if ok.any() else None
+    false_completion = float((em.failed & believed_complete).mean()) if believed_complete is not None else None
+    agents = []
+    for i, a in enumerate(scenario.agents):
+        cap = a.fire + a.rescue
+        unused = em.agent_unused[:, i]
+        agents.append(
+            {
+                "agent": a.name,
+                "fire": a.fire,
+                "rescue": a.rescue,
+                "inactive": i in inactive,
+                "unused_capability": _ms(unused),
+                "unused_fraction": _ms(unused / cap) if cap > 0 else {"mean": 0.0, "se": 0.0},
+                "idle_before_completion": _ms(em.agent_idle_before[:, i]),
+                "reassign_before_completion": _ms(em.agent_reassign_before[:, i]),
+            }
+        )
+    return {
+        "policy": policy_name,
+        "scenario": scenario.name,
+        "team": scenario.team,
+        "mode": scenario.mode,
+        "idle_incentive": scenario.reward.idle_incentive,
+        "reassign_cost": scenario.reward.reassign_cost,
+        "episodes": n_ep,
+        "seed": seed,
+        "inactive": [scenario.agents[i].name for i in inactive],
+        "completion": {
+            "mean": comp_mean,
+            "se": comp_se,
+            "failure_rate": float(em.failed.mean()),
+            "mean_completed": mean_completed,
+            "false_completion_rate": false_completion,
+        },
+        "unused_capability": _ms(em.unused_capability),
+        "unused_fraction": _ms(em.unused_fraction),
+        "idle_before_completion": _ms(em.idle_before),
+        "reassign_before_completion": _ms(em.reassign_before),
+        "agents": agents,
+    }
+
+
+def evaluate_run(
+    policy: Policy,
+    scenario: Scenario,
+    episodes: int = 500,
+    seed: int = 0,
+    inactive: tuple[int, ...] = (),
+    policy_name: str = "",
+) -> Evaluation:
+    """Evaluate `policy` (greedy, as it acts) over `episodes` episodes: metrics and per-episode data.
+
+    Args:
+        policy: anything with act(Context) -> (B, N) actions.
+        scenario: the operation (must be the one the policy was made for).
+        episodes: number of episodes.
+        seed: master seed of the evaluation episodes.
+        inactive: agent indices forced to idle whatever they decide (no retraining).
+        policy_name: label for reports.
+    """
+    levels, actions, believed = run_episodes(policy, scenario, episodes, seed, inactive)
+    em = episode_metrics(scenario, levels, actions)
+    metrics = summarize(scenario, em, seed, inactive, policy_name or type(policy).__name__, believed)
+    return Evaluation(metrics, em, actions, scenario, believed)
+
+
+def evaluate(
+    policy: Policy, scenario: Scenario, episodes: int = 500, seed: int = 0, inactive: tuple[int, ...] = ()
+) -> dict[str, Any]:
+    """The metrics dictionary of `evaluate_run` (team figures and an "agents" list)."""
+    return evaluate_run(policy, scenario, episodes, seed, inactive).metrics
+
+
+def write_reports(ev: Evaluation, out_dir: str | Path, settings: Any = None) -> dict[str, Path]:
+    """Write metrics.json, summary.csv (one row per agent and one for the team), episodes.csv (one row per episode),
+    completion_hist.png and scenario.yaml (and settings.json of the learner, when given) into out_dir; returns the
+    paths."""
+    import yaml
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scenario.yaml").write_text(yaml.safe_dump(ev.scenario.to_dict(), sort_keys=False))
+    if settings is not None:
+        (out / "settings.json").write_text(json.dumps(settings.to_dict(), indent=2) + "\n")
+    m = ev.metrics
+    paths = {
+        "json": out / "metrics.json",
+        "summary": out / "summary.csv",
+        "episodes": out / "episodes.csv",
+        "png": out / "completion_hist.png",
+    }
+    paths["json"].write_text(json.dumps(m, indent=2) + "\n")
+    cols = [
+        "who",
+        "unused_capability",
+        "unused_capability_se",
+        "unused_fraction",
+        "unused_fraction_se",
+        "idle_before_completion",
+        "idle_before_completion_se",
+        "reassign_before_completion",
+        "reassign_before_completion_se",
+        "completion",
+        "completion_se",
+        "failure_rate",
+    ]
+    with paths["summary"].open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(cols)
+        for a in m["agents"]:
+            w.writerow([a["agent"]] + [a[k][s] for k in cols[1:9:2] for s in ("mean", "se")] + ["", "", ""])
+        w.writerow(
+            ["team"]
+            + [m[k][s] for k in cols[1:9:2] for s in ("mean", "se")]
+            + [m["completion"]["mean"], m["completion"]["se"], m["completion"]["failure_rate"]]
+        )
+    em = ev.episodes
+    names = [a.name for a in ev.scenario.agents]
+    with paths["episodes"].open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(
+            [
+                "episode",
+                "completion",
+                "failed",
+                "unused_capability",
+                "unused_fraction",
+                "idle_before_completion",
+                "reassign_before_completion",
+            ]
+            + [f"unused_{n}" for n in names]
+        )
+        for e in range(em.completion.shape[0]):
+            w.writerow(
+                [
+                    e,
+                    int(em.completion[e]),
+                    int(em.failed[e]),
+                    f"{em.unused_capability[e]:.6g}",
+                    f"{em.unused_fraction[e]:.6g}",
+                    int(em.idle_before[e]),
+                    int(em.reassign_before[e]),
+                ]
+                + [f"{x:.6g}" for x in em.agent_unused[e]]
+            )
+    plot_completion(ev, paths["png"])
+    return paths
+
+
+def plot_completion(ev: Evaluation, path: Path) -> None:
+    """Histogram of completion steps (failures at h, marked)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    h = ev.scenario.horizon
+    m = ev.metrics["completion"]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.hist(ev.episodes.completion, bins=[x + 0.5 for x in range(h + 1)], color="tab:blue", edgecolor="white")
+    ax.axvline(m["mean"], color="k", ls="--", lw=1)
+    ax.set_xlabel("completion step")
+    ax.set_ylabel("episodes")
+    ax.set_title(
+        f"{ev.metrics['policy']} ({ev.scenario.team}): mean {m['mean']:.2f} ± {m['se']:.2f}, "
+        f"failures {m['failure_rate']:.1%}",
+        fontsize=9,
+    )
+    ax.set_xlim(0.5, h + 0.5)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+# ----- agent importance -------------------------------------------------------------------------------------------
+
+
+def importance_table(policy: Policy, scenario: Scenario, episodes: int = 500, seed: int = 0) -> dict[str, Any]:
+    """The agent importance table (Eqs. 6-9) from `episodes` greedy episodes: per agent C_fire, C_rescue, U_fire,
+    U_rescue, ζ; per task type ω."""
+    _, actions, _ = run_episodes(policy, scenario, episodes, seed)
+    imp = importance(scenario, actions)
+    return {
+        "scenario": scenario.name,
+        "team": scenario.team,
+        "episodes": episodes,
+        "seed": seed,
+        "omega": {"fire": float(imp.omega[0]), "rescue": float(imp.omega[1])},
+        "agents": [
+            {
+                "agent": a.name,
+                "C_fire": float(imp.capability[i, 0]),
+                "C_rescue": float(imp.capability[i, 1]),
+                "U_fire": float(imp.usage[i, 0]),
+                "U_rescue": float(imp.usage[i, 1]),
+                "zeta": float(imp.zeta[i]),
+            }
+            for i, a in enumerate(scenario.agents)
+        ],
+    }
+
+
+def format_importance(table: dict[str, Any]) -> str:
+    """The importance table as text, the most important agent's row marked."""
+    rows = table["agents"]
+    top = max(range(len(rows)), key=lambda i: rows[i]["zeta"]) if rows else -1
+    lines = [f"{'agent':<10} {'C_fire':>6} {'C_rescue':>8} {'U_fire':>8} {'U_rescue':>8} {'zeta':>8}"]
+    for i, r in enumerate(rows):
+        mark = " *" if i == top else ""
+        lines.append(
+            f"{r['agent']:<10} {r['C_fire']:>6.0f} {r['C_rescue']:>8.0f} {r['U_fire']:>8.2f} "
+            f"{r['U_rescue']:>8.2f} {r['zeta']:>8.2f}{mark}"
+        )
+    om = table["omega"]
+    lines.append(
+        f"omega_fire = {om['fire']:.2f}, omega_rescue = {om['rescue']:.2f}  "
+        f"({table['team']}, {table['episodes']} episodes; * most important)"
+    )
+    return "\n".join(lines)
+
+
+def write_importance(table: dict[str, Any], out_dir: str | Path) -> dict[str, Path]:
+    """importance.json and importance.csv in out_dir."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"json": out / "importance.json", "csv": out / "importance.csv"}
+    paths["json"].write_text(json.dumps(table, indent=2) + "\n")
+    with paths["csv"].open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["agent", "C_fire", "C_rescue", "U_fire", "U_rescue", "zeta", "omega_fire", "omega_rescue"])
+        for r in table["agents"]:
+            w.writerow(
+                [
+                    r["agent"],
+                    r["C_fire"],
+                    r["C_rescue"],
+                    r["U_fire"],
+                    r["U_rescue"],
+                    r["zeta"],
+                    table["omega"]["fire"],
+                    table["omega"]["rescue"],
+                ]
+            )
+    return paths

@@ -1,0 +1,191 @@
+"""Settings of the deep Q-learner (`htlm train`, the trainer node): one frozen dataclass, one docstring per field.
+
+The command line (`htlm train --help`), the settings files of the trainer node and every run's `settings.yaml` are
+generated from or checked against `Settings`.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import itertools
+import textwrap
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Everything that decides a training run besides the scenario. Saved with every run (settings.json)."""
+
+    hidden: tuple[int, ...] = (64, 64)
+    """Hidden layer sizes of every agent's Q-network MLP (ReLU)."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    batch_size: int = 128
+    """Minibatch size per agent and gradient update."""
+    memory: int = 50_000
+    """Replay memory capacity per agent, in transitions (oldest overwritten first)."""
+    learning_starts: int = 2_000
+    """Transitions an agent must have stored before its network is trained."""
+    target_sync: int = 200
+    """Gradient updates of an agent between copies of its network into its target network."""
+    horizon_terminal: bool = False
+    """Treat the last step (the horizon h) as terminal in the Bellman target. Episodes end only by the time limit and
+    the knowledge state holds no time, so by default the last step bootstraps like any other (a terminal there would
+    give the same knowledge state targets from 1 to 1/(1-γ) times the reward, depending only on the hidden time)."""
+    n_step: int = 1
+    """n of n-step returns: a stored transition sums n discounted rewards and bootstraps from the knowledge state n
+    steps later (shorter at the end of an episode)."""
+    advantage_learning: float = 0.9
+    """α of advantage learning (Bellemare et al. 2016): the target is lowered by α (max_b Q̂(K, b) − Q̂(K, a)), which
+    widens the gaps between actions without changing the greedy policy; 0 is plain Q-learning."""
+    double_dqn: bool = True
+    """Double DQN targets (online network picks a', target network values it); False: plain max over the target."""
+    huber_delta: float = 1.0
+    """Huber loss threshold on the TD error (in scaled reward units)."""
+    reward_scale: float = 0.1
+    """Rewards are multiplied by this before learning (a positive scale leaves the greedy policy unchanged)."""
+    grad_clip: float = 10.0
+    """Clip each agent's gradient norm to this (0: no clipping)."""
+    eps_start: float = 1.0
+    """ε of ε-greedy exploration at the first episode."""
+    eps_end: float = 0.05
+    """ε after the decay."""
+    eps_fraction: float = 0.5
+    """Fraction of `episodes` over which ε decays linearly from eps_start to eps_end."""
+    eps_spread: bool = False
+    """Spread ε over the B parallel episodes, linearly from 0 to 2ε (mean ε), so some run the greedy team."""
+    episodes: int = 32_768
+    """Training episodes in total."""
+    envs: int = 128
+    """B, episodes simulated in parallel; one batch of B episodes runs the whole horizon together."""
+    updates_per_step: int = 2
+    """Gradient updates of every agent per batched environment step (B transitions per agent)."""
+    seed: int = 0
+    """Master seed of the run."""
+    threads: int = 1
+    """torch intra-op threads; results are reproducible for a fixed value."""
+    eval_episodes: int = 500
+    """Episodes of the greedy evaluation at the end of training."""
+    validate_every: int = 4096
+    """Episodes between greedy validation runs during training (0: none), logged as val_* columns."""
+    validate_episodes: int = 500
+    """Episodes of every validation run (their own random streams, never those of the final evaluation)."""
+    select_best: bool = True
+    """Make the networks with the best validation completion step, among validations after ε has decayed and at the
+    end, the run's policy (the latest networks are kept for resuming)."""
+    checkpoint_every: int = 8_192
+    """Episodes between checkpoints (always one at the end)."""
+    keep_replay: bool = True
+    """Save the replay memories in checkpoints (about 60 MB with the defaults), so that a resumed run continues exactly;
+    without them a resumed run refills its memories first."""
+
+    def __post_init__(self) -> None:
+        """Validate every field (STYLE.md 3): a bad value raises ValueError naming it."""
+        positive = (
+            "n_step",
+            "lr",
+            "batch_size",
+            "memory",
+            "target_sync",
+            "episodes",
+            "envs",
+            "updates_per_step",
+            "threads",
+        )
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be > 0")
+        for name in (
+            "learning_starts",
+            "grad_clip",
+            "eval_episodes",
+            "validate_every",
+            "validate_episodes",
+            "checkpoint_every",
+            "seed",
+        ):
+            if getattr(self, name) < 0:
+                raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be >= 0")
+        for name in ("eps_start", "eps_end", "eps_fraction", "advantage_learning"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be in [0, 1]")
+        if not self.hidden or any(int(h) < 1 for h in self.hidden):
+            raise ValueError(f"settings.hidden: {self.hidden!r} needs at least one layer, every size >= 1")
+        if not self.reward_scale > 0 or not self.huber_delta > 0:
+            raise ValueError(
+                f"settings: reward_scale {self.reward_scale!r} and huber_delta {self.huber_delta!r} must be > 0"
+            )
+        if self.envs > self.memory:
+            raise ValueError(f"settings.envs: {self.envs!r} must not exceed settings.memory {self.memory!r}")
+
+    def epsilon(self, episode: float) -> float:
+        """ε of ε-greedy at training episode `episode`: linear decay from eps_start to eps_end over the first
+        eps_fraction · episodes, then constant (an agent process computes its own ε with this)."""
+        span = self.eps_fraction * self.episodes
+        frac = 1.0 if span <= 0 else min(max(float(episode) / span, 0.0), 1.0)
+        return self.eps_start + frac * (self.eps_end - self.eps_start)
+
+    def replace(self, **changes: Any) -> Settings:
+        """A copy with fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for settings.json."""
+        d = dataclasses.asdict(self)
+        d["hidden"] = list(self.hidden)
+        return d
+
+    @staticmethod
+    def from_dict(data: Any, src: str = "<settings>") -> Settings:
+        """Settings from plain data; unknown keys or bad values raise ValueError naming src and the field."""
+        if not isinstance(data, dict):
+            raise ValueError(f"{src}: settings must be a mapping, got {type(data).__name__}")
+        names = {f.name: f for f in dataclasses.fields(Settings)}
+        unknown = sorted(set(data) - set(names))
+        if unknown:
+            raise ValueError(f"{src}: unknown settings field {unknown[0]!r}; known: {sorted(names)}")
+        kw: dict[str, Any] = {}
+        for k, v in data.items():
+            default = names[k].default
+            if k == "hidden":
+                if not isinstance(v, (list, tuple)) or not all(isinstance(h, int) for h in v):
+                    raise ValueError(f"{src}: settings.hidden: {v!r} must be a list of integers")
+                kw[k] = tuple(v)
+            elif isinstance(default, bool):
+                if not isinstance(v, bool):
+                    raise ValueError(f"{src}: settings.{k}: {v!r} must be true or false")
+                kw[k] = v
+            elif isinstance(default, int):
+                if isinstance(v, bool) or not isinstance(v, int):
+                    raise ValueError(f"{src}: settings.{k}: {v!r} must be an integer")
+                kw[k] = v
+            else:
+                if isinstance(v, bool) or not isinstance(v, (int, float)):
+                    raise ValueError(f"{src}: settings.{k}: {v!r} must be a number")
+                kw[k] = float(v)
+        try:
+            return Settings(**kw)
+        except ValueError as e:
+            raise ValueError(f"{src}: {e}") from None
+
+
+@cache
+def field_docs(cls: type) -> dict[str, str]:
+    """The one-line docstring under every field of a dataclass (for --help and reports)."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    out: dict[str, str] = {}
+    for prev, node in itertools.pairwise(body):
+        if (
+            isinstance(prev, ast.AnnAssign)
+            and isinstance(prev.target, ast.Name)
+            and isinstance(node, ast.Expr)
+            and isinstance(node.value, ast.Constant)
+            and isinstance(node.value.value, str)
+        ):
+            out[prev.target.id] = " ".join(node.value.value.split())
+    return out

@@ -1,0 +1,589 @@
+"""One agent's side of the lockstep protocol, without ROS: its mind (belief, previous assignment, policy, channel)
+and the order in which it accepts the world's and its teammates' messages.
+
+The agent node (agent_node.py) only decodes messages, calls `AgentMind` and publishes what it returns. The mind
+computes exactly what the in-process `Team` computes for that agent's row (same functions of belief.py and
+reward.py on batch 1, same generators), so an evaluation over ROS reproduces `team.rollout` step for step;
+`DecentralizedPolicy` runs the same per-agent policies inside `team.rollout`, and `loopback_episode` runs the
+protocol in one process (the reference for the ROS equivalence test).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from htlm_agent.mind import belief as bf
+from htlm_agent.mind.reward import RewardTables, action_mask, confident_levels, reward
+from htlm_agent.runtime.team import Context, Policy
+from htlm_world.model import Model
+from htlm_world.protocol import WorldEpisode
+from htlm_world.scenario import Scenario
+from htlm_world.simulator import channel_rng, sample_channel
+from htlm_world.types import BoolArray, FloatArray, IntArray
+
+
+class AgentPolicy(Protocol):
+    """One agent's decision rule on its own knowledge: (B, K) knowledge and (B, |G|) mask -> (B,) actions."""
+
+    def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
+        """Choose an action in the mask for every row."""
+        ...
+
+
+def explore_rng(seed: int, agent: int, episode: int) -> np.random.Generator:
+    """Generator of agent `agent`'s exploration (ε-greedy) in one episode, derived from the master seed."""
+    return np.random.default_rng(np.random.SeedSequence([seed, 2, agent, episode]))
+
+
+def choose(
+    policy: AgentPolicy, knowledge: FloatArray, mask: BoolArray, epsilon: float, rng: np.random.Generator
+) -> IntArray:
+    """ε-greedy over the reduced action space Â(a_o) (MODEL.md): with probability ε a uniform action of the mask,
+    else the policy's. Two uniforms are drawn per row whatever ε is, so the generator stays in step."""
+    u = rng.random((knowledge.shape[0], 2))
+    greedy = np.asarray(policy.act(knowledge, mask), dtype=np.int64)
+    out = greedy.copy()
+    for b in range(knowledge.shape[0]):
+        if u[b, 0] < epsilon:
+            allowed = np.flatnonzero(mask[b])
+            out[b] = allowed[min(int(u[b, 1] * allowed.size), allowed.size - 1)]
+        assert mask[b, out[b]], f"policy chose {out[b]} outside the mask {mask[b]}"
+    return out
+
+
+class RowPolicy:
+    """Agent `agent`'s column of a decentralized team policy (a `team.Policy` whose agent i reads only row i of the
+    Context, such as baselines.GreedyPolicy), fed with that agent's own knowledge state and mask."""
+
+    def __init__(self, scenario: Scenario, policy: Policy, agent: int) -> None:
+        """Wrap `policy` for agent index `agent`."""
+        self.scenario = scenario
+        self.policy = policy
+        self.agent = agent
+
+    def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
+        """See AgentPolicy.act: rebuild the agent's marginals and a_o from K = {b, a_o} and ask the team policy."""
+        sc = self.scenario
+        b, n, pl = knowledge.shape[0], sc.n_agents, sc.n_tasks * sc.levels
+        marg = knowledge[:, :pl].reshape(b, sc.n_tasks, sc.levels)
+        onehot = knowledge[:, pl:] > 0.5
+        prev = np.where(onehot.any(axis=1), onehot.argmax(axis=1), -1).astype(np.int64)
+        ctx = Context(
+            knowledge=np.repeat(knowledge[:, None], n, axis=1),
+            mask=np.repeat(mask[:, None], n, axis=1),
+            marginals=np.repeat(marg[:, None], n, axis=1),
+            prev=np.repeat(prev[:, None], n, axis=1),
+            t=0,
+            true_levels=np.zeros((b, sc.n_tasks), dtype=np.int64),  # decentralized policies never read it
+        )
+        return np.asarray(self.policy.act(ctx)[:, self.agent], dtype=np.int64)
+
+
+def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPolicy, float]:
+    """A policy that needs no network, and its ε: "greedy" (baselines.GreedyPolicy on the agent's own row) or
+    "random" (uniform over Â(a_o) from the agent's exploration generator, ε = 1)."""
+    from htlm_agent.baselines.heuristics import GreedyPolicy
+
+    if name not in ("greedy", "random"):
+        raise ValueError(f"unknown built-in policy {name!r}; choose greedy or random")
+    return RowPolicy(scenario, GreedyPolicy(scenario), agent), (1.0 if name == "random" else 0.0)
+
+
+class DecentralizedPolicy:
+    """The in-process Team policy made of independent per-agent policies, each on its own row of the context,
+    with ε-greedy from `explore_rng(seed, agent, episode)`: what the agent processes do over ROS."""
+
+    def __init__(self, policies: list[AgentPolicy], seed: int, epsilon: float | list[float] = 0.0) -> None:
+        """One policy per agent; call `begin(episode)` before each `team.rollout` of batch 1."""
+        self.policies = policies
+        self.seed = seed
+        self.epsilon = [epsilon] * len(policies) if isinstance(epsilon, float) else list(epsilon)
+        self.rngs: list[np.random.Generator] = []
+
+    def begin(self, episode: int) -> None:
+        """Derive every agent's exploration generator for `episode`."""
+        self.rngs = [explore_rng(self.seed, i, episode) for i in range(len(self.policies))]
+
+    def act(self, ctx: Context) -> IntArray:
+        """Every agent's action from its own knowledge and mask (B, N)."""
+        assert self.rngs, "call begin(episode) first"
+        cols = [
+            choose(pol, ctx.knowledge[:, i], ctx.mask[:, i], self.epsilon[i], self.rngs[i])
+            for i, pol in enumerate(self.policies)
+        ]
+        return np.stack(cols, axis=1)
+
+
+# ----- the agent's mind -------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Transition:
+    """One transition of one agent (what it sends to the trainer)."""
+
+    episode: int
+    step: int
+    k: FloatArray  # (K,) knowledge before acting
+    a: int
+    r: float
+    k2: FloatArray  # (K,) knowledge after the update
+    mask2: BoolArray  # (|G|,) Â of the next step
+    done: bool
+    parts: dict[str, float]
+
+
+@dataclass
+class Effects:
+    """What the node must publish after feeding the mind one message, in this order."""
+
+    broadcast: tuple[int, int, int] | None = None  # (step, action, level after the channel)
+    transition: Transition | None = None  # a step finished: send the transition
+    ready: int | None = None  # publish ready(step): the last step of the episode is finished
+    action: tuple[int, int] | None = None  # (step, action): our action for that step
+    drop: str | None = None  # the message was dropped by the protocol (counted): past, future, duplicate, ...
+
+
+@dataclass
+class _Pending:
+    t: int
+    k: FloatArray
+    action: int
+    acted: bool | None  # None until the world's observation says whether our action was applied
+    obs: int = -1
+    observed_at: float | None = None
+    acted_set: frozenset[int] | None = None
+    heard: dict[int, tuple[int, int]] = field(default_factory=dict)
+    drawn: bool = False
+    sent: int = -1
+
+
+class AgentMind:
+    """Belief, previous assignment, policy and simulated channel of one agent, and the protocol's order.
+
+    The lockstep protocol as the agent sees it (ARCHITECTURE.md, data flow of one step): the world's begin of an
+    episode resets the mind, which answers with its action for step 1. The world's observation of step t (which
+    lists the agents whose action it applied) makes the mind draw its channel and broadcast; once it has heard the
+    broadcast of every other agent that acted (or `tick` finds it waited too long), it updates its belief (Eq. 2),
+    computes its reward, emits the transition and answers with its action for step t + 1, or with ready after the
+    last step. A message of a past or future step is dropped and reported, never applied.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        agent: int,
+        seed: int,
+        policy: AgentPolicy,
+        model: Model | None = None,
+    ) -> None:
+        """The mind of agent index `agent` in a run with master seed `seed`."""
+        self.scenario = scenario
+        self.model = model if model is not None else Model.build(scenario)
+        self.tables = RewardTables.build(scenario)
+        self.me = agent
+        self.seed = seed
+        self.policy = policy
+        self.n = scenario.n_agents
+        self.h = scenario.horizon
+        self.episode: int | None = None
+        self.epsilon = 0.0
+        self.t = 0
+        self.pending: _Pending | None = None
+        self.early: dict[int, tuple[int, int, int]] = {}
+        self.impossible = 0
+        self.missed_steps = 0
+        self.timeouts = 0
+        self.log: dict[str, list[Any]] = {}
+
+    # ----- state ----------------------------------------------------------------------------------------------
+    @property
+    def current(self) -> int:
+        """The step in progress (pending), else the last finished one."""
+        return self.pending.t if self.pending is not None else self.t
+
+    @property
+    def finished(self) -> bool:
+        """Whether the current episode's last step is finished (or no episode was begun)."""
+        return self.episode is None or (self.pending is None and self.t >= self.h)
+
+    def knowledge(self) -> FloatArray:
+        """Knowledge state K = {b, a_o} (1, K)."""
+        return bf.knowledge(self.marg, np.array([self.prev], dtype=np.int64), self.scenario.n_actions)
+
+    def mask(self) -> BoolArray:
+        """Â(a_o) (1, |G|)."""
+        return action_mask(self.scenario, np.array([self.prev], dtype=np.int64))
+
+    def idle_action(self) -> int:
+        """Idle at the site of the previous assignment: what the world applies when our action is missing."""
+        sc = self.scenario
+        if sc.n_idle == 0:
+            return -1
+        site = int(self.model.action_site[self.prev]) if self.prev >= 0 else 0
+        return sc.n_tasks + site
+
+    def _where(self, episode: int) -> str | None:
+        if self.episode is None:
+            return "no_episode"
+        if episode < self.episode:
+            return "past"
+        if episode > self.episode:
+            return "future"
+        return None
+
+    def _late(self, t: int) -> str:
+        return "past" if t <= self.current else "future"
+
+    # ----- messages -------------------------------------------------------------------------------------------
+    def begin(self, episode: int, epsilon: float = 0.0, force: bool = False) -> Effects:
+        """The world's begin of `episode`: reset and answer with the action of step 1.
+
+        Accepted when fresh, once the previous episode's last step is reached, or with `force` (the node's resync
+        after a long silence). A repeated begin of the current episode gets the same answer again.
+        """
+        out = Effects()
+        if self.episode is not None and not force:
+            if episode == self.episode:
+                p = self.pending
+                if self.t == 0 and p is not None and p.t == 1 and p.observed_at is None:
+                    out.action = (1, p.action)
+                else:
+                    out.drop = "duplicate"
+                return out
+            if episode < self.episode:
+                out.drop = "past"
+                return out
+            if self.current < self.h or episode != self.episode + 1:  # the world never skips an episode
+                out.drop = "future"
+                return out
+        if self.pending is not None and self.episode is not None and episode != self.episode:
+            out.transition = self._finish()  # the world moved on before our last step was complete
+        sc = self.scenario
+        self.episode = episode
+        self.epsilon = float(epsilon)
+        self.t = 0
+        self.pending = None
+        self.early = {}
+        self.belief = bf.initial_belief(self.model, 1)[:, self.me]  # (1, S, L, L)
+        self.marg = bf.marginals(self.belief)  # (1, p, L)
+        self.prev = sc.start_assignment
+        self.known = np.full(self.n, sc.start_assignment, dtype=np.int64)
+        self.chan = channel_rng(self.seed, self.me, episode)
+        self.explore = explore_rng(self.seed, self.me, episode)
+        self.log = {"actions": [], "messages": [], "rewards": [], "acted": []}
+        out.action = (1, self._act(1))
+        return out
+
+    def _act(self, t: int) -> int:
+        k = self.knowledge()
+        a = int(choose(self.policy, k, self.mask(), self.epsilon, self.explore)[0])
+        self._open(t, k, a, acted=None)
+        return a
+
+    def _open(self, t: int, k: FloatArray, a: int, acted: bool | None) -> None:
+        self.pending = _Pending(t=t, k=k, action=a, acted=acted)
+        for j, (tt, aj, lj) in self.early.items():
+            if tt == t:
+                self.pending.heard[j] = (aj, lj)
+        self.early = {}
+
+    def observe(self, episode: int, t: int, level: int, acted: list[int], now: float = 0.0) -> Effects:
+        """The world's observation of step t: draw our channel and broadcast if our action was applied."""
+        out = Effects()
+        bad = self._where(episode)
+        p = self.pending
+        if bad is None:
+            if p is not None and t == p.t:
+                if p.observed_at is not None:
+                    bad = "duplicate"
+            elif (p is not None and t == p.t + 1) or (p is None and t == self.t + 1 and t <= self.h):
+                # the world went on without our action for step t: close the step we were in, idle in this one
+                if p is not None:
+                    out.transition = self._finish()
+                self.missed_steps += 1
+                self._open(t, self.knowledge(), self.idle_action(), acted=False)
+                p = self.pending
+            else:
+                bad = self._late(t)
+        if bad is not None:
+            out.drop = bad
+            return out
+        assert p is not None
+        p.observed_at = now
+        p.acted_set = frozenset(acted)
+        if self.me in p.acted_set:
+            p.acted = True
+            p.obs = level
+        else:
+            if p.acted is None:
+                self.missed_steps += 1  # our action came too late
+            p.acted = False
+            p.action = self.idle_action()
+            p.obs = -1
+        sent = self._draw(p.obs)
+        if p.acted:
+            out.broadcast = (t, p.action, sent)
+        if self._complete():
+            self._step_done(out)
+        return out
+
+    def _draw(self, level: int) -> int:
+        assert self.pending is not None and not self.pending.drawn
+        self.pending.drawn = True
+        self.pending.sent = int(sample_channel(self.model, self.me, np.array([level], dtype=np.int64), self.chan)[0])
+        return self.pending.sent
+
+    def hear(self, sender: int, episode: int, t: int, action: int, level: int) -> Effects:
+        """A teammate's broadcast of step t."""
+        out = Effects()
+        bad = self._where(episode)
+        p = self.pending
+        if bad is None:
+            if sender == self.me:
+                bad = "self"
+            elif p is not None and t == p.t:
+                if sender in p.heard:
+                    bad = "duplicate"
+                else:
+                    p.heard[sender] = (action, level)
+                    if self._complete():
+                        self._step_done(out)
+            elif t == self.current + 1 and t <= self.h:
+                if sender in self.early:
+                    bad = "duplicate"
+                else:  # ahead of our own observation: keep it for that step
+                    self.early[sender] = (t, action, level)
+            else:
+                bad = self._late(t)
+        out.drop = bad
+        return out
+
+    def tick(self, now: float, timeout: float) -> Effects:
+        """Finish the step in progress if we observed it more than `timeout` seconds ago and still miss a
+        teammate's broadcast (it died after acting): update with what we heard and go on."""
+        out = Effects()
+        p = self.pending
+        if p is not None and p.observed_at is not None and now - p.observed_at > timeout:
+            self.timeouts += 1
+            self._step_done(out)
+        return out
+
+    def end(self, episode: int, t: int) -> Effects:
+        """The world's end of the episode: finish the last step if it is still open."""
+        out = Effects()
+        where = self._where(episode)
+        if where is None and self.pending is not None and self.pending.t == t == self.h:
+            out.transition = self._finish()
+        elif not (where is None and t == self.h and self.finished):  # the usual case: nothing left to do
+            out.drop = where or self._late(t)
+        return out
+
+    def _complete(self) -> bool:
+        p = self.pending
+        if p is None or p.observed_at is None or p.acted_set is None:
+            return False
+        return all(j in p.heard for j in p.acted_set if j != self.me)
+
+    def _step_done(self, out: Effects) -> None:
+        tr = self._finish()
+        out.transition = tr
+        if tr.step < self.h:
+            out.action = (tr.step + 1, self._act(tr.step + 1))
+        else:
+            out.ready = tr.step
+
+    # ----- the belief update of one step (Eq. 2), the reward, the transition --------------------------------------
+    def _finish(self) -> Transition:
+        p = self.pending
+        assert p is not None and self.episode is not None
+        if not p.drawn:
+            self._draw(p.obs if p.acted else -1)
+        n, me = self.n, self.me
+        action = p.action
+        joint = self.known.copy()
+        messages = np.full(n, -1, dtype=np.int64)
+        heard = np.zeros(n, dtype=bool)
+        for j, (aj, lj) in p.heard.items():
+            if p.acted_set is not None and j not in p.acted_set:
+                continue
+            joint[j] = aj
+            messages[j] = lj
+            heard[j] = True
+        joint[me] = action
+        lik = bf.agent_evidence(
+            self.model, me, joint[None, :], np.array([p.obs], dtype=np.int64), messages[None, :], heard[None, :]
+        )
+        caps = self.model.joint_capability(joint[None, :])
+        self.belief, bad = bf.update(self.model, self.belief, caps, lik)
+        self.impossible += int(bad.sum())
+        self.marg = bf.marginals(self.belief)
+        prev = np.full((1, n), self.prev, dtype=np.int64)
+        marg = np.broadcast_to(self.marg[:, None], (1, n, *self.marg.shape[1:]))
+        r, parts = reward(self.model, self.tables, prev, marg, joint[None, :])
+        if action >= 0:
+            self.prev = action
+        self.known = np.where(joint >= 0, joint, self.known)
+        self.t = p.t
+        self.pending = None
+        self.log["actions"].append(action)
+        self.log["messages"].append(p.sent)
+        self.log["rewards"].append(float(r[0, me]))
+        self.log["acted"].append(bool(p.acted))
+        return Transition(
+            episode=self.episode,
+            step=p.t,
+            k=p.k[0],
+            a=action,
+            r=float(r[0, me]),
+            k2=self.knowledge()[0],
+            mask2=self.mask()[0],
+            done=p.t >= self.h,
+            parts={key: float(v[0, me]) for key, v in parts.items()},
+        )
+
+    def belief_summary(self) -> tuple[list[float], list[int]]:
+        """Per-task marginals (p*L, row-major) and confident levels (p) of the current belief."""
+        conf = confident_levels(self.marg[:, None], self.tables.threshold[self.me : self.me + 1])
+        return self.marg[0].ravel().tolist(), [int(x) for x in conf[0, 0]]
+
+
+# ----- the protocol in one process --------------------------------------------------------------------------------
+
+
+def loopback_episode(
+    scenario: Scenario,
+    seed: int,
+    episode: int,
+    policies: list[AgentPolicy],
+    epsilon: float = 0.0,
+    absent: dict[int, set[int]] | None = None,
+    model: Model | None = None,
+) -> dict[str, Any]:
+    """Run one episode of the lockstep protocol in one process: a WorldEpisode and one AgentMind per agent,
+    every message delivered. `absent` maps a step to agents whose action is lost (the world makes them idle).
+
+    Returns levels (h+1, p), actions (h, N), observations (h, N), messages (h, N), rewards (h, N).
+    """
+    model = model if model is not None else Model.build(scenario)
+    n, h = scenario.n_agents, scenario.horizon
+    world = WorldEpisode(scenario, model, seed, episode)
+    minds = [AgentMind(scenario, i, seed, policies[i], model=model) for i in range(n)]
+    acts: dict[int, int] = {}
+    for i, m in enumerate(minds):
+        act = m.begin(episode, epsilon).action
+        assert act is not None and act[0] == 1
+        acts[i] = act[1]
+    msgs = np.full((h, n), -1, dtype=np.int64)
+    rewards = np.zeros((h, n))
+    for t in range(1, h + 1):
+        chosen = {i: a for i, a in acts.items() if not (absent and i in absent.get(t, set()))}
+        out = world.step(chosen)
+        sends = []
+        effects: list[list[Effects]] = [[] for _ in range(n)]
+        for i, m in enumerate(minds):
+            eff = m.observe(episode, t, int(out.observations[i]), out.acted)
+            if eff.broadcast is not None:
+                sends.append((i, eff.broadcast))
+                msgs[t - 1, i] = eff.broadcast[2]
+            effects[i].append(eff)
+        for i, m in enumerate(minds):
+            for j, (tj, aj, lj) in sends:
+                if j != i:
+                    effects[i].append(m.hear(j, episode, tj, aj, lj))
+        acts = {}
+        for i in range(n):
+            done = [e for e in effects[i] if e.transition is not None]
+            assert len(done) == 1, f"agent {i} did not finish step {t}"
+            rewards[t - 1, i] = done[0].transition.r  # type: ignore[union-attr]
+            if done[0].action is not None:
+                acts[i] = done[0].action[1]
+    traj = world.trajectory()
+    return {
+        "levels": np.array(traj["levels"]),
+        "actions": np.array(traj["actions"]),
+        "observations": np.array(traj["observations"]),
+        "messages": msgs,
+        "rewards": rewards,
+    }
+
+
+# ----- settings of the agent node ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AgentSettings:
+    """Parameters of the agent node (one ROS parameter per field)."""
+
+    agent: str = ""
+    """This agent's name in the scenario (agent1, agent2, ...); required."""
+    policy: str = "auto"
+    """auto (train: from the trainer; else the checkpoint), checkpoint, trainer, greedy or random."""
+    checkpoint: str = ""
+    """Checkpoint directory of `htlm train` (policy checkpoint, or auto outside training)."""
+    epsilon: float = -1.0
+    """ε of ε-greedy; -1: the learner's schedule while training, 0 otherwise."""
+    transitions: str = "auto"
+    """Send transitions to the trainer: auto (in train mode), on, off."""
+    resend_period: float = 1.0
+    """Seconds before an unacknowledged transition is sent again."""
+    resend_batch: int = 200
+    """Most transitions sent again per resend period (oldest first), so a restarted trainer is not flooded."""
+    outbox_limit: int = 100_000
+    """Most unacknowledged transitions kept; the oldest are dropped (counted) beyond it."""
+    belief_every: int = 1
+    """Publish the belief summary every this many steps (0: never)."""
+    broadcast_timeout: float = 1.0
+    """Seconds to wait for the broadcasts of the teammates that acted before updating without them (keep it
+    below the world's act_deadline)."""
+    resync_timeout: float = 10.0
+    """Seconds without any accepted world message after which the agent rejoins at the next episode start."""
+    discovery_grace: float = 3.0
+    """Seconds after the scenario arrives during which the agent answers the world only once it is matched
+    with the world and every teammate on the step topics."""
+    stop_timeout: float = 5.0
+    """Seconds to wait for the trainer's acknowledgements when the run stops."""
+    exit_on_stop: bool = True
+    """Exit when the world announces the end of the run."""
+    frame_id: str = "map"
+    """Frame of the goal poses."""
+    run_dir: str = ""
+    """Directory for this agent's episode log (<agent>.jsonl); empty: no file."""
+    diagnostics_period: float = 1.0
+    """Seconds between /diagnostics messages."""
+    executor: str = "events"
+    """events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
+
+
+def validate_agent_settings(s: AgentSettings) -> list[str]:
+    """Problems of an AgentSettings, each naming the parameter and the value (empty when valid)."""
+    bad: list[str] = []
+    if not s.agent or not s.agent.replace("_", "").isalnum() or not s.agent[0].isalpha():
+        bad.append(f"agent: {s.agent!r} must be an agent name of the scenario (letters, digits, _)")
+    if s.policy not in ("auto", "checkpoint", "trainer", "greedy", "random"):
+        bad.append(f"policy: {s.policy!r} is not one of auto, checkpoint, trainer, greedy, random")
+    if s.policy == "checkpoint" and not s.checkpoint:
+        bad.append("checkpoint: '' : policy checkpoint needs a checkpoint directory")
+    if not (s.epsilon == -1.0 or 0.0 <= s.epsilon <= 1.0):
+        bad.append(f"epsilon: {s.epsilon!r} must be -1 or in [0, 1]")
+    if s.transitions not in ("auto", "on", "off"):
+        bad.append(f"transitions: {s.transitions!r} is not one of auto, on, off")
+    for name in ("resend_period", "broadcast_timeout", "resync_timeout", "discovery_grace", "diagnostics_period"):
+        v = getattr(s, name)
+        if not 0.0 < v <= 3600.0:
+            bad.append(f"{name}: {v!r} must be in (0, 3600] seconds")
+    if not 0.0 <= s.stop_timeout <= 600.0:
+        bad.append(f"stop_timeout: {s.stop_timeout!r} must be in [0, 600] seconds")
+    if s.resend_batch < 1:
+        bad.append(f"resend_batch: {s.resend_batch!r} must be >= 1")
+    if s.outbox_limit < 1:
+        bad.append(f"outbox_limit: {s.outbox_limit!r} must be >= 1")
+    if s.belief_every < 0:
+        bad.append(f"belief_every: {s.belief_every!r} must be >= 0")
+    if not s.frame_id:
+        bad.append("frame_id: '' must not be empty")
+    if s.executor not in ("events", "single"):
+        bad.append(f"executor: {s.executor!r} is not one of events, single")
+    return bad

@@ -1,0 +1,495 @@
+"""agent_node: one agent of the team as its own process over ROS 2 (ARCHITECTURE.md, data flow of one step).
+
+The node decodes messages and feeds them to its `AgentMind` (htlm_agent.mind.agent), which holds the agent's belief,
+previous assignment, policy and simulated channel; it publishes what the mind returns: the action, the broadcast,
+the ready, the transition (kept in an outbox until the trainer acknowledges it), the belief summary and, when the
+site of its assignment changes, a geometry_msgs/PoseStamped goal pose. The policy comes from a checkpoint
+(evaluate, deploy), from the trainer's weights (train), or is a built-in one (greedy, random).
+Run: `ros2 run htlm_agent agent_node --ros-args -p agent:=agent1` or `python -m htlm_agent.ros.agent_node ...`.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import hashlib
+import json
+import secrets
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from rclpy.node import Node
+
+from htlm_agent.mind.agent import (
+    AgentMind,
+    AgentPolicy,
+    AgentSettings,
+    Effects,
+    Transition,
+    builtin_policy,
+    validate_agent_settings,
+)
+from htlm_msgs_py import schema as S
+from htlm_msgs_py import topics
+from htlm_msgs_py.ros import (
+    EVENTS,
+    STATE,
+    STATE_READER,
+    Health,
+    PoseStamped,
+    SettingsError,
+    String,
+    declare_settings,
+    pose,
+    run_node,
+    spin_until_finished,
+    string,
+)
+from htlm_msgs_py.schema import encode, limits
+from htlm_msgs_py.signing import SigningError, signer_from_env
+from htlm_world.model import Model
+from htlm_world.scenario import Scenario, ScenarioError, from_dict
+
+
+def _validate(s: AgentSettings) -> None:
+    bad = validate_agent_settings(s)
+    if bad:
+        raise SettingsError("; ".join(bad))
+
+
+class AgentNode(Node):
+    """One agent process."""
+
+    def __init__(self) -> None:
+        """Declare parameters, create publishers, subscriptions and timers; the rest waits for /htlm/scenario."""
+        super().__init__("htlm_agent")
+        self.settings: AgentSettings = declare_settings(self, AgentSettings, _validate)
+        s = self.settings
+        try:
+            self.signer = signer_from_env()
+        except SigningError as e:
+            raise SettingsError(str(e)) from None
+        self.name = s.agent
+        self.health = Health(self, f"htlm: {self.name}", self.signer)
+        self.session = secrets.token_hex(8)
+        self.stop_signal = 0
+        self.fatal: str | None = None
+        # run state (set by /htlm/scenario)
+        self.run: str | None = None
+        self.mode = ""
+        self.scenario: Scenario | None = None
+        self.model: Model | None = None
+        self.index = -1
+        self.lim: dict[str, int] | None = None
+        self.first_episode = 0
+        self.episodes = 0
+        self.mind: AgentMind | None = None
+        self.policy: AgentPolicy | None = None
+        self.policy_kind = ""
+        self.policy_epsilon = 0.0
+        self.net: Any = None
+        self.learner_settings: Any = None
+        self.weights_version = -1
+        self.send_transitions = False
+        self.stopping = False
+        self.stop_deadline = 0.0
+        self.last_accept = time.monotonic()
+        self.scenario_at = 0.0
+        self.last_site = -1
+        self.seq = 0
+        self.outbox: dict[int, list[Any]] = {}  # seq -> [text, last sent (monotonic)]
+        self.acked = 0
+        self.episodes_done = 0
+        self.log_file: Any = None
+        # publishers
+        self.pub_action = self.create_publisher(String, topics.ACTION, EVENTS)
+        self.pub_broadcast = self.create_publisher(String, topics.BROADCAST, EVENTS)
+        self.pub_ready = self.create_publisher(String, topics.READY, EVENTS)
+        self.pub_transition = self.create_publisher(String, topics.TRANSITIONS, EVENTS)
+        self.pub_goal = self.create_publisher(PoseStamped, topics.goal_pose(self.name), STATE)
+        self.pub_belief = self.create_publisher(String, topics.belief(self.name), STATE)
+        # subscriptions
+        self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
+        self.create_subscription(String, topics.STEP, self._on_step, EVENTS)
+        self.create_subscription(String, topics.observation(self.name), self._on_observation, EVENTS)
+        self.create_subscription(String, topics.BROADCAST, self._on_broadcast, EVENTS)
+        self.create_subscription(String, topics.TRANSITION_ACK, self._on_ack, EVENTS)
+        self.sub_weights: Any = None
+        # timers
+        self.create_timer(s.diagnostics_period, self._publish_health)
+        self.create_timer(s.resend_period, self._resend)
+        self.create_timer(min(0.1, s.broadcast_timeout / 4), self._tick)
+
+    # ----- the run ------------------------------------------------------------------------------------------------
+    def _on_scenario(self, msg: String) -> None:
+        rec = self.health.decode("scenario", msg, S.SCENARIO)
+        if rec is None:
+            return
+        if rec["run"] == self.run:
+            if rec["state"] == "stopped" and not self.stopping:
+                self._stop_run()
+            return
+        try:
+            sc = from_dict(rec["scenario"], "/htlm/scenario")
+        except ScenarioError as e:
+            self.health.reject("scenario", "scenario", str(e))
+            return
+        if sc.layout_hash() != rec["layout"]:
+            self.health.reject("scenario", "layout", f"layout {rec['layout']} != {sc.layout_hash()}")
+            return
+        names = [a.name for a in sc.agents]
+        if self.name not in names:
+            self._fail(f"agent {self.name!r} is not in the scenario's team {names}")
+            return
+        self.run = rec["run"]
+        self.mode = rec["mode"]
+        self.seed = rec["seed"]
+        self.first_episode = rec["first_episode"]
+        self.episodes = rec["episodes"]
+        self.scenario = sc
+        self.scenario_at = time.monotonic()
+        self.model = Model.build(sc)
+        self.index = names.index(self.name)
+        self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon)
+        self.mind = None
+        self.stopping = False
+        s = self.settings
+        self.send_transitions = s.transitions == "on" or (s.transitions == "auto" and self.mode == "train")
+        kind = s.policy
+        if kind == "auto":
+            kind = "trainer" if self.mode == "train" else ("checkpoint" if s.checkpoint else "")
+            if not kind:
+                self._fail(f"mode {self.mode}: no policy: set checkpoint:=DIR, or policy:=greedy or random")
+                return
+        self.policy_kind = kind
+        try:
+            self._make_policy(kind)
+        except Exception as e:  # a checkpoint that cannot be used is fatal for this process
+            self._fail(f"policy {kind}: {e}")
+            return
+        if s.run_dir and self.log_file is None:
+            Path(s.run_dir).mkdir(parents=True, exist_ok=True)
+            self.log_file = open(Path(s.run_dir) / f"{self.name}.jsonl", "a", encoding="utf-8")  # noqa: SIM115
+        self.get_logger().info(
+            f"run {self.run}: agent {self.name} (index {self.index}) of {sc.name}/{sc.team}, mode {self.mode}, "
+            f"policy {kind}, transitions {'on' if self.send_transitions else 'off'}"
+        )
+        if rec["state"] == "stopped":
+            self._stop_run()
+
+    def _make_policy(self, kind: str) -> None:
+        sc = self.scenario
+        assert sc is not None and self.model is not None
+        if kind in ("greedy", "random"):
+            self.policy, self.policy_epsilon = builtin_policy(sc, kind, self.index)
+        elif kind == "checkpoint":
+            from htlm_agent.learning.checkpoint import load_checkpoint
+            from htlm_agent.learning.qnet import AgentQ
+
+            ck = load_checkpoint(self.settings.checkpoint, sc)
+            self.policy = AgentQ.from_checkpoint(ck, self.index)
+            self.learner_settings = ck.settings
+            self.policy_epsilon = 0.0
+        else:  # trainer: the first weights message creates the network
+            self.policy = None
+            if self.sub_weights is None:
+                self.sub_weights = self.create_subscription(
+                    String, topics.weights(self.name), self._on_weights, STATE_READER
+                )
+
+    def _fail(self, why: str) -> None:
+        self.fatal = why
+        self.health.error(why)
+        self.get_logger().error(why)
+
+    def _stop_run(self) -> None:
+        self.stopping = True
+        self.stop_deadline = time.monotonic() + self.settings.stop_timeout
+        self.get_logger().info(f"run {self.run} stopped by the world; {len(self.outbox)} transitions unacknowledged")
+
+    def finished(self) -> bool:
+        """Whether the process should exit: fatal error, or the run stopped and the outbox is flushed."""
+        if self.fatal is not None:
+            return True
+        if not (self.stopping and self.settings.exit_on_stop):
+            return False
+        return not (self.send_transitions and self.outbox) or time.monotonic() >= self.stop_deadline
+
+    def _epsilon(self, episode: int) -> float:
+        s = self.settings
+        if s.epsilon >= 0.0:
+            return s.epsilon
+        if self.policy_kind == "trainer" and self.learner_settings is not None and self.mode == "train":
+            return float(self.learner_settings.epsilon(episode))
+        return self.policy_epsilon
+
+    # ----- messages in ------------------------------------------------------------------------------------------
+    def _discovered(self) -> bool:
+        """Every teammate and the world are matched on the topics of a step (or the grace period is over)."""
+        if time.monotonic() - self.scenario_at > self.settings.discovery_grace:
+            return True
+        assert self.scenario is not None
+        return (
+            self.pub_action.get_subscription_count() > 0
+            and self.pub_broadcast.get_subscription_count() >= self.scenario.n_agents
+        )
+
+    def _in_run(self, episode: int) -> bool:
+        return episode >= self.first_episode and (self.episodes == 0 or episode < self.first_episode + self.episodes)
+
+    def _on_step(self, msg: String) -> None:
+        rec = self.health.decode("step", msg, S.STEP, self.lim)
+        if rec is None or self.scenario is None:
+            return
+        e, t, phase = rec["episode"], rec["step"], rec["phase"]
+        if phase == "begin":
+            if t != 0:
+                self.health.reject("step", "range", f"begin at step {t}")
+                return
+            if not self._in_run(e):
+                self.health.drop("step", "outside_run")
+                return
+            if self.policy is None or not self._discovered():
+                return  # not ready yet: the world asks again
+            if self.mind is None:
+                self.mind = AgentMind(self.scenario, self.index, self.seed, self.policy, model=self.model)
+            force = self.mind.episode is not None and time.monotonic() - self.last_accept > self.settings.resync_timeout
+            eff = self.mind.begin(e, self._epsilon(e), force=force)
+        elif self.mind is None:
+            return
+        else:
+            eff = self.mind.end(e, t)
+        if eff.drop is None:
+            self.last_accept = time.monotonic()
+        self._apply("step", eff)
+
+    def _on_observation(self, msg: String) -> None:
+        rec = self.health.decode("observation", msg, S.OBSERVATION, self.lim)
+        if rec is None or self.mind is None:
+            return
+        if rec["agent"] != self.index:
+            self.health.reject("observation", "agent", f"observation for agent {rec['agent']} on {self.name}'s topic")
+            return
+        eff = self.mind.observe(rec["episode"], rec["step"], rec["level"], rec["acted"], time.monotonic())
+        if eff.drop is None:
+            self.last_accept = time.monotonic()
+        self._apply("observation", eff)
+
+    def _on_broadcast(self, msg: String) -> None:
+        rec = self.health.decode("broadcast", msg, S.BROADCAST, self.lim)
+        if rec is None or self.mind is None:
+            return
+        if rec["agent"] == self.index:
+            return  # our own broadcast, looped back
+        eff = self.mind.hear(rec["agent"], rec["episode"], rec["step"], rec["action"], rec["level"])
+        self._apply("broadcast", eff)
+
+    def _tick(self) -> None:
+        if self.mind is not None and self.mind.pending is not None:
+            eff = self.mind.tick(time.monotonic(), self.settings.broadcast_timeout)
+            if eff.transition is not None:
+                self._apply("tick", eff)
+
+    def _on_ack(self, msg: String) -> None:
+        rec = self.health.decode("transition_ack", msg, S.TRANSITION_ACK, self.lim)
+        if rec is None or rec["agent"] != self.index:
+            return
+        if rec["session"] != self.session:
+            self.health.drop("transition_ack", "session")
+            return
+        upto = rec["upto"]
+        box = self.outbox
+        while box:
+            first = next(iter(box))
+            if first > upto:
+                break
+            del box[first]
+            self.acked += 1
+
+    def _on_weights(self, msg: String) -> None:
+        rec = self.health.decode("weights", msg, S.WEIGHTS, self.lim)
+        if rec is None or self.scenario is None:
+            return
+        if rec["agent"] != self.index:
+            self.health.reject("weights", "agent", f"weights for agent {rec['agent']} on {self.name}'s topic")
+            return
+        if rec["version"] <= self.weights_version:
+            self.health.drop("weights", "past")
+            return
+        try:
+            data = base64.b64decode(rec["data"], validate=True)
+        except (binascii.Error, ValueError) as e:
+            self.health.reject("weights", "data", f"not base64: {e}")
+            return
+        if hashlib.sha256(data).hexdigest() != rec["sha256"]:
+            self.health.reject("weights", "data", "sha256 mismatch")
+            return
+        try:
+            from htlm_agent.learning.qnet import AgentQ, layer_sizes
+            from htlm_agent.learning.settings import Settings
+
+            ls = Settings.from_dict(rec["settings"], "weights.settings")
+            net = self.net
+            if net is None or tuple(net.sizes) != layer_sizes(self.scenario, ls.hidden):
+                net = AgentQ(layer_sizes(self.scenario, ls.hidden))
+            net.set_weights(data)
+        except ValueError as e:
+            self.health.reject("weights", "data", str(e))
+            return
+        self.net = net
+        self.learner_settings = ls
+        self.weights_version = rec["version"]
+        if self.policy_kind == "trainer":
+            self.policy = net
+            if self.mind is not None:
+                self.mind.policy = net
+
+    # ----- messages out -----------------------------------------------------------------------------------------
+    def _apply(self, topic: str, eff: Effects) -> None:
+        if eff.drop is not None:
+            self.health.drop(topic, eff.drop)
+            return
+        mind = self.mind
+        assert mind is not None and mind.episode is not None
+        me, signer = self.index, self.signer
+        if eff.broadcast is not None:
+            t, a, level = eff.broadcast
+            self.pub_broadcast.publish(
+                string(
+                    encode(
+                        S.BROADCAST,
+                        {"agent": me, "episode": mind.episode, "step": t, "action": a, "level": level},
+                        signer,
+                    )
+                )
+            )
+        if eff.action is not None:  # before the transition: the world and the team wait for it
+            t, a = eff.action
+            self.pub_action.publish(
+                string(encode(S.ACTION, {"agent": me, "episode": mind.episode, "step": t, "action": a}, signer))
+            )
+        if eff.ready is not None:
+            self.pub_ready.publish(
+                string(encode(S.READY, {"agent": me, "episode": mind.episode, "step": eff.ready}, signer))
+            )
+        if eff.transition is not None:
+            self._finished(eff.transition)
+        if eff.action is not None:
+            self._goal(eff.action[1])
+
+    def _finished(self, tr: Transition) -> None:
+        me = self.index
+        if self.send_transitions:
+            seq = self.seq
+            self.seq += 1
+            text = encode(
+                S.TRANSITION,
+                {
+                    "agent": me,
+                    "session": self.session,
+                    "seq": seq,
+                    "episode": tr.episode,
+                    "step": tr.step,
+                    "k": tr.k.tolist(),
+                    "a": tr.a,
+                    "r": tr.r,
+                    "k2": tr.k2.tolist(),
+                    "mask2": tr.mask2.tolist(),
+                    "done": tr.done,
+                },
+                self.signer,
+            )
+            if len(self.outbox) >= self.settings.outbox_limit:
+                del self.outbox[next(iter(self.outbox))]
+                self.health.counters["outbox_dropped"] += 1
+            self.outbox[seq] = [text, time.monotonic()]
+            self.pub_transition.publish(string(text))
+        every = self.settings.belief_every
+        if every and (tr.done or (tr.step % every == 0 and self.pub_belief.get_subscription_count() > 0)):
+            assert self.mind is not None
+            marg, conf = self.mind.belief_summary()
+            self.pub_belief.publish(
+                string(
+                    encode(
+                        S.BELIEF,
+                        {"agent": me, "episode": tr.episode, "step": tr.step, "marginals": marg, "confident": conf},
+                        self.signer,
+                    )
+                )
+            )
+        if tr.done:
+            self._episode_done(tr.episode)
+
+    def _episode_done(self, episode: int) -> None:
+        assert self.mind is not None
+        self.episodes_done += 1
+        if self.log_file is not None:
+            self.log_file.write(json.dumps({"run": self.run, "episode": episode, **self.mind.log}) + "\n")
+            self.log_file.flush()
+
+    def _goal(self, action: int) -> None:
+        assert self.model is not None and self.scenario is not None
+        site = int(self.model.action_site[action])
+        if site != self.last_site:
+            self.last_site = site
+            x, y = self.scenario.site_positions[site]
+            self.pub_goal.publish(pose(x, y, self.settings.frame_id, self.get_clock().now().to_msg()))
+
+    def _resend(self) -> None:
+        if not self.outbox:
+            return
+        now = time.monotonic()
+        old = now - self.settings.resend_period
+        n = 0
+        for item in self.outbox.values():
+            if item[1] <= old:
+                self.pub_transition.publish(string(item[0]))
+                item[1] = now
+                n += 1
+                if n >= self.settings.resend_batch:
+                    break
+        self.health.counters["resent"] += n
+
+    def _publish_health(self) -> None:
+        h = self.health
+        m = self.mind
+        h.values.update(
+            {
+                "run": str(self.run),
+                "agent": self.name,
+                "index": str(self.index),
+                "session": self.session,
+                "mode": self.mode,
+                "policy": self.policy_kind,
+                "weights_version": str(self.weights_version),
+                "episode": str(m.episode if m else -1),
+                "step": str(m.current if m else 0),
+                "episodes_done": str(self.episodes_done),
+                "missed_steps": str(m.missed_steps if m else 0),
+                "impossible_evidence": str(m.impossible if m else 0),
+                "transitions_sent": str(self.seq),
+                "transitions_acked": str(self.acked),
+                "outbox": str(len(self.outbox)),
+                "signed": str(self.signer.enabled).lower(),
+            }
+        )
+        if self.fatal is None:
+            h.ok("waiting for the world" if m is None else f"episode {m.episode} step {m.current}")
+        h.publish()
+
+
+def _cleanup(node: AgentNode) -> None:
+    node._publish_health()
+    if node.log_file is not None:
+        node.log_file.close()
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of `agent_node` (exit code: 0 done, 2 bad parameters or policy, 130/143 SIGINT/SIGTERM)."""
+    return run_node("agent_node", AgentNode, spin_until_finished, _cleanup, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

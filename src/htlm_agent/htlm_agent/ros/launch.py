@@ -1,0 +1,364 @@
+"""Start a team over ROS 2 as separate OS processes: the world, one process per agent, the trainer.
+
+Every process gets its own parameters file and log file under the run directory, the ROS domain and discovery
+settings of the launch (by default ROS_DOMAIN_ID=42 and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, so nothing
+leaves this machine), and dies with the launcher. Ctrl-C (SIGINT) or SIGTERM is forwarded to every process; the
+launcher waits for them, kills stragglers, and its exit code says how the run ended (see `EXIT_CODES`).
+
+Agents on other hosts: start the same launch on every host with `--only` naming the processes of that host and
+`--discovery subnet` (or `--peers` with the other hosts' addresses for unicast discovery), with the same
+`--domain-id` and team key. ROS-free: this module only starts processes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from htlm_world.scenario import Scenario
+
+EXIT_CODES = {
+    0: "the run finished",
+    1: "a process of the team failed",
+    2: "bad arguments or settings",
+    124: "the launch timed out",
+    130: "stopped by SIGINT (Ctrl-C)",
+    143: "stopped by SIGTERM",
+}
+"""Exit codes of `htlm launch`."""
+
+DISCOVERY = {"localhost": "LOCALHOST", "subnet": "SUBNET", "off": "OFF", "system_default": "SYSTEM_DEFAULT"}
+
+DEFAULT_LEARNER = {
+    "learning_starts": 150,
+    "batch_size": 64,
+    "memory": 20_000,
+    "envs": 1,
+    "eps_fraction": 0.7,
+    "updates_per_step": 1,
+    "target_sync": 100,
+}
+"""Learner settings of a launched training run unless overridden (short runs over ROS, one episode at a time)."""
+
+
+@dataclass
+class LaunchConfig:
+    """One launch: the mode, the team, what to start here, and how to reach the other hosts."""
+
+    mode: str
+    """train, evaluate or deploy."""
+    scenario: Scenario
+    """The operation and team (the world announces it; the trainer and agents take it from the world)."""
+    scenario_file: str = ""
+    """Scenario YAML file passed to the world (empty: built-in with scenario.team)."""
+    episodes: int = 10
+    """Episodes the world runs (0: until stopped)."""
+    first_episode: int = 0
+    """Index of the first episode."""
+    seed: int = 0
+    """Master seed."""
+    run_dir: Path = Path("runs/launch")
+    """Directory of this launch: logs/, parameters/, the world's and agents' logs, the trainer's store."""
+    policy: str = "auto"
+    """Agents' policy (agent_node parameter `policy`)."""
+    checkpoint: str = ""
+    """Checkpoint directory for the agents (evaluate, deploy)."""
+    only: tuple[str, ...] = ()
+    """Processes to start on this host (world, trainer, agent names); empty: all."""
+    domain_id: int = 42
+    """ROS_DOMAIN_ID of every process."""
+    discovery: str = "localhost"
+    """ROS_AUTOMATIC_DISCOVERY_RANGE: localhost, subnet, off or system_default."""
+    peers: str = ""
+    """ROS_STATIC_PEERS: semicolon-separated addresses of the other hosts (unicast discovery)."""
+    key_file: str = ""
+    """Team key file for message signing (HTLM_TEAM_KEY_FILE)."""
+    learner: dict[str, Any] = field(default_factory=dict)
+    """Learner settings overriding DEFAULT_LEARNER (train)."""
+    world_params: dict[str, Any] = field(default_factory=dict)
+    """Extra world_node parameters."""
+    agent_params: dict[str, Any] = field(default_factory=dict)
+    """Extra agent_node parameters (every agent)."""
+    trainer_params: dict[str, Any] = field(default_factory=dict)
+    """Extra trainer_node parameters."""
+    timeout: float = 0.0
+    """Seconds before the launch stops the team and exits 124 (0: none)."""
+    grace: float = 30.0
+    """Seconds the other processes get to finish after the world ended (trainer checkpoint, agents' outbox)."""
+    echo: bool = True
+    """Print the world's and trainer's episode lines while the team runs."""
+
+
+@dataclass
+class Proc:
+    """A started process."""
+
+    name: str
+    popen: subprocess.Popen[bytes]
+    log: Path
+
+
+def _yaml_value(v: Any) -> str:
+    return json.dumps(v)  # JSON scalars are valid YAML scalars
+
+
+def write_params(path: Path, params: dict[str, Any]) -> Path:
+    """A ROS 2 parameters file applying `params` to any node name."""
+    lines = ["/**:", "  ros__parameters:"] + [f"    {k}: {_yaml_value(v)}" for k, v in params.items()]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def ros_env(cfg: LaunchConfig) -> dict[str, str]:
+    """The environment of every process of the launch."""
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = str(cfg.domain_id)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = DISCOVERY[cfg.discovery]
+    if cfg.peers:
+        env["ROS_STATIC_PEERS"] = cfg.peers
+    else:
+        env.pop("ROS_STATIC_PEERS", None)
+    env.pop("ROS_LOCALHOST_ONLY", None)  # deprecated in Jazzy; the discovery range replaces it
+    if cfg.key_file:
+        env["HTLM_TEAM_KEY_FILE"] = str(Path(cfg.key_file).resolve())
+        env.pop("HTLM_TEAM_KEY", None)
+    env["PYTHONUNBUFFERED"] = "1"
+    env["RCUTILS_COLORIZED_OUTPUT"] = "0"
+    return env
+
+
+def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
+    """(name, module, parameters) of every process this host starts."""
+    run = cfg.run_dir.resolve()
+    sc = cfg.scenario
+    specs: list[tuple[str, str, dict[str, Any]]] = []
+    world = {
+        "team": sc.team,
+        "seed": cfg.seed,
+        "mode": cfg.mode,
+        "episodes": cfg.episodes,
+        "first_episode": cfg.first_episode,
+        "run_dir": str(run),
+        "run_id": f"{run.name}"[:64].replace(" ", "_"),
+        **cfg.world_params,
+    }
+    if cfg.scenario_file:
+        world["scenario"] = str(Path(cfg.scenario_file).resolve())
+    specs.append(("world", "htlm_world.ros.world_node", world))
+    learner = {**DEFAULT_LEARNER, "episodes": max(cfg.episodes, 1), **cfg.learner}
+    settings_file = run / "parameters" / "learner.json"
+    settings_file.parent.mkdir(parents=True, exist_ok=True)
+    settings_file.write_text(json.dumps(learner, indent=1) + "\n")
+    specs.append(
+        (
+            "trainer",
+            "htlm_agent.ros.trainer_node",
+            {"run_dir": str(run / "trainer"), "settings_file": str(settings_file), **cfg.trainer_params},
+        )
+    )
+    for a in sc.agents:
+        params: dict[str, Any] = {"agent": a.name, "policy": cfg.policy, "run_dir": str(run), **cfg.agent_params}
+        if cfg.checkpoint:
+            params["checkpoint"] = str(Path(cfg.checkpoint).resolve())
+        specs.append((a.name, "htlm_agent.ros.agent_node", params))
+    if cfg.only:
+        specs = [s for s in specs if s[0] in cfg.only]
+    return specs
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG: no orphans if the launcher is killed
+    except (OSError, AttributeError):
+        pass
+
+
+def start(cfg: LaunchConfig) -> list[Proc]:
+    """Start every process of the launch (world first); returns them."""
+    logs = cfg.run_dir / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    env = ros_env(cfg)
+    procs = []
+    for name, module, params in process_specs(cfg):
+        pfile = write_params(cfg.run_dir / "parameters" / f"{name}.yaml", params)
+        node = "htlm_world" if name == "world" else "htlm_trainer" if name == "trainer" else f"htlm_{name}"
+        cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__node:={node}", "--params-file", str(pfile)]
+        log = logs / f"{name}.log"
+        with open(log, "ab") as out:
+            popen = subprocess.Popen(
+                cmd,
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,  # Ctrl-C reaches the launcher only; it forwards the signal in order
+                preexec_fn=_die_with_parent,
+            )
+        procs.append(Proc(name, popen, log))
+    return procs
+
+
+def stop(procs: list[Proc], sig: int = signal.SIGINT, wait: float = 10.0) -> None:
+    """Send `sig` to every live process, wait up to `wait` seconds, then SIGKILL what is left."""
+    for p in procs:
+        if p.popen.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                p.popen.send_signal(sig)
+    end = time.monotonic() + wait
+    while time.monotonic() < end and any(p.popen.poll() is None for p in procs):
+        time.sleep(0.05)
+    stuck = [p for p in procs if p.popen.poll() is None]
+    if stuck and sig != signal.SIGKILL:
+        for p in stuck:  # a node that ignores the signal: its stack goes to its log (faulthandler on SIGUSR1)
+            print(f"htlm launch: {p.name} did not stop; its stacks are in {p.log}", flush=True, file=sys.stderr)
+            with contextlib.suppress(ProcessLookupError):
+                p.popen.send_signal(signal.SIGUSR1)
+        time.sleep(0.3)
+    for p in stuck:
+        if p.popen.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                p.popen.kill()
+            p.popen.wait()
+
+
+class _Tail:
+    """Follow a log file and print its lines that match."""
+
+    def __init__(self, path: Path, words: tuple[str, ...], prefix: str) -> None:
+        self.path, self.words, self.prefix, self.pos = path, words, prefix, 0
+
+    def poll(self) -> None:
+        try:
+            with open(self.path, "rb") as f:
+                f.seek(self.pos)
+                data = f.read()
+        except OSError:
+            return
+        cut = data.rfind(b"\n") + 1
+        self.pos += cut
+        for line in data[:cut].decode(errors="replace").splitlines():
+            if any(w in line for w in self.words):
+                print(f"{self.prefix}{line.split(']: ', 1)[-1]}", flush=True)
+
+
+def run_team(cfg: LaunchConfig) -> int:
+    """Start the team, wait for it to finish, stop it cleanly; returns the exit code (EXIT_CODES)."""
+    got: list[int] = []
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        got.append(signum)
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    procs: list[Proc] = []
+    try:
+        procs = start(cfg)
+        names = ", ".join(p.name for p in procs)
+        print(
+            f"htlm launch {cfg.mode}: {names} on ROS_DOMAIN_ID={cfg.domain_id} "
+            f"(discovery {cfg.discovery}{', peers ' + cfg.peers if cfg.peers else ''}); logs in {cfg.run_dir / 'logs'}",
+            flush=True,
+            file=sys.stderr,
+        )
+        tails = (
+            [
+                _Tail(p.log, ("episode", "ERROR", "checkpoint", "resumed"), f"[{p.name}] ")
+                for p in procs
+                if p.name in ("world", "trainer")
+            ]
+            if cfg.echo
+            else []
+        )
+        world = next((p for p in procs if p.name == "world"), None)
+        start_t = time.monotonic()
+        ended_at: float | None = None
+        code: int | None = None
+        failed: list[str] = []
+        while True:
+            time.sleep(0.1)
+            for t in tails:
+                t.poll()
+            if got:
+                sig = got[0]
+                print(f"htlm launch: {signal.Signals(sig).name}: stopping the team", flush=True, file=sys.stderr)
+                world_first = [p for p in procs if p.name == "world"] + [p for p in procs if p.name != "world"]
+                stop(world_first, signal.SIGINT, wait=cfg.grace if cfg.mode == "train" else 10.0)
+                code = 128 + sig
+                break
+            bad_settings = False
+            for p in procs:
+                rc = p.popen.poll()
+                if rc not in (None, 0) and p.name not in failed and not (rc < 0 and ended_at is not None):
+                    failed.append(p.name)
+                    print(f"htlm launch: {p.name} exited with {rc}; see {p.log}", flush=True, file=sys.stderr)
+                    bad_settings = bad_settings or rc == 2
+            if bad_settings:  # a parameter, scenario or checkpoint that cannot work: the team cannot either
+                stop(procs, signal.SIGINT)
+                code = 2
+                break
+            if world is not None:
+                wrc = world.popen.poll()
+                if wrc is not None and ended_at is None:
+                    ended_at = time.monotonic()
+                    if wrc != 0:
+                        stop(procs, signal.SIGINT)
+                        code = 1
+                        break
+            elif all(p.popen.poll() is not None for p in procs):
+                ended_at = time.monotonic()
+            if ended_at is not None:
+                if all(p.popen.poll() is not None for p in procs):
+                    code = 1 if failed else 0
+                    break
+                if time.monotonic() - ended_at > cfg.grace:
+                    late = [p.name for p in procs if p.popen.poll() is None]
+                    print(
+                        f"htlm launch: {', '.join(late)} still running {cfg.grace:.0f} s after the world; stopping",
+                        flush=True,
+                        file=sys.stderr,
+                    )
+                    stop(procs, signal.SIGINT)
+                    code = 1
+                    break
+            if cfg.timeout and time.monotonic() - start_t > cfg.timeout:
+                print(f"htlm launch: timeout after {cfg.timeout:.0f} s: stopping the team", flush=True, file=sys.stderr)
+                stop(procs, signal.SIGINT)
+                code = 124
+                break
+        for t in tails:
+            t.poll()
+        return code
+    finally:
+        stop(procs, signal.SIGKILL, wait=1.0)  # nothing survives the launcher
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def summarize(run_dir: Path) -> dict[str, Any]:
+    """Aggregate the world's episode log (world.jsonl) of a run directory."""
+    f = run_dir / "world.jsonl"
+    if not f.exists():
+        return {"episodes": 0}
+    eps = [json.loads(line)["metrics"] for line in f.read_text().splitlines() if line.strip()]
+    if not eps:
+        return {"episodes": 0}
+    comp = [e["completion"] for e in eps]
+    return {
+        "episodes": len(eps),
+        "completion_mean": sum(comp) / len(comp),
+        "failure_rate": sum(e["failed"] for e in eps) / len(eps),
+        "unused_fraction_mean": sum(e["unused_fraction"] for e in eps) / len(eps),
+        "absent_agent_steps": sum(sum(e["absent"]) for e in eps),
+        "seconds": sum(e["seconds"] for e in eps),
+    }

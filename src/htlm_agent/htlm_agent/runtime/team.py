@@ -1,0 +1,171 @@
+"""The in-process runtime: a batch of episodes of a whole team, simulator + every agent's belief and reward.
+
+This is the same model code the ROS nodes call; here all agents and B episodes advance as arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from htlm_agent.mind import belief as bf
+from htlm_agent.mind.reward import RewardTables, action_mask, reward
+from htlm_world.model import Model
+from htlm_world.scenario import Scenario
+from htlm_world.simulator import BatchSim, channel_rng, world_rng
+from htlm_world.types import BoolArray, FloatArray, IntArray
+
+
+@dataclass
+class Context:
+    """What a policy may look at when it acts (decentralized policies use only their own row)."""
+
+    knowledge: FloatArray  # (B, N, K) each agent's knowledge state
+    mask: BoolArray  # (B, N, |G|) the reduced action space A-hat(a_o)
+    marginals: FloatArray  # (B, N, p, L)
+    prev: IntArray  # (B, N) previous assignments
+    t: int  # steps taken so far in the episode
+    true_levels: IntArray  # (B, p) ground truth: only the centralized optimum may read it
+
+
+class Policy(Protocol):
+    """Anything that maps a Context to a joint action (B, N)."""
+
+    def act(self, ctx: Context) -> IntArray:
+        """Choose every agent's action."""
+        ...
+
+
+@dataclass
+class StepInfo:
+    """Side results of one team step."""
+
+    levels: IntArray  # (B, p) true levels after the step
+    observations: IntArray
+    messages: IntArray
+    parts: dict[str, FloatArray]
+    impossible: BoolArray  # (B, N) zero-probability evidence events
+
+
+class Team:
+    """B episodes of a team in one process."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        batch: int,
+        seed: int,
+        episode: int = 0,
+        inactive: tuple[int, ...] = (),
+    ) -> None:
+        """Create the team.
+
+        Args:
+            scenario: the operation and the team.
+            batch: B episodes advanced together.
+            seed: master seed; the world and every channel derive theirs from it and `episode`.
+            episode: index of this batch (episode index when batch = 1), for seed derivation.
+            inactive: agents forced to idle (at the site of their previous assignment) whatever they choose.
+        """
+        self.scenario = scenario
+        self.model = Model.build(scenario)
+        self.tables = RewardTables.build(scenario)
+        self.batch = batch
+        self.inactive = tuple(inactive)
+        for k in self.inactive:
+            if not 0 <= k < scenario.n_agents:
+                raise ValueError(f"inactive agent index {k!r} is out of range 0..{scenario.n_agents - 1}")
+        self.sim = BatchSim(
+            scenario,
+            batch,
+            world_rng(seed, episode),
+            [channel_rng(seed, k, episode) for k in range(scenario.n_agents)],
+            model=self.model,
+        )
+        self.impossible_count = 0
+        self.reset()
+
+    def reset(self) -> FloatArray:
+        """Start B new episodes; returns the knowledge states (B, N, K)."""
+        sc = self.scenario
+        self.sim.reset()
+        self.belief = bf.initial_belief(self.model, self.batch)
+        self.prev = np.full((self.batch, sc.n_agents), sc.start_assignment, dtype=np.int64)
+        self.marg = bf.marginals(self.belief)
+        self.t = 0
+        return self.knowledge()
+
+    def knowledge(self) -> FloatArray:
+        """Current knowledge states (B, N, K)."""
+        return bf.knowledge(self.marg, self.prev, self.scenario.n_actions)
+
+    def mask(self) -> BoolArray:
+        """Current A-hat(a_o) of every agent (B, N, |G|)."""
+        return action_mask(self.scenario, self.prev)
+
+    def context(self) -> Context:
+        """What policies see now."""
+        return Context(self.knowledge(), self.mask(), self.marg, self.prev.copy(), self.t, self.sim.levels.copy())
+
+    def force_inactive(self, actions: IntArray) -> IntArray:
+        """Replace the actions of inactivated agents by idling at their current site (HT mode: no action)."""
+        if not self.inactive:
+            return actions
+        sc = self.scenario
+        actions = actions.copy()
+        for k in self.inactive:
+            if sc.n_idle:
+                site = np.where(self.prev[:, k] >= 0, self.model.action_site[np.maximum(self.prev[:, k], 0)], 0)
+                actions[:, k] = sc.n_tasks + site
+            else:
+                actions[:, k] = -1
+        return actions
+
+    def step(self, actions: IntArray) -> tuple[FloatArray, FloatArray, StepInfo]:
+        """One step of the data flow of ARCHITECTURE.md for every agent of every episode.
+
+        Returns the next knowledge states (B, N, K), rewards (B, N) and side results.
+        """
+        actions = self.force_inactive(np.asarray(actions, dtype=np.int64))
+        res = self.sim.step(actions)
+        lik = bf.evidence(self.model, actions, res.observations, res.messages)
+        caps = np.broadcast_to(res.caps[:, None, :], (self.batch, self.scenario.n_agents, res.caps.shape[1]))
+        self.belief, bad = bf.update(self.model, self.belief, caps, lik)
+        self.impossible_count += int(bad.sum())
+        self.marg = bf.marginals(self.belief)
+        r, parts = reward(self.model, self.tables, self.prev, self.marg, actions)
+        self.prev = np.where(actions >= 0, actions, self.prev)
+        self.t += 1
+        info = StepInfo(res.levels, res.observations, res.messages, parts, bad)
+        return self.knowledge(), r, info
+
+
+@dataclass
+class Trajectory:
+    """Everything of B episodes, for metrics, plots and equivalence checks."""
+
+    levels: IntArray  # (h+1, B, p) true levels, levels[0] the initial ones
+    actions: IntArray  # (h, B, N)
+    observations: IntArray  # (h, B, N)
+    messages: IntArray  # (h, B, N)
+    rewards: FloatArray  # (h, B, N)
+    extra: dict[str, FloatArray] = field(default_factory=dict)
+
+
+def rollout(team: Team, policy: Policy) -> Trajectory:
+    """Run the B episodes of `team` for the whole horizon under `policy`."""
+    sc = team.scenario
+    team.reset()
+    levels = [team.sim.levels.copy()]
+    acts, obs, msgs, rews = [], [], [], []
+    for _ in range(sc.horizon):
+        a = team.force_inactive(policy.act(team.context()))
+        _, r, info = team.step(a)
+        levels.append(info.levels)
+        acts.append(a)
+        obs.append(info.observations)
+        msgs.append(info.messages)
+        rews.append(r)
+    return Trajectory(np.stack(levels), np.stack(acts), np.stack(obs), np.stack(msgs), np.stack(rews))
