@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from htlm_world.scenario import Scenario
-from htlm_world.types import FloatArray, IntArray
+from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
 def p_drop_table(sc: Scenario) -> FloatArray:
@@ -142,6 +142,27 @@ class Model:
             task_site=np.arange(p, dtype=np.int64) // 2,
             action_site=np.array(sc.action_sites, dtype=np.int64),
         )
+
+    def idle_action(self, prev: IntArray) -> IntArray:
+        """The idle location at the site of the previous assignment a_o (site 1 before any assignment, a_o = -1):
+        where an agent idles, and what an absent agent is taken to do. HT mode (no idle locations): -1, no action.
+        Works element-wise on any shape of previous assignments; the one definition of this rule."""
+        prev = np.asarray(prev, dtype=np.int64)
+        if self.scenario.n_idle == 0:
+            return np.full(prev.shape, -1, dtype=np.int64)
+        site = np.where(prev >= 0, self.action_site[np.maximum(prev, 0)], 0)
+        return (self.scenario.n_tasks + site).astype(np.int64)
+
+    def action_mask(self, prev: IntArray) -> BoolArray:
+        """Â(a_o), the reduced action space (MODEL.md): the p tasks and the idle location at the site of a_o
+        (HT mode: the p tasks). (...,) previous assignments -> (..., |G|) mask."""
+        prev = np.asarray(prev, dtype=np.int64)
+        p = self.scenario.n_tasks
+        mask = np.zeros(prev.shape + (self.scenario.n_actions,), dtype=bool)
+        mask[..., :p] = True
+        if self.scenario.n_idle:
+            np.put_along_axis(mask, self.idle_action(prev)[..., None], True, axis=-1)
+        return mask
 
     def joint_capability(self, actions: IntArray) -> IntArray:
         """Joint capability on every task, capped: (..., N) actions -> (..., p) capabilities."""
