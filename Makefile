@@ -1,4 +1,4 @@
-# The project's toolchain in one place; CI (.ci/run) runs `make test`.
+# The project's toolchain in one place; CI (.ci/run) runs `make lint type test`.
 # Every target that needs the environment depends on `setup`, which returns at once when .venv is up to date.
 VENV := .venv/bin
 
