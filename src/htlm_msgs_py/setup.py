@@ -12,7 +12,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
     ],
-    install_requires=[],
+    install_requires=["msgspec>=0.18"],
     python_requires=">=3.11",
     zip_safe=False,
     maintainer="HTLM maintainers",
