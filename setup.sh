@@ -6,6 +6,13 @@ set -euo pipefail
 cd "$(dirname "$0")"
 PY=${PYTHON:-python3}
 STAMP=.venv/.setup-stamp
+# What gets installed, in this order (tests/test_packaging.py reads TORCH, ROS_WHEELS and PACKAGES from here to build
+# a fresh venv of the packages alone). Each package declares its own run-time dependencies (setup.py
+# install_requires); requirements-dev.txt adds the development tools only.
+# torch is pinned: a CPU build of 2.13.0 is on this machine's disk; an unpinned torch pulls a multi-GB CUDA build.
+TORCH="torch==2.13.0"
+ROS_WHEELS=("ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces)
+PACKAGES=(src/htlm_msgs_py src/htlm_world src/htlm_agent)
 INPUTS=(setup.sh requirements-dev.txt src/*/setup.py src/*/setup.cfg)
 
 up_to_date() {
@@ -29,10 +36,11 @@ rm -f "$STAMP"
 . .venv/bin/activate
 export PIP_DISABLE_PIP_VERSION_CHECK=1
 python -m pip install -q --upgrade pip
-# torch is pinned: a CPU build of 2.13.0 is on this machine's disk; an unpinned torch pulls a multi-GB CUDA build.
-python -m pip install -q "torch==2.13.0"
-python -m pip install -q "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
+python -m pip install -q "$TORCH"
+python -m pip install -q "${ROS_WHEELS[@]}"
 python -m pip install -q -r requirements-dev.txt
-python -m pip install -q -e src/htlm_msgs_py -e src/htlm_world -e src/htlm_agent
+editable=()
+for p in "${PACKAGES[@]}"; do editable+=(-e "$p"); done
+python -m pip install -q "${editable[@]}"
 touch "$STAMP"
 echo "setup: done (.venv ready; activate with: . .venv/bin/activate)"

@@ -12,10 +12,19 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
     ],
-    # torch is deliberately absent: an unpinned torch pulls a multi-GB CUDA build. setup.sh (or the Dockerfile)
-    # installs the pinned CPU build torch==2.13.0 first.
+    # What htlm_agent imports at run time, beyond the standard library:
+    # - torch (learning/, the Q-networks) is deliberately absent: an unpinned torch pulls a multi-GB CUDA build.
+    #   setup.sh (or the Dockerfile) installs the pinned CPU build torch==2.13.0 first.
+    # - rclpy (ros/ only) comes from the ROS 2 Jazzy wheels or a ROS install, like every ROS interface (package.xml).
+    # - htlm_world and htlm_msgs_py are the sibling packages of this repository (not on PyPI): install the three
+    #   together, as setup.sh does (`pip install src/htlm_msgs_py src/htlm_world src/htlm_agent`).
     install_requires=[
-        "numpy>=1.26",
+        "numpy>=1.26,<3",  # everywhere
+        "pyyaml>=6",  # learner settings files, run files (scenario.yaml), evaluation reports
+        "matplotlib>=3.8",  # evaluation histograms, reproduction figures
+        "tensorboard>=2.15",  # torch.utils.tensorboard in `htlm train`
+        "pettingzoo>=1.24",  # runtime/pz_env.py, the PettingZoo ParallelEnv
+        "gymnasium>=0.29",  # its observation and action spaces
     ],
     python_requires=">=3.11",
     zip_safe=False,

@@ -16,9 +16,12 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/scenarios", sorted(glob(f"{PACKAGE}/scenarios/*.yaml"))),
     ],
+    # What htlm_world imports at run time, beyond the standard library. rclpy (ros/world_node only) comes from the
+    # ROS 2 Jazzy wheels or a ROS install (package.xml); htlm_msgs_py is the sibling package of this repository
+    # (not on PyPI): install the three together, as setup.sh does.
     install_requires=[
-        "numpy>=1.26",
-        "pyyaml>=6",
+        "numpy>=1.26,<3",  # the model's tables, the simulator, the metrics
+        "pyyaml>=6",  # scenario files
     ],
     python_requires=">=3.11",
     zip_safe=False,
