@@ -75,6 +75,29 @@ def test_action_rejections_name_the_field_and_value(changes: dict[str, object], 
         S.decode(_with(S.ACTION, **changes), S.ACTION, PAPER_LIMITS)
 
 
+def test_record_text_is_compact_json_in_field_order() -> None:
+    # the exact bytes on the wire (and so the signatures) must not change with the validation library
+    fields = {"agent": 1, "episode": 2, "step": 3, "action": 4}
+    assert S.encode(S.ACTION, fields) == '{"schema":"htlm/action","v":1,"agent":1,"episode":2,"step":3,"action":4}'
+    rec = {**VALID["htlm/transition"], "k": [0.1, 1e-07, 1.0, -2.5e5] + [0.0] * 22, "r": -1.25}
+    text = S.encode(S.TRANSITION, rec)
+    assert text == json.dumps({"schema": "htlm/transition", "v": 1, **rec}, separators=(",", ":"))
+    assert '"k":[0.1,1e-07,1.0,-250000.0,' in text
+    assert S.decode(text, S.TRANSITION, PAPER_LIMITS) == rec
+
+
+def test_rejections_name_the_place_inside_a_list() -> None:
+    with pytest.raises(S.WireError) as e:
+        S.decode(_with(S.TRANSITION, k=[0.0] * 5 + ["x"] + [0.0] * 20), S.TRANSITION, PAPER_LIMITS)
+    assert (e.value.reason, e.value.where, e.value.path, e.value.value) == ("type", "k", "k[5]", "x")
+    assert str(e.value).startswith("field 'k[5]': type: 'x'")
+
+
+def test_numbers_keep_their_json_type() -> None:
+    rec = S.decode(_with(S.TRANSITION, r=2, k=[1] + [0.5] * 25), S.TRANSITION, PAPER_LIMITS)
+    assert type(rec["r"]) is int and type(rec["k"][0]) is int and type(rec["k"][1]) is float
+
+
 def test_levels_and_lists_are_range_checked() -> None:
     assert _reason(_with(S.OBSERVATION, level=5), S.OBSERVATION) == ("range", "level")
     assert _reason(_with(S.OBSERVATION, acted=[0, 0]), S.OBSERVATION) == ("range", "acted")

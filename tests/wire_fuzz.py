@@ -87,7 +87,7 @@ def wrong_type(fld: S.Field, rng: random.Random) -> Any:
 def out_of_range(fld: S.Field, rng: random.Random, lim: dict[str, int]) -> Any:
     """A value of the right type but outside the range of field `fld` (None if it has no range)."""
     if isinstance(fld, S.Int):
-        lo, hi = S._bound(fld.lo, lim), S._bound(fld.hi, lim)
+        lo, hi = S.bound(fld.lo, lim), S.bound(fld.hi, lim)
         return rng.choice([lo - 1, lo - 1000, hi + 1, hi + 10**6, 2**70, -(2**70)])
     if isinstance(fld, S.Float):
         return rng.choice([fld.lo - 1.0, fld.hi * 10 + 1.0, 1e300, -1e300])
@@ -96,11 +96,11 @@ def out_of_range(fld: S.Field, rng: random.Random, lim: dict[str, int]) -> Any:
     if isinstance(fld, S.Text):
         return "x" * (fld.max_len + 1)
     if isinstance(fld, S.IntList):
-        return [S._bound(fld.hi, lim) + 1] * max(1, S._bound(fld.length, lim) if fld.length is not None else 1)
+        return [S.bound(fld.hi, lim) + 1] * max(1, S.bound(fld.length, lim) if fld.length is not None else 1)
     if isinstance(fld, S.FloatList):
-        return [fld.hi * 10 + 1.0] * (S._bound(fld.length, lim) if fld.length is not None else 1)
+        return [fld.hi * 10 + 1.0] * (S.bound(fld.length, lim) if fld.length is not None else 1)
     if isinstance(fld, S.BoolList):
-        return [True] * (S._bound(fld.length, lim) + 1)
+        return [True] * (S.bound(fld.length, lim) + 1)
     return None
 
 

@@ -4,19 +4,28 @@ Every structured record is one JSON object `{"schema": "htlm/<name>", "v": <vers
 when a team key is set, see `htlm_msgs_py.signing`), so `ros2 topic echo` prints it readably. `decode` accepts a
 record only if everything about it is as the schema says: size, JSON syntax, schema name, version, the exact set
 of fields, each field's type and range. Ranges that depend on the scenario (agent index, action index, level,
-step, vector lengths) are named bounds resolved against `Limits` of the running scenario; before a scenario is
+step, vector lengths) are named bounds resolved against `limits` of the running scenario; before a scenario is
 known, generous static limits apply. Anything else raises `WireError`, which names the field and the value.
+
+The fields are declared here (Int, Float, ... with their bounds); the checking is msgspec's: for every schema and
+set of limits, the declarations become one msgspec Struct type (`Schema.struct`) whose constrained annotations
+say all of the above, and one msgspec JSON decoder parses and validates a record text in a single pass
+(tests/benchmarks/bench_decode.py measures it). Records are encoded with the standard library's JSON encoder, so
+their text (and its signature) is the same as it always was.
 """
 
 from __future__ import annotations
 
 import json
-import re
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any, Literal, Union
+
+import msgspec
 
 from .signing import Signer
+from .validation import join_path, lookup, parse_error, shown
 
 Bound = int | str
 """An inclusive bound: a number, or the name of a limit resolved against the running scenario."""
@@ -60,19 +69,26 @@ def limits(n_agents: int, n_tasks: int, n_actions: int, levels: int, horizon: in
 class WireError(ValueError):
     """A received record that does not follow its schema. `reason` is a short code for counters."""
 
-    def __init__(self, reason: str, where: str | None, value: Any) -> None:
-        """Create the error; `where` names the field (None for the whole record), `value` is the bad value."""
+    def __init__(self, reason: str, where: str | None, value: Any, path: str | None = None, detail: str = "") -> None:
+        """Create the error.
+
+        Args:
+            reason: short code for counters (size, json, type, range, ...; see `decode`).
+            where: the record's field (None for the whole record).
+            value: the bad value.
+            path: where inside the field, for the message (e.g. "k[3]"); defaults to `where`.
+            detail: what was expected, for the message.
+        """
         self.reason = reason
         self.where = where
         self.value = value
-        shown = repr(value)
-        if len(shown) > 80:
-            shown = shown[:77] + "..."
-        place = f"field {where!r}" if where else "record"
-        super().__init__(f"{place}: {reason}: {shown}")
+        self.path = path or where
+        place = f"field {self.path!r}" if self.path else "record"
+        super().__init__(f"{place}: {reason}: {shown(value)}" + (f" ({detail})" if detail else ""))
 
 
-def _bound(b: Bound, lim: Mapping[str, int] | None) -> int:
+def bound(b: Bound, lim: Mapping[str, int] | None) -> int:
+    """The number of bound `b` under the limits `lim` (static limits for names it leaves out, or without it)."""
     if isinstance(b, int):
         return b
     if lim is not None and b in lim:
@@ -80,15 +96,27 @@ def _bound(b: Bound, lim: Mapping[str, int] | None) -> int:
     return STATIC_LIMITS[b]
 
 
+def _int(lo: int, hi: int) -> Any:
+    return Annotated[int, msgspec.Meta(ge=lo, le=hi)]
+
+
+def _number(lo: float, hi: float) -> Any:
+    """A JSON number in [lo, hi]: an int stays an int, a float a float (NaN and infinities fail the bounds)."""
+    return Union[_int(math.ceil(lo), math.floor(hi)), Annotated[float, msgspec.Meta(ge=lo, le=hi)]]  # noqa: UP007
+
+
+def _sized(item: Any, length: Bound | None, max_len: Bound, lim: Mapping[str, int] | None) -> Any:
+    if length is not None:
+        n = bound(length, lim)
+        return Annotated[list[item], msgspec.Meta(min_length=n, max_length=n)]
+    return Annotated[list[item], msgspec.Meta(max_length=bound(max_len, lim))]
+
+
 class Field:
-    """One field's type and range."""
+    """One field's type and range, declared; `annotation` says it to msgspec."""
 
-    def check(self, name: str, v: Any, lim: Mapping[str, int] | None) -> None:
-        """Raise WireError unless v is a valid value of this field."""
-        raise NotImplementedError
-
-    def describe(self) -> str:
-        """Human-readable type, for the README."""
+    def annotation(self, lim: Mapping[str, int] | None) -> Any:
+        """The msgspec type (with constraints) of this field under the limits `lim`."""
         raise NotImplementedError
 
 
@@ -99,16 +127,9 @@ class Int(Field):
     lo: Bound
     hi: Bound
 
-    def check(self, name: str, v: Any, lim: Mapping[str, int] | None) -> None:
-        """See Field.check."""
-        if type(v) is not int:
-            raise WireError("type", name, v)
-        if not _bound(self.lo, lim) <= v <= _bound(self.hi, lim):
-            raise WireError("range", name, v)
-
-    def describe(self) -> str:
-        """See Field.describe."""
-        return f"int {self.lo}..{self.hi}"
+    def annotation(self, lim: Mapping[str, int] | None) -> Any:
+        """See Field.annotation."""
+        return _int(bound(self.lo, lim), bound(self.hi, lim))
 
 
 @dataclass(frozen=True)
@@ -118,58 +139,31 @@ class Float(Field):
     lo: float
     hi: float
 
-    def check(self, name: str, v: Any, lim: Mapping[str, int] | None) -> None:
-        """See Field.check."""
-        t = type(v)
-        if t is not float and t is not int:
-            raise WireError("type", name, v)
-        if not self.lo <= v <= self.hi:
-            raise WireError("range", name, v)
-
-    def describe(self) -> str:
-        """See Field.describe."""
-        return f"float {self.lo:g}..{self.hi:g}"
+    def annotation(self, lim: Mapping[str, int] | None) -> Any:
+        """See Field.annotation."""
+        return _number(self.lo, self.hi)
 
 
 @dataclass(frozen=True)
 class Bool(Field):
     """true or false."""
 
-    def check(self, name: str, v: Any, lim: Mapping[str, int] | None) -> None:
-        """See Field.check."""
-        if type(v) is not bool:
-            raise WireError("type", name, v)
-
-    def describe(self) -> str:
-        """See Field.describe."""
-        return "bool"
+    def annotation(self, lim: Mapping[str, int] | None) -> Any:
+        """See Field.annotation."""
+        return bool
 
 
 @dataclass(frozen=True)
 class Text(Field):
-    """A string of at most max_len characters, matching pattern when given."""
+    """A string of at most max_len characters, matching pattern (the whole string) when given."""
 
     max_len: int
     pattern: str | None = None
-    _re: Any = field(default=None, compare=False, repr=False)
 
-    def __post_init__(self) -> None:
-        """Compile the pattern once."""
-        if self.pattern is not None:
-            object.__setattr__(self, "_re", re.compile(self.pattern))
-
-    def check(self, name: str, v: Any, lim: Mapping[str, int] | None) -> None:
-        """See Field.check."""
-        if type(v) is not str:
-            raise WireError("type", name, v)
-        if len(v) > self.max_len:
-            raise WireError("length", name, v)
-        if self._re is not None and self._re.fullmatch(v) is None:
-            raise WireError("range", name, v)
-
-    def describe(self) -> str:
-        """See Field.describe."""
-        return f"string (<= {self.max_len} chars{', ' + self.pattern if self.pattern else ''})"
+    def annotation(self, lim: Mapping[str, int] | None) -> Any:
+        """See Field.annotation."""
+        whole = None if self.pattern is None else rf"\A(?:{self.pattern})\Z"  # msgspec searches; match all of it
+        return Annotated[str, msgspec.Meta(max_length=self.max_len, pattern=whole)]
 
 
 @dataclass(frozen=True)
@@ -178,27 +172,9 @@ class OneOf(Field):
 
     values: tuple[str, ...]
 
-    def check(self, name: str, v: Any, lim: Mapping[str, int] | None) -> None:
-        """See Field.check."""
-        if type(v) is not str:
-            raise WireError("type", name, v)
-        if v not in self.values:
-            raise WireError("range", name, v)
-
-    def describe(self) -> str:
-        """See Field.describe."""
-        return " | ".join(f'"{v}"' for v in self.values)
-
-
-def _check_len(name: str, v: Any, length: Bound | None, max_len: Bound, lim: Mapping[str, int] | None) -> None:
-    if type(v) is not list:
-        raise WireError("type", name, v)
-    n = len(v)
-    if length is not None:
-        if n != _bound(length, lim):
-            raise WireError("length", name, v)
-    elif n > _bound(max_len, lim):
-        raise WireError("length", name, v)
+    def annotation(self, lim: Mapping[str, int] | None) -> Any:
+        """See Field.annotation."""
+        return Literal[self.values]
 
 
 @dataclass(frozen=True)
@@ -211,22 +187,9 @@ class IntList(Field):
     max_len: Bound = 4096
     unique: bool = False
 
-    def check(self, name: str, v: Any, lim: Mapping[str, int] | None) -> None:
-        """See Field.check."""
-        _check_len(name, v, self.length, self.max_len, lim)
-        lo, hi = _bound(self.lo, lim), _bound(self.hi, lim)
-        for x in v:
-            if type(x) is not int:
-                raise WireError("type", name, x)
-            if not lo <= x <= hi:
-                raise WireError("range", name, x)
-        if self.unique and len(set(v)) != len(v):
-            raise WireError("range", name, v)
-
-    def describe(self) -> str:
-        """See Field.describe."""
-        n = f"[{self.length}]" if self.length is not None else f"[<= {self.max_len}]"
-        return f"int {self.lo}..{self.hi} list{n}{' (distinct)' if self.unique else ''}"
+    def annotation(self, lim: Mapping[str, int] | None) -> Any:
+        """See Field.annotation (`unique` is checked by `decode` after msgspec)."""
+        return _sized(_int(bound(self.lo, lim), bound(self.hi, lim)), self.length, self.max_len, lim)
 
 
 @dataclass(frozen=True)
@@ -238,21 +201,9 @@ class FloatList(Field):
     length: Bound | None = None
     max_len: Bound = 65_536
 
-    def check(self, name: str, v: Any, lim: Mapping[str, int] | None) -> None:
-        """See Field.check."""
-        _check_len(name, v, self.length, self.max_len, lim)
-        lo, hi = self.lo, self.hi
-        for x in v:
-            t = type(x)
-            if t is not float and t is not int:
-                raise WireError("type", name, x)
-            if not lo <= x <= hi:
-                raise WireError("range", name, x)
-
-    def describe(self) -> str:
-        """See Field.describe."""
-        n = f"[{self.length}]" if self.length is not None else f"[<= {self.max_len}]"
-        return f"float {self.lo:g}..{self.hi:g} list{n}"
+    def annotation(self, lim: Mapping[str, int] | None) -> Any:
+        """See Field.annotation."""
+        return _sized(_number(self.lo, self.hi), self.length, self.max_len, lim)
 
 
 @dataclass(frozen=True)
@@ -261,16 +212,9 @@ class BoolList(Field):
 
     length: Bound
 
-    def check(self, name: str, v: Any, lim: Mapping[str, int] | None) -> None:
-        """See Field.check."""
-        _check_len(name, v, self.length, self.length, lim)
-        for x in v:
-            if type(x) is not bool:
-                raise WireError("type", name, x)
-
-    def describe(self) -> str:
-        """See Field.describe."""
-        return f"bool list[{self.length}]"
+    def annotation(self, lim: Mapping[str, int] | None) -> Any:
+        """See Field.annotation."""
+        return _sized(bool, self.length, self.length, lim)
 
 
 @dataclass(frozen=True)
@@ -279,16 +223,9 @@ class Object(Field):
 
     max_items: int = 256
 
-    def check(self, name: str, v: Any, lim: Mapping[str, int] | None) -> None:
-        """See Field.check."""
-        if type(v) is not dict:
-            raise WireError("type", name, v)
-        if len(v) > self.max_items:
-            raise WireError("length", name, v)
-
-    def describe(self) -> str:
-        """See Field.describe."""
-        return "object"
+    def annotation(self, lim: Mapping[str, int] | None) -> Any:
+        """See Field.annotation."""
+        return Annotated[dict[str, Any], msgspec.Meta(max_length=self.max_items)]
 
 
 @dataclass(frozen=True)
@@ -300,6 +237,29 @@ class Schema:
     fields: dict[str, Field]
     max_bytes: int = DEFAULT_MAX_BYTES
     doc: str = ""
+    _decoders: dict[Any, msgspec.json.Decoder[Any]] = field(default_factory=dict, compare=False, repr=False)
+
+    def struct(self, lim: Mapping[str, int] | None = None) -> type[msgspec.Struct]:
+        """The msgspec Struct of a record under the limits `lim`: "schema" and "v" (their one value), every field
+        with its constraints, then an optional "sig" (checked by the Signer, else ignored); nothing else."""
+        spec: list[tuple[str, Any] | tuple[str, Any, Any]] = [
+            ("schema", Literal[self.name]),
+            ("v", Literal[self.version]),
+        ]
+        spec += [(key, fld.annotation(lim)) for key, fld in self.fields.items()]
+        spec.append(("sig", Any, None))
+        title = "".join(part.title() for part in self.name.removeprefix("htlm/").split("_"))
+        return msgspec.defstruct(title, spec, forbid_unknown_fields=True, module=__name__)
+
+    def decoder(self, lim: Mapping[str, int] | None = None) -> msgspec.json.Decoder[Any]:
+        """The msgspec JSON decoder of `struct(lim)`, made once per schema and set of limits."""
+        key = None if lim is None else tuple(lim.items())
+        dec = self._decoders.get(key)
+        if dec is None:
+            if len(self._decoders) >= 64:  # many scenarios in one process (tests): start over
+                self._decoders.clear()
+            dec = self._decoders[key] = msgspec.json.Decoder(self.struct(lim))
+        return dec
 
 
 # ----- the records ------------------------------------------------------------------------------------------------
@@ -472,16 +432,16 @@ SCHEMAS: dict[str, Schema] = {
 }
 
 
+_UNIQUE: dict[str, tuple[str, ...]] = {
+    s.name: tuple(k for k, f in s.fields.items() if isinstance(f, IntList) and f.unique) for s in SCHEMAS.values()
+}
+"""Fields whose entries must be distinct (msgspec has no such constraint), by schema."""
+
+
 # ----- encode / decode --------------------------------------------------------------------------------------------
 
 _ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
-
-
-def _reject_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not a finite number")
-
-
-_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
+_asdict = msgspec.structs.asdict
 
 
 def encode(schema: Schema, fields: Mapping[str, Any], signer: Signer | None = None) -> str:
@@ -494,26 +454,46 @@ def encode(schema: Schema, fields: Mapping[str, Any], signer: Signer | None = No
     return signer.sign(body) if signer is not None else body
 
 
-def check(schema: Schema, obj: Any, lim: Mapping[str, int] | None = None) -> dict[str, Any]:
-    """Validate a parsed record against its schema; returns it without "schema", "v" and "sig"."""
-    if type(obj) is not dict:
-        raise WireError("not_object", None, obj)
-    name = obj.pop("schema", None)
-    if name != schema.name:
-        raise WireError("schema", "schema", name)
-    v = obj.pop("v", None)
-    if type(v) is not int or v != schema.version:
-        raise WireError("version", "v", v)
-    obj.pop("sig", None)
-    fields = schema.fields
-    for key, fld in fields.items():
-        if key not in obj:
-            raise WireError("missing_field", key, None)
-        fld.check(key, obj[key], lim)
-    if len(obj) != len(fields):
-        extra = next(k for k in obj if k not in fields)
-        raise WireError("unknown_field", extra, obj[extra])
-    return obj
+def _fields(schema: Schema, rec: msgspec.Struct) -> dict[str, Any]:
+    out = _asdict(rec)
+    del out["schema"], out["v"], out["sig"]
+    for key in _UNIQUE[schema.name]:
+        if len(set(out[key])) != len(out[key]):
+            raise WireError("range", key, out[key], detail="entries must be distinct")
+    return out
+
+
+def _reason(steps: list[str | int], problem: str, name: str | None) -> str:
+    """The counter code of a msgspec validation problem at path `steps`."""
+    if not steps:
+        return "not_object"
+    if name is not None:
+        if problem.startswith("Object contains unknown"):
+            return "unknown_field"
+        return {"schema": "schema", "v": "version"}.get(name, "missing_field")
+    if steps[0] == "schema":
+        return "schema"
+    if steps[0] == "v":
+        return "version"
+    if ", got `" in problem:
+        return "type"
+    if " of length " in problem:
+        return "length"
+    return "range"
+
+
+def _wire_error(message: str, text: str) -> WireError:
+    """The WireError of a msgspec ValidationError message about the record `text` (parsed again for the value)."""
+    steps, problem, name = parse_error(message)
+    value: Any = None
+    if not problem.startswith("Object missing"):
+        try:
+            value = lookup(json.loads(text), steps)
+        except (LookupError, TypeError, ValueError, RecursionError):
+            value = None
+    where = str(steps[0]) if steps else None
+    detail = problem[:1].lower() + problem[1:]
+    return WireError(_reason(steps, problem, name), where, value, join_path(steps) or None, detail)
 
 
 def decode(
@@ -534,7 +514,9 @@ def decode(
         if problem is not None:
             raise WireError("signature", "sig", problem)
     try:
-        obj = _DECODER.decode(text)
-    except (ValueError, RecursionError) as e:
+        rec = schema.decoder(lim).decode(text)
+    except msgspec.ValidationError as e:
+        raise _wire_error(str(e), text) from None
+    except (msgspec.DecodeError, UnicodeError, RecursionError) as e:
         raise WireError("json", None, str(e)) from None
-    return check(schema, obj, lim)
+    return _fields(schema, rec)
