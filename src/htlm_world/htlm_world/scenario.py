@@ -1,8 +1,8 @@
 """Scenario files: every number of the model (MODEL.md), as frozen dataclasses loaded from YAML.
 
 The built-in scenario "paper" with the three teams of MODEL.md is the default. A scenario file only needs the keys
-it changes; anything it says is checked, and a bad value stops loading with a message naming the file, the field
-and the value.
+it changes; anything it says is checked (types by `htlm_msgs_py.validation.convert`, ranges by `validate`), and a
+bad value stops loading with a message naming the file, the field and the value.
 """
 
 from __future__ import annotations
@@ -10,13 +10,13 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import types as _pytypes
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
+
+from htlm_msgs_py.validation import ConversionError, convert
 
 TEAMS: dict[str, tuple[tuple[int, int], ...]] = {
     "heterogeneous": ((3, 1), (3, 2), (2, 0), (0, 1), (1, 1)),
@@ -239,67 +239,6 @@ def builtin(
 # ----- loading and validation -------------------------------------------------------------------------------------
 
 
-def _convert(value: Any, tp: Any, where: str, src: str) -> Any:
-    """Convert plain YAML data to the annotated type, or raise ScenarioError naming where and what."""
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if origin in (typing.Union, _pytypes.UnionType):
-        if value is None and type(None) in args:
-            return None
-        inner = [a for a in args if a is not type(None)]
-        return _convert(value, inner[0], where, src)
-    if origin is Literal:
-        if value not in args:
-            raise ScenarioError(f"{src}: {where}: {value!r} is not one of {list(args)}")
-        return value
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ScenarioError(f"{src}: {where}: expected a list, got {type(value).__name__} {value!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(v, args[0], f"{where}[{k}]", src) for k, v in enumerate(value))
-        if len(value) != len(args):
-            raise ScenarioError(f"{src}: {where}: expected {len(args)} entries, got {len(value)}: {value!r}")
-        return tuple(_convert(v, a, f"{where}[{k}]", src) for k, (v, a) in enumerate(zip(value, args, strict=True)))
-    if dataclasses.is_dataclass(tp):
-        return _from_mapping(tp, value, where, src)
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ScenarioError(f"{src}: {where}: expected true/false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ScenarioError(f"{src}: {where}: expected an integer, got {type(value).__name__} {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ScenarioError(f"{src}: {where}: expected a number, got {type(value).__name__} {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ScenarioError(f"{src}: {where}: expected a string, got {type(value).__name__} {value!r}")
-        return value
-    raise AssertionError(f"unsupported annotation {tp!r}")
-
-
-def _from_mapping(cls: Any, data: Any, where: str, src: str) -> Any:
-    if not isinstance(data, dict):
-        raise ScenarioError(f"{src}: {where or 'top level'}: expected a mapping, got {type(data).__name__} {data!r}")
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ScenarioError(
-            f"{src}: {where + '.' if where else ''}{unknown[0]}: unknown key; known keys: {sorted(fields)}"
-        )
-    kwargs = {}
-    for k, v in data.items():
-        kwargs[k] = _convert(v, hints[k], f"{where}.{k}" if where else k, src)
-    try:
-        return cls(**kwargs)
-    except TypeError as e:  # a required field is missing
-        raise ScenarioError(f"{src}: {where or 'top level'}: {e}") from None
-
-
 def from_dict(data: Any, src: str = "<dict>") -> Scenario:
     """Build and validate a scenario from plain data. A `team:` key without `agents:` picks a built-in team.
 
@@ -319,9 +258,11 @@ def from_dict(data: Any, src: str = "<dict>") -> Scenario:
         if data["team"] not in TEAMS:
             raise ScenarioError(f"{src}: team: {data['team']!r} is not one of {sorted(TEAMS)}")
         data["agents"] = [dataclasses.asdict(a) for a in make_team(data["team"])]
-    sc = _from_mapping(Scenario, data, "", src)
+    try:
+        sc = convert(data, Scenario, src)
+    except ConversionError as e:
+        raise ScenarioError(str(e)) from None
     validate(sc, src)
-    assert isinstance(sc, Scenario)
     return sc
 
 
@@ -352,9 +293,7 @@ def validate(sc: Scenario, src: str) -> None:
     if len(set(sc.sites)) != len(sc.sites):
         raise ScenarioError(f"{src}: sites: {list(sc.sites)!r}: site names must be unique")
     if len(sc.site_positions) != len(sc.sites):
-        raise ScenarioError(
-            f"{src}: site_positions: {len(sc.site_positions)} positions for {len(sc.sites)} sites"
-        )
+        raise ScenarioError(f"{src}: site_positions: {len(sc.site_positions)} positions for {len(sc.sites)} sites")
     if sc.levels < 2:
         raise ScenarioError(f"{src}: levels: {sc.levels!r} must be at least 2")
     if len(sc.initial_levels) != sc.n_tasks:

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
+from htlm_msgs_py.validation import ConversionError, convert_value
+
 
 @dataclass(frozen=True)
 class Settings:
@@ -141,36 +143,18 @@ class Settings:
 
     @staticmethod
     def from_dict(data: Any, src: str = "<settings>") -> Settings:
-        """Settings from plain data; unknown keys or bad values raise ValueError naming src and the field."""
-        if not isinstance(data, dict):
-            raise ValueError(f"{src}: settings must be a mapping, got {type(data).__name__}")
-        names = {f.name: f for f in dataclasses.fields(Settings)}
-        unknown = sorted(set(data) - set(names))
-        if unknown:
-            raise ValueError(f"{src}: unknown settings field {unknown[0]!r}; known: {sorted(names)}")
-        kw: dict[str, Any] = {}
-        for k, v in data.items():
-            default = names[k].default
-            if k == "hidden":
-                if not isinstance(v, (list, tuple)) or not all(isinstance(h, int) for h in v):
-                    raise ValueError(f"{src}: settings.hidden: {v!r} must be a list of integers")
-                kw[k] = tuple(v)
-            elif isinstance(default, bool):
-                if not isinstance(v, bool):
-                    raise ValueError(f"{src}: settings.{k}: {v!r} must be true or false")
-                kw[k] = v
-            elif isinstance(default, int):
-                if isinstance(v, bool) or not isinstance(v, int):
-                    raise ValueError(f"{src}: settings.{k}: {v!r} must be an integer")
-                kw[k] = v
-            else:
-                if isinstance(v, bool) or not isinstance(v, (int, float)):
-                    raise ValueError(f"{src}: settings.{k}: {v!r} must be a number")
-                kw[k] = float(v)
+        """Settings from plain data; unknown keys or bad values raise ValueError naming src, the field and the value.
+
+        Types are checked by `htlm_msgs_py.validation.convert` (fields are named `settings.<field>`), ranges by
+        `__post_init__`.
+        """
         try:
-            return Settings(**kw)
-        except ValueError as e:
+            out: Settings = convert_value(data, Settings, "settings", src)
+        except ConversionError:
+            raise
+        except ValueError as e:  # __post_init__
             raise ValueError(f"{src}: {e}") from None
+        return out
 
 
 @cache
