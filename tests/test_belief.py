@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from htlm_agent.mind import belief as bf
+from htlm_agent.mind import knowledge
 from htlm_agent.runtime.team import Team
 from htlm_world.model import Model
 from htlm_world.scenario import AgentSpec, Scenario, builtin
@@ -209,11 +210,14 @@ def test_marginals_and_knowledge_layout() -> None:
     np.testing.assert_allclose(marg[:, :, 2], belief[:, :, 1].sum(axis=-1))  # fire@site2
     np.testing.assert_allclose(marg[:, :, 3], belief[:, :, 1].sum(axis=-2))  # rescue@site2
     prev = np.array([[4, 0, 5, 3, -1]] * 2, dtype=np.int64)
-    k = bf.knowledge(marg, prev, sc.n_actions)
+    k = knowledge.build(marg, prev, sc.n_actions)
     assert k.shape == (2, 5, sc.knowledge_size) and sc.knowledge_size == 26
     np.testing.assert_allclose(k[..., :20], marg.reshape(2, 5, 20))
     assert k[0, 0, 20:].tolist() == [0, 0, 0, 0, 1, 0]
     assert k[0, 4, 20:].tolist() == [0] * 6
+    back_marg, back_prev = knowledge.split(k, sc)  # the inverse of build
+    np.testing.assert_array_equal(back_marg, marg)
+    np.testing.assert_array_equal(back_prev, prev)
 
 
 def test_initial_belief_is_certain_of_initial_levels() -> None:

@@ -13,22 +13,16 @@ import torch
 
 from htlm_agent.baselines.heuristics import GreedyPolicy, RandomPolicy
 from htlm_agent.experiments.evaluate import evaluate
+from htlm_agent.experiments.train import train, train_batch
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from htlm_agent.learning.dqn import (
-    Learner,
-    NStep,
-    QPolicy,
-    Settings,
-    StackedAdam,
-    advantage_gap,
-    bellman_targets,
-    epsilon_greedy,
-    train,
-    train_batch,
-)
+from htlm_agent.learning.dqn import Learner
+from htlm_agent.learning.optim import StackedAdam
 from htlm_agent.learning.qnet import AgentQ, StackedQ, layer_sizes, masked_argmax, pack_weights, unpack_weights
+from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.replay import Replay
-from htlm_agent.learning.settings import field_docs
+from htlm_agent.learning.settings import Settings, field_docs
+from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
+from htlm_agent.mind.policies import epsilon_greedy
 from htlm_agent.runtime.team import Team
 from htlm_world.scenario import builtin
 
@@ -101,11 +95,13 @@ def test_epsilon_greedy_draws_only_allowed_actions_and_is_greedy_at_zero() -> No
     mask[..., :4] = True
     mask[..., 5] = True  # idle@site2 allowed, idle@site1 not
     rngs = [np.random.default_rng(i) for i in range(n)]
-    a = epsilon_greedy(q, mask, 1.0, rngs)
+    best = masked_argmax(q, mask).numpy()  # (N, B)
+    m = mask.numpy()
+    a = np.stack([epsilon_greedy(best[i], m[i], 1.0, rngs[i]) for i in range(n)], axis=1)
     assert a.shape == (b, n)
     assert not (a == 4).any()
     assert set(np.unique(a)) == {0, 1, 2, 3, 5}
-    greedy = epsilon_greedy(q, mask, 0.0, rngs)
+    greedy = np.stack([epsilon_greedy(best[i], m[i], 0.0, rngs[i]) for i in range(n)], axis=1)
     assert (greedy == masked_argmax(q, mask).numpy().T).all()
 
 

@@ -20,11 +20,10 @@ from htlm_agent.learning.transition_store import (
 from htlm_agent.mind.agent import (
     AgentMind,
     AgentSettings,
-    DecentralizedPolicy,
-    builtin_policy,
     loopback_episode,
     validate_agent_settings,
 )
+from htlm_agent.mind.policies import DecentralizedPolicy, builtin_policy
 from htlm_agent.ros.launch import LaunchConfig, process_specs, ros_env, write_params
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.model import Model

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from htlm_agent.mind.reward import RewardTables, action_mask, confident_levels, reward
+from htlm_agent.mind.reward import RewardTables, confident_levels, reward
 from htlm_world.model import Model
 from htlm_world.scenario import AgentSpec, RewardParams, Scenario, builtin
 
@@ -131,7 +131,7 @@ def test_ht_mode_has_no_idle_actions_and_no_load_management_reward() -> None:
     sc = builtin(mode="ht", reassign="high")
     assert sc.n_actions == 4 and sc.n_idle == 0 and sc.start_assignment == -1
     assert sc.action_names == ("fire@site1", "rescue@site1", "fire@site2", "rescue@site2")
-    mask = action_mask(sc, np.array([-1, 0, 1, 2, 3], dtype=np.int64))
+    mask = Model.build(sc).action_mask(np.array([-1, 0, 1, 2, 3], dtype=np.int64))
     assert mask.shape == (5, 4) and mask.all()
     prev = [FIRE1, FIRE1, RESCUE2, FIRE2, RESCUE1]
     actions = [FIRE2, FIRE1, RESCUE1, FIRE2, RESCUE2]  # site moves and capabilities far above the levels
@@ -146,7 +146,7 @@ def test_ht_mode_has_no_idle_actions_and_no_load_management_reward() -> None:
     [(IDLE1, IDLE1), (FIRE1, IDLE1), (RESCUE1, IDLE1), (FIRE2, IDLE2), (RESCUE2, IDLE2), (IDLE2, IDLE2), (-1, IDLE1)],
 )
 def test_action_mask_is_tasks_and_idle_at_site_of_previous_assignment(prev: int, idle: int) -> None:
-    mask = action_mask(builtin(), np.array([prev], dtype=np.int64))[0]
+    mask = Model.build(builtin()).action_mask(np.array([prev], dtype=np.int64))[0]
     expected = [True, True, True, True, idle == IDLE1, idle == IDLE2]
     assert mask.tolist() == expected
     assert mask.sum() == builtin().n_tasks + 1
@@ -154,7 +154,14 @@ def test_action_mask_is_tasks_and_idle_at_site_of_previous_assignment(prev: int,
 
 def test_action_mask_broadcasts_over_batch_and_agents() -> None:
     prev = np.array([[IDLE1, FIRE2], [RESCUE2, IDLE1]], dtype=np.int64)
-    mask = action_mask(builtin(), prev)
+    mask = Model.build(builtin()).action_mask(prev)
     assert mask.shape == (2, 2, 6)
     assert mask[..., 4].tolist() == [[True, False], [False, True]]
     assert mask[..., 5].tolist() == [[False, True], [True, False]]
+
+
+def test_idle_action_is_the_idle_location_at_the_site_of_the_previous_assignment() -> None:
+    prev = np.array([-1, FIRE1, RESCUE1, FIRE2, RESCUE2, IDLE1, IDLE2], dtype=np.int64)
+    assert Model.build(builtin()).idle_action(prev).tolist() == [IDLE1, IDLE1, IDLE1, IDLE2, IDLE2, IDLE1, IDLE2]
+    assert Model.build(builtin()).idle_action(prev[None, :2]).shape == (1, 2)
+    assert Model.build(builtin(mode="ht")).idle_action(prev[:5]).tolist() == [-1] * 5  # HT mode: no idle location

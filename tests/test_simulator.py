@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from htlm_agent.runtime.team import Context, Team, Trajectory, rollout
+from htlm_world import seeds
 from htlm_world.metrics import completion_step, episode_metrics, importance
 from htlm_world.model import Model
 from htlm_world.scenario import builtin
-from htlm_world.simulator import channel_rng, sample_channel, sample_world_step, world_rng
+from htlm_world.simulator import sample_channel, sample_world_step
 from htlm_world.types import IntArray
 
 
@@ -56,8 +57,8 @@ def test_world_and_channel_draws_replay_from_the_derived_generators() -> None:
     traj = run(seed, policy_seed=4, batch=4, episode=episode)
     sc = builtin()
     model = Model.build(sc)
-    world = world_rng(seed, episode)
-    channels = [channel_rng(seed, k, episode) for k in range(sc.n_agents)]
+    world = seeds.world(seed, episode)
+    channels = [seeds.channel(seed, k, episode) for k in range(sc.n_agents)]
     levels = traj.levels[0]
     for t in range(sc.horizon):
         levels, obs, _ = sample_world_step(model, levels, traj.actions[t], world)

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from htlm_agent.mind.agent import DecentralizedPolicy, builtin_policy
+from htlm_agent.mind.policies import DecentralizedPolicy, builtin_policy
 from htlm_agent.ros.launch import LaunchConfig, Proc, start, stop
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.scenario import Scenario, builtin

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from htlm_agent.mind.agent import DecentralizedPolicy
+from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.runtime.team import Team, rollout
 
 from .conftest import assert_same_as_in_process
@@ -31,8 +31,9 @@ def test_ros_evaluation_equals_in_process(ros_team: Any, policy: str, seed: int,
 def test_ros_evaluation_of_a_checkpoint_equals_in_process(ros_team: Any, tmp_path: Path) -> None:
     """Agents load their own Q-networks (AgentQ) from a checkpoint of the learner, as `htlm evaluate` does."""
     from htlm_agent.learning.checkpoint import load_checkpoint
-    from htlm_agent.learning.dqn import Learner, Settings
+    from htlm_agent.learning.dqn import Learner
     from htlm_agent.learning.qnet import AgentQ
+    from htlm_agent.learning.settings import Settings
 
     team = ros_team(policy="checkpoint", seed=3, episodes=2, first_episode=7)
     sc = team.cfg.scenario

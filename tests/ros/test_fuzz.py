@@ -131,9 +131,10 @@ def test_fuzzing_every_topic_of_an_evaluation(ros_team: Any) -> None:
 
 def _initial_networks(team: RosTeam) -> Callable[[int], Any]:
     """The in-process rollout of episode e with the learner's initial Q-networks (greedy), as the trainer sent them."""
-    from htlm_agent.learning.dqn import Learner, Settings
+    from htlm_agent.learning.dqn import Learner
     from htlm_agent.learning.qnet import AgentQ, layer_sizes
-    from htlm_agent.mind.agent import DecentralizedPolicy
+    from htlm_agent.learning.settings import Settings
+    from htlm_agent.mind.policies import DecentralizedPolicy
     from htlm_agent.runtime.team import Team, rollout
 
     sc = team.cfg.scenario

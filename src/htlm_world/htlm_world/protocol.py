@@ -1,7 +1,7 @@
 """The world's side of the lockstep protocol, without ROS: settings of the world node and one episode's state.
 
 The world node (world_node.py) only moves messages and deadlines; this module applies the model. One episode
-of batch 1 draws from world_rng(seed, episode) exactly as the in-process Team(scenario, 1, seed, episode) does,
+of batch 1 draws from seeds.world(seed, episode) exactly as the in-process Team(scenario, 1, seed, episode) does,
 so with the same actions both runtimes produce the same levels and observations.
 """
 
@@ -16,7 +16,8 @@ import numpy as np
 from htlm_world.metrics import episode_metrics
 from htlm_world.model import Model
 from htlm_world.scenario import TEAMS, Scenario, ScenarioError, builtin, load
-from htlm_world.simulator import sample_world_step, world_rng
+from htlm_world import seeds
+from htlm_world.simulator import sample_world_step
 from htlm_world.types import IntArray
 
 
@@ -119,7 +120,7 @@ class WorldEpisode:
         self.scenario = scenario
         self.model = model
         self.episode = episode
-        self.rng = world_rng(seed, episode)
+        self.rng = seeds.world(seed, episode)
         n = scenario.n_agents
         self.levels: IntArray = np.array([scenario.initial_levels], dtype=np.int64)  # (1, p)
         self.prev: IntArray = np.full(n, scenario.start_assignment, dtype=np.int64)

@@ -3,7 +3,8 @@
 Random draws come from generators the caller passes: one for the world (transitions and observations) and one per
 agent for its simulated channel, so the ROS runtime (world process + agent processes) can draw the very same numbers
 in the very same order. Per step and in this order the world draws u_T (B, p) then u_O (B, N); every agent k draws
-(B, 2) from its channel generator whether it worked or not.
+(B, 2) from its channel generator whether it worked or not. Runs take these generators from `htlm_world.seeds`
+(`seeds.world`, `seeds.channel`).
 """
 
 from __future__ import annotations
@@ -15,16 +16,6 @@ import numpy as np
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.types import Actions, IntArray, Levels, Messages, Observations
-
-
-def world_rng(seed: int, episode: int) -> np.random.Generator:
-    """Generator of the world for one episode (or one batch), derived from the master seed."""
-    return np.random.default_rng(np.random.SeedSequence([seed, 0, episode]))
-
-
-def channel_rng(seed: int, agent: int, episode: int) -> np.random.Generator:
-    """Generator of agent `agent`'s simulated channel for one episode, derived from the master seed."""
-    return np.random.default_rng(np.random.SeedSequence([seed, 1, agent, episode]))
 
 
 @dataclass

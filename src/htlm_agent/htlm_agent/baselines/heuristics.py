@@ -3,35 +3,36 @@
 - `RandomPolicy`: every agent draws uniformly from its reduced action space Â(a_o).
 - `GreedyPolicy`: a hand-written decentralized heuristic over each agent's own belief.
 - the HT Dec-POMDP learner (the paper's predecessor): the same deep Q-learner on the scenario in mode "ht" (no idle
-  locations, R_LM = 0), see `train_ht`.
+  locations, R_LM = 0), see `htlm_agent.baselines.registry.train_ht`.
 - `OptimalPolicy` (htlm_agent.baselines.optimal): the centralized, fully observed optimum acting on the true state
   (the floor).
+
+`htlm_agent.baselines.registry.make_baseline` builds any of them by name.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Any
-
 import numpy as np
 
 from htlm_agent.mind.reward import RewardTables, confident_levels
-from htlm_agent.runtime.team import Context, Policy
+from htlm_agent.runtime.team import Context
+from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.types import IntArray
 
 BASELINES = ("random", "greedy", "ht", "optimal")
-"""Names accepted by `make_baseline` and `htlm evaluate --baseline`."""
+"""Names accepted by `registry.make_baseline` and `htlm evaluate --baseline` (here, in a module without torch, so
+that the command line lists them without loading the learner)."""
 
 
 class RandomPolicy:
     """Every agent picks uniformly from Â(a_o), each with its own generator derived from the seed."""
 
     def __init__(self, scenario: Scenario, seed: int = 0) -> None:
-        """Generators for agents 0..N-1 from SeedSequence([seed, 5, agent])."""
+        """Generators for agents 0..N-1 from the seed's `seeds.random_policy` streams."""
         self.scenario = scenario
-        self.rngs = [np.random.default_rng(np.random.SeedSequence([seed, 5, i])) for i in range(scenario.n_agents)]
+        self.rngs = [seeds.random_policy(seed, i) for i in range(scenario.n_agents)]
 
     def act(self, ctx: Context) -> IntArray:
         """Uniform draws over each agent's own mask."""
@@ -67,11 +68,9 @@ class GreedyPolicy:
     def act(self, ctx: Context) -> IntArray:
         """One action per agent from its own row of the Context."""
         sc = self.scenario
-        p = sc.n_tasks
         lv = confident_levels(ctx.marginals, self.threshold)  # (B, N, p)
         b, n = ctx.prev.shape
-        prev_site = np.where(ctx.prev >= 0, self.model.action_site[np.maximum(ctx.prev, 0)], 0)
-        stay = p + prev_site if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
+        stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
         out = stay.astype(np.int64)
         chosen = np.zeros((b, n), dtype=bool)
         for i in range(n):
@@ -85,65 +84,3 @@ class GreedyPolicy:
                 out[take, i] = j
                 chosen[:, i] |= take
         return out
-
-
-def ht_scenario(scenario: Scenario) -> Scenario:
-    """The HT Dec-POMDP version of a scenario: no idle locations, R_LM = 0 (MODEL.md)."""
-    return scenario.replace(mode="ht")
-
-
-def train_ht(scenario: Scenario, settings: Any, out_dir: str | Path, progress: bool = False) -> tuple[Policy, Scenario]:
-    """Train the HT Dec-POMDP learner on `scenario` (converted to mode "ht") and return its greedy policy."""
-    from htlm_agent.learning.checkpoint import load_checkpoint
-    from htlm_agent.learning.dqn import QPolicy, train
-
-    sc = ht_scenario(scenario) if scenario.mode != "ht" else scenario
-    res = train(sc, settings, out_dir, progress=progress, evaluate_at_end=False)
-    ck = load_checkpoint(res.out_dir / "checkpoint")
-    return QPolicy.from_checkpoint(ck), sc
-
-
-def make_baseline(
-    name: str,
-    scenario: Scenario,
-    seed: int = 0,
-    ht_policy: str | Path | None = None,
-    ht_out: str | Path | None = None,
-    settings: Any = None,
-    progress: bool = False,
-) -> tuple[Policy, Scenario]:
-    """A baseline policy and the scenario it acts in.
-
-    Args:
-        name: one of BASELINES.
-        scenario: the operation (HTLM mode; "ht" converts it).
-        seed: seed of the random baseline and of an HT learner trained here.
-        ht_policy: a checkpoint of an HT learner (`htlm train --mode ht`) to use instead of training one.
-        ht_out: run directory for an HT learner trained here (required when ht_policy is None and name is "ht").
-        settings: learner settings for an HT learner trained here (defaults with the seed).
-        progress: show the HT learner's training progress.
-    """
-    from htlm_agent.baselines.optimal import OptimalPolicy
-
-    if name == "random":
-        return RandomPolicy(scenario, seed), scenario
-    if name == "greedy":
-        return GreedyPolicy(scenario), scenario
-    if name == "optimal":
-        return OptimalPolicy(scenario), scenario
-    if name == "ht":
-        from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-        from htlm_agent.learning.dqn import QPolicy, Settings
-
-        if ht_policy is not None:
-            ck = load_checkpoint(ht_policy)
-            if ck.scenario.mode != "ht":
-                raise CheckpointError(
-                    f"{ck.path}: not an HT learner (mode {ck.scenario.mode!r}); train one with `htlm train --mode ht`"
-                )
-            return QPolicy.from_checkpoint(ck), ck.scenario
-        if ht_out is None:
-            raise ValueError("the ht baseline needs a checkpoint (ht_policy) or a directory to train one in (ht_out)")
-        s = settings if settings is not None else Settings(seed=seed)
-        return train_ht(scenario, s, ht_out, progress)
-    raise ValueError(f"unknown baseline {name!r}; choose one of {list(BASELINES)}")

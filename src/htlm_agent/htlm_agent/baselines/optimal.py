@@ -102,6 +102,7 @@ class OptimalPolicy:
         """Solve the scenario once."""
         self.sol = solve(sc)
         self.sc = sc
+        self.model = Model.build(sc)
         self.weights = np.array([sc.levels ** (sc.n_tasks - 1 - j) for j in range(sc.n_tasks)], dtype=np.int64)
 
     def act(self, ctx: Context) -> IntArray:
@@ -111,7 +112,6 @@ class OptimalPolicy:
         idx = ctx.true_levels @ self.weights
         joint = self.sol.joint_actions[self.sol.best[k, idx]]  # (B, N), -1 where idle
         if sc.n_idle:
-            site = np.where(ctx.prev >= 0, np.array(sc.action_sites)[np.maximum(ctx.prev, 0)], 0)
             done = (ctx.true_levels == 0).all(axis=1)[:, None]
-            joint = np.where((joint < 0) | done, sc.n_tasks + site, joint)
+            joint = np.where((joint < 0) | done, self.model.idle_action(ctx.prev), joint)
         return np.asarray(joint, dtype=np.int64)

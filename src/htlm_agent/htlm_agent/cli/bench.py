@@ -113,7 +113,9 @@ def learner_rate(seconds: float) -> float:
     """Gradient updates/s of the default learner (each update trains every agent's network once)."""
     import torch
 
-    from htlm_agent.learning.dqn import Learner, Settings, train_batch
+    from htlm_agent.experiments.train import train_batch
+    from htlm_agent.learning.dqn import Learner
+    from htlm_agent.learning.settings import Settings
     from htlm_agent.runtime.team import Team
     from htlm_world.scenario import builtin
 
@@ -130,7 +132,8 @@ def learner_rate(seconds: float) -> float:
 
 def training_run(episodes: int | None, out: str | None) -> dict[str, Any]:
     """A default `htlm train` run (no TensorBoard, no progress) and its final evaluation against the targets."""
-    from htlm_agent.learning.dqn import Settings, train
+    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.settings import Settings
     from htlm_world.scenario import builtin
 
     s = Settings() if episodes is None else Settings(episodes=episodes)

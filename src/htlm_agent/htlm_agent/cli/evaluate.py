@@ -95,10 +95,10 @@ def format_metrics(m: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate, print and write the reports."""
-    from htlm_agent.baselines.heuristics import make_baseline
+    from htlm_agent.baselines.registry import make_baseline
     from htlm_agent.experiments.evaluate import evaluate_run, write_reports
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-    from htlm_agent.learning.dqn import QPolicy
+    from htlm_agent.learning.qpolicy import QPolicy
 
     if args.episodes < 1:
         raise SystemExit(f"htlm evaluate: --episodes must be >= 1, got {args.episodes}")

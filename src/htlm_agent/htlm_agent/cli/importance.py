@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     """Compute, print and write the table."""
     from htlm_agent.experiments.evaluate import format_importance, importance_table, write_importance
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-    from htlm_agent.learning.dqn import QPolicy
+    from htlm_agent.learning.qpolicy import QPolicy
 
     if args.episodes < 1:
         raise SystemExit(f"htlm importance: --episodes must be >= 1, got {args.episodes}")

@@ -73,7 +73,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="learner setting (htlm_agent.learning.dqn.Settings), e.g. --set learning_starts=500",
+        help="learner setting (htlm_agent.learning.settings.Settings), e.g. --set learning_starts=500",
     )
     p.add_argument(
         "--world-param",

@@ -29,7 +29,7 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     from htlm_agent.learning.settings import Settings, field_docs
 
     docs = field_docs(Settings)
-    g = p.add_argument_group("learner settings (defaults: htlm_agent.learning.dqn.Settings)")
+    g = p.add_argument_group("learner settings (defaults: htlm_agent.learning.settings.Settings)")
     for f in dataclasses.fields(Settings):
         if f.name in EXPLICIT:
             continue
@@ -133,8 +133,9 @@ def run(args: argparse.Namespace) -> int:
     """Train and print where the run went and its final greedy evaluation."""
     import json
 
+    from htlm_agent.experiments.train import RESUMABLE_CHANGES, train
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-    from htlm_agent.learning.dqn import RESUMABLE_CHANGES, Settings, train
+    from htlm_agent.learning.settings import Settings
 
     changes = settings_changes(args)
     try:

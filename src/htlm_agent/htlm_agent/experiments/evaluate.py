@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from htlm_agent.mind.reward import confident_levels
 from htlm_agent.runtime.team import Policy, Team, rollout
@@ -157,8 +158,6 @@ def write_reports(ev: Evaluation, out_dir: str | Path, settings: Any = None) -> 
     """Write metrics.json, summary.csv (one row per agent and one for the team), episodes.csv (one row per episode),
     completion_hist.png and scenario.yaml (and settings.json of the learner, when given) into out_dir; returns the
     paths."""
-    import yaml
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "scenario.yaml").write_text(yaml.safe_dump(ev.scenario.to_dict(), sort_keys=False))

@@ -6,17 +6,28 @@ never retrained unless forced; figures read the runs' results and never retrain.
 
 from __future__ import annotations
 
+import csv
 import json
+import multiprocessing as mp
+import shutil
 import subprocess
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from htlm_agent.baselines.registry import make_baseline
+from htlm_agent.experiments.evaluate import evaluate, evaluate_run, importance_table
 from htlm_agent.experiments.progress import Progress
+from htlm_agent.experiments.train import train
+from htlm_agent.learning.checkpoint import load_checkpoint
+from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.settings import Settings
+from htlm_agent.runtime.team import Team, rollout
 from htlm_world.metrics import mean_se
 from htlm_world.scenario import REASSIGN_COSTS, Scenario, builtin
 
@@ -91,15 +102,11 @@ QUICK = Budget(seeds=(0, 1), episodes=128, envs=32, eval_episodes=20, inactivati
 
 def train_config(cfg: Config, seed: int, budget: Budget, runs: Path, force: bool) -> dict[str, Any]:
     """Train one configuration with one seed unless a finished run exists; returns its final evaluation metrics."""
-    from htlm_agent.learning.dqn import Settings, train
-
     run_dir = runs / f"{cfg.name}__{seed}"
     done = run_dir / "result.json"
     if done.exists() and not force:
         return dict(json.loads(done.read_text()))
     if run_dir.exists():  # forced, or an unfinished run: start it again cleanly
-        import shutil
-
         shutil.rmtree(run_dir)
     changes: dict[str, Any] = {"seed": seed, "eval_episodes": budget.eval_episodes}
     if "keep_replay" in Settings.__dataclass_fields__:  # the report needs the networks, not the replay memories
@@ -112,17 +119,19 @@ def train_config(cfg: Config, seed: int, budget: Budget, runs: Path, force: bool
         changes["learning_starts"] = min(Settings().learning_starts, budget.envs * 4)
     settings = Settings().replace(**changes)
     res = train(cfg.scenario(), settings, run_dir, progress=False, tensorboard=False)
-    out = {"config": cfg.name, "seed": seed, "train_time": res.train_time, "wall_time": res.wall_time,
-           "metrics": res.metrics}
+    out = {
+        "config": cfg.name,
+        "seed": seed,
+        "train_time": res.train_time,
+        "wall_time": res.wall_time,
+        "metrics": res.metrics,
+    }
     done.write_text(json.dumps(out, indent=2) + "\n")
     return out
 
 
 def load_policy(run_dir: Path) -> Any:
     """The greedy team policy of a finished run."""
-    from htlm_agent.learning.checkpoint import load_checkpoint
-    from htlm_agent.learning.dqn import QPolicy
-
     return QPolicy.from_checkpoint(load_checkpoint(run_dir / "checkpoint"))
 
 
@@ -175,8 +184,11 @@ def figure_idle_effect(res: dict[str, list[dict[str, Any]]], out: Path) -> dict[
             un.append(u)
             un_se.append(us)
             f, fs, _ = seed_stats(r, ("unused_fraction",))
-            table[Config(HET, idle, rp).name] = {"completion": [m, s], "unused_capability": [u, us],
-                                                 "unused_fraction": [f, fs]}
+            table[Config(HET, idle, rp).name] = {
+                "completion": [m, s],
+                "unused_capability": [u, us],
+                "unused_fraction": [f, fs],
+            }
         lbl = "with R_II" if idle else "without R_II"
         axes[0].bar(x + (j - 0.5) * 0.38, comp, 0.38, yerr=comp_se, capsize=3, label=lbl)
         axes[1].bar(x + (j - 0.5) * 0.38, un, 0.38, yerr=un_se, capsize=3, label=lbl)
@@ -194,8 +206,11 @@ def figure_idle_effect(res: dict[str, list[dict[str, Any]]], out: Path) -> dict[
 def figure_reassign_effect(res: dict[str, list[dict[str, Any]]], out: Path) -> dict[str, Any]:
     """Completion step, idle count and reassignment count before completion for none/medium/high T_RP."""
     plt = _plt()
-    keys = (("completion", "completion step"), ("idle_before_completion", "team idle count before completion"),
-            ("reassign_before_completion", "team reassignments before completion"))
+    keys = (
+        ("completion", "completion step"),
+        ("idle_before_completion", "team idle count before completion"),
+        ("reassign_before_completion", "team reassignments before completion"),
+    )
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
     table: dict[str, Any] = {}
     for ax, (k, yl) in zip(axes, keys, strict=True):
@@ -220,8 +235,6 @@ def figure_reassign_effect(res: dict[str, list[dict[str, Any]]], out: Path) -> d
 
 def figure_behaviour(runs: Path, seed: int, out: Path, steps: int = 15) -> dict[str, Any]:
     """Decisions of agents 1 and 5 over the first `steps` steps of one seeded episode, over the true severities."""
-    from htlm_agent.runtime.team import Team, rollout
-
     plt = _plt()
     cfgs = [Config(HET, False, "none"), Config(HET, True, "medium")]
     fig, axes = plt.subplots(len(cfgs), 1, figsize=(10, 3.2 * len(cfgs)))
@@ -232,21 +245,39 @@ def figure_behaviour(runs: Path, seed: int, out: Path, steps: int = 15) -> dict[
         levels = tr.levels[1 : steps + 1, 0]  # (steps, p)
         acts = tr.actions[:steps, 0]  # (steps, N)
         names = sc.action_names
-        im = ax.imshow(levels.T, aspect="auto", cmap="Reds", vmin=0, vmax=sc.levels - 1,
-                       extent=(0.5, steps + 0.5, sc.n_tasks - 0.5, -0.5))
+        im = ax.imshow(
+            levels.T,
+            aspect="auto",
+            cmap="Reds",
+            vmin=0,
+            vmax=sc.levels - 1,
+            extent=(0.5, steps + 0.5, sc.n_tasks - 0.5, -0.5),
+        )
         for k, (agent, mk, col) in enumerate(((0, "o", "tab:blue"), (4, "s", "tab:green"))):
             ys = [a if a < sc.n_tasks else sc.n_tasks + (a - sc.n_tasks) * 0.5 - 0.25 for a in acts[:, agent]]
-            ax.plot(np.arange(1, steps + 1) + (k - 0.5) * 0.25, ys, mk, color=col, ms=7,
-                    label=f"{sc.agents[agent].name} decision")
-        ax.set_yticks(list(range(sc.n_tasks)) + [sc.n_tasks - 0.25, sc.n_tasks + 0.25],
-                      list(names[: sc.n_tasks]) + list(names[sc.n_tasks:]))
+            ax.plot(
+                np.arange(1, steps + 1) + (k - 0.5) * 0.25,
+                ys,
+                mk,
+                color=col,
+                ms=7,
+                label=f"{sc.agents[agent].name} decision",
+            )
+        ax.set_yticks(
+            list(range(sc.n_tasks)) + [sc.n_tasks - 0.25, sc.n_tasks + 0.25],
+            list(names[: sc.n_tasks]) + list(names[sc.n_tasks :]),
+        )
         ax.set_ylim(sc.n_actions - 1, -0.5) if sc.n_idle else None
         ax.set_xlabel("step")
         ax.set_title(cfg.label, fontsize=9)
         ax.legend(fontsize=7, loc="lower right")
         fig.colorbar(im, ax=ax, label="true severity")
-        data[cfg.name] = {"levels": levels.tolist(), "agent1": acts[:, 0].tolist(), "agent5": acts[:, 4].tolist(),
-                          "action_names": list(names)}
+        data[cfg.name] = {
+            "levels": levels.tolist(),
+            "agent1": acts[:, 0].tolist(),
+            "agent5": acts[:, 4].tolist(),
+            "action_names": list(names),
+        }
     fig.tight_layout()
     fig.savefig(out / "behaviour.png", dpi=110)
     plt.close(fig)
@@ -258,16 +289,15 @@ def figure_behaviour(runs: Path, seed: int, out: Path, steps: int = 15) -> dict[
 
 def importance_and_inactivation(runs: Path, seeds: tuple[int, ...], budget: Budget, out: Path) -> dict[str, Any]:
     """Importance tables for the three teams and the inactivation histograms (least / most important agent)."""
-    from htlm_agent.experiments.evaluate import evaluate_run, importance_table
-
     plt = _plt()
     result: dict[str, Any] = {}
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
     for col, team in enumerate(TEAM_NAMES):
         cfg = Config(team, True, "medium")
         sc = cfg.scenario()
-        tables = [importance_table(load_policy(runs / f"{cfg.name}__{s}"), sc, budget.eval_episodes, seed=s)
-                  for s in seeds]
+        tables = [
+            importance_table(load_policy(runs / f"{cfg.name}__{s}"), sc, budget.eval_episodes, seed=s) for s in seeds
+        ]
         zetas = np.array([[a["zeta"] for a in t["agents"]] for t in tables])  # (seeds, N)
         zeta_m = zetas.mean(axis=0)
         least, most = int(np.argmin(zeta_m)), int(np.argmax(zeta_m))
@@ -281,15 +311,20 @@ def importance_and_inactivation(runs: Path, seeds: tuple[int, ...], budget: Budg
         for row, (ev, who) in enumerate(((lo, least), (hi, most))):
             ax = axes[row, col]
             ax.hist(full.episodes.completion, bins=bins, alpha=0.55, label="all agents")
-            ax.hist(ev.episodes.completion, bins=bins, alpha=0.55,
-                    label=f"{sc.agents[who].name} inactive ({'least' if row == 0 else 'most'} important)")
+            ax.hist(
+                ev.episodes.completion,
+                bins=bins,
+                alpha=0.55,
+                label=f"{sc.agents[who].name} inactive ({'least' if row == 0 else 'most'} important)",
+            )
             ax.set_title(f"{team}", fontsize=9)
             ax.legend(fontsize=7)
             ax.set_xlabel("completion step")
         result[team] = {
             "importance": tables[0],
             "zeta_mean_over_seeds": zeta_m.tolist(),
-            "zeta_se_over_seeds": (zetas.std(axis=0, ddof=1) / np.sqrt(len(seeds))).tolist() if len(seeds) > 1
+            "zeta_se_over_seeds": (zetas.std(axis=0, ddof=1) / np.sqrt(len(seeds))).tolist()
+            if len(seeds) > 1
             else [0.0] * len(zeta_m),
             "least_important": sc.agents[least].name,
             "most_important": sc.agents[most].name,
@@ -300,8 +335,9 @@ def importance_and_inactivation(runs: Path, seeds: tuple[int, ...], budget: Budg
             "hist_least_inactive": np.bincount(lo.episodes.completion, minlength=sc.horizon + 1).tolist(),
             "hist_most_inactive": np.bincount(hi.episodes.completion, minlength=sc.horizon + 1).tolist(),
         }
-    fig.suptitle(f"Inactivation: completion over {budget.inactivation_episodes} episodes (seed-{seeds[0]} policies)",
-                 fontsize=10)
+    fig.suptitle(
+        f"Inactivation: completion over {budget.inactivation_episodes} episodes (seed-{seeds[0]} policies)", fontsize=10
+    )
     fig.tight_layout()
     fig.savefig(out / "inactivation.png", dpi=110)
     plt.close(fig)
@@ -313,24 +349,27 @@ def importance_and_inactivation(runs: Path, seeds: tuple[int, ...], budget: Budg
 
 def baselines(budget: Budget, res: dict[str, list[dict[str, Any]]], out: Path) -> dict[str, Any]:
     """Every learned heterogeneous configuration beside random, greedy, HT Dec-POMDP and the optimum."""
-    from htlm_agent.baselines.heuristics import make_baseline
-    from htlm_agent.experiments.evaluate import evaluate
-
     sc = Config(HET, True, "medium").scenario()
     rows: dict[str, Any] = {}
     for name in ("random", "greedy", "optimal"):
         policy, bsc = make_baseline(name, sc, seed=0)
         m = evaluate(policy, bsc, budget.eval_episodes, seed=0)
-        rows[name] = {"completion": [m["completion"]["mean"], m["completion"]["se"]],
-                      "failure_rate": m["completion"]["failure_rate"],
-                      "unused_fraction": [m["unused_fraction"]["mean"], m["unused_fraction"]["se"]]}
+        rows[name] = {
+            "completion": [m["completion"]["mean"], m["completion"]["se"]],
+            "failure_rate": m["completion"]["failure_rate"],
+            "unused_fraction": [m["unused_fraction"]["mean"], m["unused_fraction"]["se"]],
+        }
     for cfg in [*IDLE_CONFIGS, HT_CONFIG]:
         r = res[cfg.name]
         c = seed_stats(r, ("completion",))
         u = seed_stats(r, ("unused_fraction",))
         fails = [x["metrics"]["completion"]["failure_rate"] for x in r]
-        rows[cfg.label] = {"completion": [c[0], c[1]], "failure_rate": float(np.mean(fails)),
-                           "unused_fraction": [u[0], u[1]], "per_seed_completion": c[2]}
+        rows[cfg.label] = {
+            "completion": [c[0], c[1]],
+            "failure_rate": float(np.mean(fails)),
+            "unused_fraction": [u[0], u[1]],
+            "per_seed_completion": c[2],
+        }
     plt = _plt()
     names = list(rows)
     fig, axes = plt.subplots(1, 2, figsize=(13, 4))
@@ -349,16 +388,13 @@ def baselines(budget: Budget, res: dict[str, list[dict[str, Any]]], out: Path) -
 
 def learning_curves(runs: Path, seeds: tuple[int, ...], out: Path) -> None:
     """Running completion step and unused fraction during training, one line per configuration (seed mean)."""
-    import csv
-
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(12, 4))
     for cfg in [*IDLE_CONFIGS, HT_CONFIG]:
         curves = []
         for s in seeds:
             rows = list(csv.DictReader((runs / f"{cfg.name}__{s}" / "progress.csv").open()))
-            curves.append([(float(r["episodes"]), float(r["completion"]), float(r["unused_fraction"]))
-                           for r in rows])
+            curves.append([(float(r["episodes"]), float(r["completion"]), float(r["unused_fraction"])) for r in rows])
         n = min(len(c) for c in curves)
         arr = np.array([c[:n] for c in curves])  # (seeds, n, 3)
         axes[0].plot(arr[0, :, 0], arr[:, :, 1].mean(axis=0), label=cfg.label)
@@ -378,50 +414,84 @@ def learning_curves(runs: Path, seeds: tuple[int, ...], out: Path) -> None:
 
 def claims(idle: dict[str, Any], reassign: dict[str, Any], inact: dict[str, Any]) -> list[dict[str, Any]]:
     """C1-C5 of the paper, each held / not held with its numbers."""
+
     def cfg(idle_on: bool, rp: str) -> dict[str, Any]:
         return dict(idle[Config(HET, idle_on, rp).name])
 
     out = []
     on = cfg(True, "medium")["unused_fraction"][0]
     off = cfg(False, "medium")["unused_fraction"][0]
-    out.append({"id": "C1", "claim": "with R_II unused capability is a large share (paper ≈ 71%); without it nearly "
-                "none (paper ≈ 2.5%)", "held": bool(on >= 0.6 and off <= 0.10),
-                "numbers": f"medium T_RP: unused fraction {on:.1%} with R_II, {off:.1%} without"})
+    out.append(
+        {
+            "id": "C1",
+            "claim": "with R_II unused capability is a large share (paper ≈ 71%); without it nearly "
+            "none (paper ≈ 2.5%)",
+            "held": bool(on >= 0.6 and off <= 0.10),
+            "numbers": f"medium T_RP: unused fraction {on:.1%} with R_II, {off:.1%} without",
+        }
+    )
     parts, ok = [], True
     for rp in ("none", "medium"):
         a, b = cfg(True, rp)["completion"], cfg(False, rp)["completion"]
         diff = a[0] - b[0]
         tol = max(2 * float(np.hypot(a[1], b[1])), 0.5)
         ok &= diff <= tol
-        parts.append(f"{rp}: {a[0]:.2f}±{a[1]:.2f} with vs {b[0]:.2f}±{b[1]:.2f} without (Δ {diff:+.2f}, "
-                     f"tolerance {tol:.2f})")
-    out.append({"id": "C2", "claim": "under none and medium T_RP the idle incentive does not slow completion",
-                "held": bool(ok), "numbers": "; ".join(parts)})
+        parts.append(
+            f"{rp}: {a[0]:.2f}±{a[1]:.2f} with vs {b[0]:.2f}±{b[1]:.2f} without (Δ {diff:+.2f}, tolerance {tol:.2f})"
+        )
+    out.append(
+        {
+            "id": "C2",
+            "claim": "under none and medium T_RP the idle incentive does not slow completion",
+            "held": bool(ok),
+            "numbers": "; ".join(parts),
+        }
+    )
     hi, med = reassign["high"]["completion"], reassign["medium"]["completion"]
     d = hi[0] - med[0]
-    out.append({"id": "C3", "claim": "a high T_RP slows completion compared with medium",
-                "held": bool(d > 2 * float(np.hypot(hi[1], med[1]))),
-                "numbers": f"high {hi[0]:.2f}±{hi[1]:.2f} vs medium {med[0]:.2f}±{med[1]:.2f} (Δ {d:+.2f})"})
+    out.append(
+        {
+            "id": "C3",
+            "claim": "a high T_RP slows completion compared with medium",
+            "held": bool(d > 2 * float(np.hypot(hi[1], med[1]))),
+            "numbers": f"high {hi[0]:.2f}±{hi[1]:.2f} vs medium {med[0]:.2f}±{med[1]:.2f} (Δ {d:+.2f})",
+        }
+    )
     n, m = reassign["none"], reassign["medium"]
     more_idle = m["idle_before_completion"][0] > n["idle_before_completion"][0]
     fewer_moves = m["reassign_before_completion"][0] < n["reassign_before_completion"][0]
     dc = m["completion"][0] - n["completion"][0]
     same = abs(dc) <= max(2 * float(np.hypot(m["completion"][1], n["completion"][1])), 0.5)
-    out.append({"id": "C4", "claim": "medium T_RP vs none: more idling and fewer reassignments before completion at "
-                "the same completion step", "held": bool(more_idle and fewer_moves and same),
-                "numbers": f"idle {m['idle_before_completion'][0]:.2f} vs {n['idle_before_completion'][0]:.2f}; "
-                f"reassignments {m['reassign_before_completion'][0]:.2f} vs {n['reassign_before_completion'][0]:.2f}; "
-                f"completion {m['completion'][0]:.2f} vs {n['completion'][0]:.2f}"})
+    out.append(
+        {
+            "id": "C4",
+            "claim": "medium T_RP vs none: more idling and fewer reassignments before completion at "
+            "the same completion step",
+            "held": bool(more_idle and fewer_moves and same),
+            "numbers": f"idle {m['idle_before_completion'][0]:.2f} vs {n['idle_before_completion'][0]:.2f}; "
+            f"reassignments {m['reassign_before_completion'][0]:.2f} vs {n['reassign_before_completion'][0]:.2f}; "
+            f"completion {m['completion'][0]:.2f} vs {n['completion'][0]:.2f}",
+        }
+    )
     parts, ok = [], True
     for team, r in inact.items():
         a, lo, hi_ = r["completion_all"], r["completion_least_inactive"], r["completion_most_inactive"]
         lo_same = abs(lo["mean"] - a["mean"]) <= max(2 * float(np.hypot(lo["se"], a["se"])), 0.5)
         hi_worse = hi_["mean"] - a["mean"] >= max(2 * float(np.hypot(hi_["se"], a["se"])), 1.0)
         ok &= lo_same and hi_worse
-        parts.append(f"{team}: all {a['mean']:.2f}, least ({r['least_important']}) off {lo['mean']:.2f}, "
-                     f"most ({r['most_important']}) off {hi_['mean']:.2f} (failures {hi_['failure_rate']:.0%})")
-    out.append({"id": "C5", "claim": "inactivating the least important agent leaves completion essentially unchanged; "
-                "the most important one degrades it markedly", "held": bool(ok), "numbers": "; ".join(parts)})
+        parts.append(
+            f"{team}: all {a['mean']:.2f}, least ({r['least_important']}) off {lo['mean']:.2f}, "
+            f"most ({r['most_important']}) off {hi_['mean']:.2f} (failures {hi_['failure_rate']:.0%})"
+        )
+    out.append(
+        {
+            "id": "C5",
+            "claim": "inactivating the least important agent leaves completion essentially unchanged; "
+            "the most important one degrades it markedly",
+            "held": bool(ok),
+            "numbers": "; ".join(parts),
+        }
+    )
     return out
 
 
@@ -430,16 +500,29 @@ def claims(idle: dict[str, Any], reassign: dict[str, Any], inact: dict[str, Any]
 
 def _git_commit() -> str:
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).resolve().parent, timeout=10).stdout.strip() or "unknown"
+        return (
+            subprocess.run(
+                ["git", "rev-parse", "--short", "HEAD"],
+                capture_output=True,
+                text=True,
+                cwd=Path(__file__).resolve().parent,
+                timeout=10,
+            ).stdout.strip()
+            or "unknown"
+        )
     except (OSError, subprocess.SubprocessError):
         return "unknown"
 
 
 def write_report(out: Path, data: dict[str, Any], command: str, wall: float) -> None:
     """report.md: each figure beside the paper's statement it tests."""
-    idle, reassign, inact, base, cl = (data["idle_effect"], data["reassign_effect"], data["importance"],
-                                       data["baselines"], data["claims"])
+    idle, reassign, inact, base, cl = (
+        data["idle_effect"],
+        data["reassign_effect"],
+        data["importance"],
+        data["baselines"],
+        data["claims"],
+    )
     seeds = data["seeds"]
     budget_note = "QUICK (smoke-test budgets; numbers are not meaningful)" if data["quick"] else "full budgets"
     lines = [
@@ -458,59 +541,121 @@ def write_report(out: Path, data: dict[str, Any], command: str, wall: float) -> 
     ]
     for c in cl:
         lines.append(f"| {c['id']} | {c['claim']} | {'held' if c['held'] else '**not held**'} | {c['numbers']} |")
-    lines += ["", "## 1. Effect of the idle incentive", "",
-              "Paper: with R_II the team leaves about 71% of its capability unused, without it about 2.5%, and "
-              "completion does not slow under none and medium T_RP.", "", "![idle effect](idle_effect.png)", "",
-              "| configuration | completion step | unused capability per agent per step |", "|---|---|---|"]
+    lines += [
+        "",
+        "## 1. Effect of the idle incentive",
+        "",
+        "Paper: with R_II the team leaves about 71% of its capability unused, without it about 2.5%, and "
+        "completion does not slow under none and medium T_RP.",
+        "",
+        "![idle effect](idle_effect.png)",
+        "",
+        "| configuration | completion step | unused capability per agent per step |",
+        "|---|---|---|",
+    ]
     for k, v in idle.items():
-        lines.append(f"| {k} | {v['completion'][0]:.2f} ± {v['completion'][1]:.2f} | "
-                     f"{v['unused_capability'][0]:.3f} ± {v['unused_capability'][1]:.3f} |")
-    lines += ["", "## 2. Effect of the reassignment penalty", "",
-              "Paper: medium T_RP gives more idling and fewer reassignments before completion at the same completion "
-              "step as none; high T_RP slows completion.", "", "![reassign effect](reassign_effect.png)", "",
-              "| T_RP | completion step | idle before completion | reassignments before completion |",
-              "|---|---|---|---|"]
+        lines.append(
+            f"| {k} | {v['completion'][0]:.2f} ± {v['completion'][1]:.2f} | "
+            f"{v['unused_capability'][0]:.3f} ± {v['unused_capability'][1]:.3f} |"
+        )
+    lines += [
+        "",
+        "## 2. Effect of the reassignment penalty",
+        "",
+        "Paper: medium T_RP gives more idling and fewer reassignments before completion at the same completion "
+        "step as none; high T_RP slows completion.",
+        "",
+        "![reassign effect](reassign_effect.png)",
+        "",
+        "| T_RP | completion step | idle before completion | reassignments before completion |",
+        "|---|---|---|---|",
+    ]
     for k, v in reassign.items():
-        lines.append(f"| {k} | {v['completion'][0]:.2f} ± {v['completion'][1]:.2f} | "
-                     f"{v['idle_before_completion'][0]:.2f} ± {v['idle_before_completion'][1]:.2f} | "
-                     f"{v['reassign_before_completion'][0]:.2f} ± {v['reassign_before_completion'][1]:.2f} |")
-    lines += ["", "## 3. Learned behaviour", "",
-              "Paper: without load management agents keep working after tasks are done and move between sites; with "
-              "R_II and medium T_RP they idle once the need is met and stay at their site.", "",
-              "![behaviour](behaviour.png)", "", "## 4. Agent importance", ""]
+        lines.append(
+            f"| {k} | {v['completion'][0]:.2f} ± {v['completion'][1]:.2f} | "
+            f"{v['idle_before_completion'][0]:.2f} ± {v['idle_before_completion'][1]:.2f} | "
+            f"{v['reassign_before_completion'][0]:.2f} ± {v['reassign_before_completion'][1]:.2f} |"
+        )
+    lines += [
+        "",
+        "## 3. Learned behaviour",
+        "",
+        "Paper: without load management agents keep working after tasks are done and move between sites; with "
+        "R_II and medium T_RP they idle once the need is met and stay at their site.",
+        "",
+        "![behaviour](behaviour.png)",
+        "",
+        "## 4. Agent importance",
+        "",
+    ]
     for team, r in inact.items():
         t = r["importance"]
-        lines += [f"**{team}** (ω_fire = {t['omega']['fire']:.2f}, ω_rescue = {t['omega']['rescue']:.2f}; seed "
-                  f"{t['seed']}; ζ mean over seeds in the last column)", "",
-                  "| agent | C_fire | C_rescue | U_fire | U_rescue | ζ | ζ (seeds) |", "|---|---|---|---|---|---|---|"]
+        lines += [
+            f"**{team}** (ω_fire = {t['omega']['fire']:.2f}, ω_rescue = {t['omega']['rescue']:.2f}; seed "
+            f"{t['seed']}; ζ mean over seeds in the last column)",
+            "",
+            "| agent | C_fire | C_rescue | U_fire | U_rescue | ζ | ζ (seeds) |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for i, a in enumerate(t["agents"]):
-            lines.append(f"| {a['agent']} | {a['C_fire']:.0f} | {a['C_rescue']:.0f} | {a['U_fire']:.2f} | "
-                         f"{a['U_rescue']:.2f} | {a['zeta']:.2f} | {r['zeta_mean_over_seeds'][i]:.2f} ± "
-                         f"{r['zeta_se_over_seeds'][i]:.2f} |")
+            lines.append(
+                f"| {a['agent']} | {a['C_fire']:.0f} | {a['C_rescue']:.0f} | {a['U_fire']:.2f} | "
+                f"{a['U_rescue']:.2f} | {a['zeta']:.2f} | {r['zeta_mean_over_seeds'][i]:.2f} ± "
+                f"{r['zeta_se_over_seeds'][i]:.2f} |"
+            )
         lines.append("")
-    lines += ["## 5. Inactivation", "",
-              "Paper: inactivating the least important agent leaves completion essentially unchanged; the most "
-              "important one degrades it.", "", "![inactivation](inactivation.png)", "",
-              "| team | all agents | least important inactive | most important inactive |", "|---|---|---|---|"]
+    lines += [
+        "## 5. Inactivation",
+        "",
+        "Paper: inactivating the least important agent leaves completion essentially unchanged; the most "
+        "important one degrades it.",
+        "",
+        "![inactivation](inactivation.png)",
+        "",
+        "| team | all agents | least important inactive | most important inactive |",
+        "|---|---|---|---|",
+    ]
     for team, r in inact.items():
         a, lo, hi = r["completion_all"], r["completion_least_inactive"], r["completion_most_inactive"]
-        lines.append(f"| {team} | {a['mean']:.2f} ± {a['se']:.2f} | {r['least_important']}: {lo['mean']:.2f} ± "
-                     f"{lo['se']:.2f} | {r['most_important']}: {hi['mean']:.2f} ± {hi['se']:.2f} "
-                     f"(failures {hi['failure_rate']:.1%}) |")
-    lines += ["", "## 6. Beyond the paper: baselines and learning curves", "", "![baselines](baselines.png)", "",
-              "| policy | completion step | failure rate | unused fraction |", "|---|---|---|---|"]
+        lines.append(
+            f"| {team} | {a['mean']:.2f} ± {a['se']:.2f} | {r['least_important']}: {lo['mean']:.2f} ± "
+            f"{lo['se']:.2f} | {r['most_important']}: {hi['mean']:.2f} ± {hi['se']:.2f} "
+            f"(failures {hi['failure_rate']:.1%}) |"
+        )
+    lines += [
+        "",
+        "## 6. Beyond the paper: baselines and learning curves",
+        "",
+        "![baselines](baselines.png)",
+        "",
+        "| policy | completion step | failure rate | unused fraction |",
+        "|---|---|---|---|",
+    ]
     for k, v in base.items():
-        lines.append(f"| {k} | {v['completion'][0]:.2f} ± {v['completion'][1]:.2f} | {v['failure_rate']:.1%} | "
-                     f"{v['unused_fraction'][0]:.3f} ± {v['unused_fraction'][1]:.3f} |")
-    lines += ["", "![learning curves](learning_curves.png)", "",
-              "Files: `results.json` (everything above), `configs.csv` (one row per configuration and seed), "
-              "`runs/` (each training run: settings, scenario, progress.csv, checkpoint, evaluation).", ""]
+        lines.append(
+            f"| {k} | {v['completion'][0]:.2f} ± {v['completion'][1]:.2f} | {v['failure_rate']:.1%} | "
+            f"{v['unused_fraction'][0]:.3f} ± {v['unused_fraction'][1]:.3f} |"
+        )
+    lines += [
+        "",
+        "![learning curves](learning_curves.png)",
+        "",
+        "Files: `results.json` (everything above), `configs.csv` (one row per configuration and seed), "
+        "`runs/` (each training run: settings, scenario, progress.csv, checkpoint, evaluation).",
+        "",
+    ]
     (out / "report.md").write_text("\n".join(lines))
 
 
-def reproduce(out: Path, quick: bool = False, force: bool = False, seeds: tuple[int, ...] | None = None,
-              command: str = "htlm reproduce", jobs_in_parallel: int = 1,
-              episodes: int | None = None) -> dict[str, Any]:
+def reproduce(
+    out: Path,
+    quick: bool = False,
+    force: bool = False,
+    seeds: tuple[int, ...] | None = None,
+    command: str = "htlm reproduce",
+    jobs_in_parallel: int = 1,
+    episodes: int | None = None,
+) -> dict[str, Any]:
     """Train (or reuse) every configuration, then compute every figure and table and write the report."""
     t0 = time.perf_counter()
     budget = QUICK if quick else FULL
@@ -529,17 +674,15 @@ def reproduce(out: Path, quick: bool = False, force: bool = False, seeds: tuple[
     def record(k: int, c: Config, s: int, r: dict[str, Any]) -> None:
         results[(c.name, s)] = r
         m = r["metrics"]
-        bar.update(k, last=f"{c.name}/{s}: completion {m['completion']['mean']:.2f}, unused "
-                   f"{m['unused_fraction']['mean']:.0%}")
+        bar.update(
+            k, last=f"{c.name}/{s}: completion {m['completion']['mean']:.2f}, unused {m['unused_fraction']['mean']:.0%}"
+        )
 
     if jobs_in_parallel <= 1:
         for k, (c, s) in enumerate(jobs):
             bar.update(k, training=f"{c.name} seed {s}")
             record(k + 1, c, s, train_config(c, s, budget, runs, force))
     else:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-
         with ProcessPoolExecutor(jobs_in_parallel, mp_context=mp.get_context("spawn")) as pool:
             futures = {pool.submit(train_config, c, s, budget, runs, force): (c, s) for c, s in jobs}
             for k, fut in enumerate(as_completed(futures)):
@@ -555,23 +698,35 @@ def reproduce(out: Path, quick: bool = False, force: bool = False, seeds: tuple[
     inact = importance_and_inactivation(runs, budget.seeds, budget, out)
     base = baselines(budget, res, out)
     learning_curves(runs, budget.seeds, out)
-    data = {"quick": quick, "seeds": list(budget.seeds), "train_episodes": budget.episodes,
-            "eval_episodes": budget.eval_episodes,
-            "commit": _git_commit(), "idle_effect": idle, "reassign_effect": reassign, "behaviour": behaviour,
-            "importance": inact, "baselines": base}
+    data = {
+        "quick": quick,
+        "seeds": list(budget.seeds),
+        "train_episodes": budget.episodes,
+        "eval_episodes": budget.eval_episodes,
+        "commit": _git_commit(),
+        "idle_effect": idle,
+        "reassign_effect": reassign,
+        "behaviour": behaviour,
+        "importance": inact,
+        "baselines": base,
+    }
     data["claims"] = claims(idle, reassign, inact)
     wall = time.perf_counter() - t0
     data["wall_time_s"] = wall
     (out / "results.json").write_text(json.dumps(data, indent=2) + "\n")
     with (out / "configs.csv").open("w") as f:
-        f.write("config,seed,completion,completion_se,failure_rate,unused_fraction,idle_before,reassign_before,"
-                "train_time_s\n")
+        f.write(
+            "config,seed,completion,completion_se,failure_rate,unused_fraction,idle_before,reassign_before,"
+            "train_time_s\n"
+        )
         for name, rs in res.items():
             for r in rs:
                 m = r["metrics"]
-                f.write(f"{name},{r['seed']},{m['completion']['mean']:.4f},{m['completion']['se']:.4f},"
-                        f"{m['completion']['failure_rate']:.4f},{m['unused_fraction']['mean']:.4f},"
-                        f"{m['idle_before_completion']['mean']:.3f},{m['reassign_before_completion']['mean']:.3f},"
-                        f"{r['train_time']:.1f}\n")
+                f.write(
+                    f"{name},{r['seed']},{m['completion']['mean']:.4f},{m['completion']['se']:.4f},"
+                    f"{m['completion']['failure_rate']:.4f},{m['unused_fraction']['mean']:.4f},"
+                    f"{m['idle_before_completion']['mean']:.3f},{m['reassign_before_completion']['mean']:.3f},"
+                    f"{r['train_time']:.1f}\n"
+                )
     write_report(out, data, command, wall)
     return data

@@ -39,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def inprocess_rate(policy: str, episodes: int, seed: int = 0) -> float:
     """Steps per second of the in-process runtime, batch 1, with the same decentralized per-agent policies."""
-    from htlm_agent.mind.agent import DecentralizedPolicy, builtin_policy
+    from htlm_agent.mind.policies import DecentralizedPolicy, builtin_policy
     from htlm_agent.runtime.team import Team, rollout
     from htlm_world.scenario import builtin
 

@@ -3,119 +3,28 @@ and the order in which it accepts the world's and its teammates' messages.
 
 The agent node (agent_node.py) only decodes messages, calls `AgentMind` and publishes what it returns. The mind
 computes exactly what the in-process `Team` computes for that agent's row (same functions of belief.py and
-reward.py on batch 1, same generators), so an evaluation over ROS reproduces `team.rollout` step for step;
-`DecentralizedPolicy` runs the same per-agent policies inside `team.rollout`, and `loopback_episode` runs the
-protocol in one process (the reference for the ROS equivalence test).
+reward.py on batch 1, same generators from `htlm_world.seeds`), so an evaluation over ROS reproduces `team.rollout`
+step for step; `policies.DecentralizedPolicy` runs the same per-agent policies inside `team.rollout`, and
+`loopback_episode` runs the protocol in one process (the reference for the ROS equivalence test).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
 from htlm_agent.mind import belief as bf
-from htlm_agent.mind.reward import RewardTables, action_mask, confident_levels, reward
-from htlm_agent.runtime.team import Context, Policy
+from htlm_agent.mind import knowledge
+from htlm_agent.mind.policies import AgentPolicy, choose
+from htlm_agent.mind.reward import RewardTables, confident_levels, reward
+from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.protocol import WorldEpisode
 from htlm_world.scenario import Scenario
-from htlm_world.simulator import channel_rng, sample_channel
-from htlm_world.types import BoolArray, FloatArray, IntArray
-
-
-class AgentPolicy(Protocol):
-    """One agent's decision rule on its own knowledge: (B, K) knowledge and (B, |G|) mask -> (B,) actions."""
-
-    def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
-        """Choose an action in the mask for every row."""
-        ...
-
-
-def explore_rng(seed: int, agent: int, episode: int) -> np.random.Generator:
-    """Generator of agent `agent`'s exploration (ε-greedy) in one episode, derived from the master seed."""
-    return np.random.default_rng(np.random.SeedSequence([seed, 2, agent, episode]))
-
-
-def choose(
-    policy: AgentPolicy, knowledge: FloatArray, mask: BoolArray, epsilon: float, rng: np.random.Generator
-) -> IntArray:
-    """ε-greedy over the reduced action space Â(a_o) (MODEL.md): with probability ε a uniform action of the mask,
-    else the policy's. Two uniforms are drawn per row whatever ε is, so the generator stays in step."""
-    u = rng.random((knowledge.shape[0], 2))
-    greedy = np.asarray(policy.act(knowledge, mask), dtype=np.int64)
-    out = greedy.copy()
-    for b in range(knowledge.shape[0]):
-        if u[b, 0] < epsilon:
-            allowed = np.flatnonzero(mask[b])
-            out[b] = allowed[min(int(u[b, 1] * allowed.size), allowed.size - 1)]
-        assert mask[b, out[b]], f"policy chose {out[b]} outside the mask {mask[b]}"
-    return out
-
-
-class RowPolicy:
-    """Agent `agent`'s column of a decentralized team policy (a `team.Policy` whose agent i reads only row i of the
-    Context, such as baselines.GreedyPolicy), fed with that agent's own knowledge state and mask."""
-
-    def __init__(self, scenario: Scenario, policy: Policy, agent: int) -> None:
-        """Wrap `policy` for agent index `agent`."""
-        self.scenario = scenario
-        self.policy = policy
-        self.agent = agent
-
-    def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
-        """See AgentPolicy.act: rebuild the agent's marginals and a_o from K = {b, a_o} and ask the team policy."""
-        sc = self.scenario
-        b, n, pl = knowledge.shape[0], sc.n_agents, sc.n_tasks * sc.levels
-        marg = knowledge[:, :pl].reshape(b, sc.n_tasks, sc.levels)
-        onehot = knowledge[:, pl:] > 0.5
-        prev = np.where(onehot.any(axis=1), onehot.argmax(axis=1), -1).astype(np.int64)
-        ctx = Context(
-            knowledge=np.repeat(knowledge[:, None], n, axis=1),
-            mask=np.repeat(mask[:, None], n, axis=1),
-            marginals=np.repeat(marg[:, None], n, axis=1),
-            prev=np.repeat(prev[:, None], n, axis=1),
-            t=0,
-            true_levels=np.zeros((b, sc.n_tasks), dtype=np.int64),  # decentralized policies never read it
-        )
-        return np.asarray(self.policy.act(ctx)[:, self.agent], dtype=np.int64)
-
-
-def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPolicy, float]:
-    """A policy that needs no network, and its ε: "greedy" (baselines.GreedyPolicy on the agent's own row) or
-    "random" (uniform over Â(a_o) from the agent's exploration generator, ε = 1)."""
-    from htlm_agent.baselines.heuristics import GreedyPolicy
-
-    if name not in ("greedy", "random"):
-        raise ValueError(f"unknown built-in policy {name!r}; choose greedy or random")
-    return RowPolicy(scenario, GreedyPolicy(scenario), agent), (1.0 if name == "random" else 0.0)
-
-
-class DecentralizedPolicy:
-    """The in-process Team policy made of independent per-agent policies, each on its own row of the context,
-    with ε-greedy from `explore_rng(seed, agent, episode)`: what the agent processes do over ROS."""
-
-    def __init__(self, policies: list[AgentPolicy], seed: int, epsilon: float | list[float] = 0.0) -> None:
-        """One policy per agent; call `begin(episode)` before each `team.rollout` of batch 1."""
-        self.policies = policies
-        self.seed = seed
-        self.epsilon = [epsilon] * len(policies) if isinstance(epsilon, float) else list(epsilon)
-        self.rngs: list[np.random.Generator] = []
-
-    def begin(self, episode: int) -> None:
-        """Derive every agent's exploration generator for `episode`."""
-        self.rngs = [explore_rng(self.seed, i, episode) for i in range(len(self.policies))]
-
-    def act(self, ctx: Context) -> IntArray:
-        """Every agent's action from its own knowledge and mask (B, N)."""
-        assert self.rngs, "call begin(episode) first"
-        cols = [
-            choose(pol, ctx.knowledge[:, i], ctx.mask[:, i], self.epsilon[i], self.rngs[i])
-            for i, pol in enumerate(self.policies)
-        ]
-        return np.stack(cols, axis=1)
-
+from htlm_world.simulator import sample_channel
+from htlm_world.types import BoolArray, FloatArray
 
 # ----- the agent's mind -------------------------------------------------------------------------------------------
 
@@ -211,11 +120,11 @@ class AgentMind:
 
     def knowledge(self) -> FloatArray:
         """Knowledge state K = {b, a_o} (1, K)."""
-        return bf.knowledge(self.marg, np.array([self.prev], dtype=np.int64), self.scenario.n_actions)
+        return knowledge.build(self.marg, np.array([self.prev], dtype=np.int64), self.scenario.n_actions)
 
     def mask(self) -> BoolArray:
         """Â(a_o) (1, |G|)."""
-        return action_mask(self.scenario, np.array([self.prev], dtype=np.int64))
+        return self.model.action_mask(np.array([self.prev], dtype=np.int64))
 
     def idle_action(self) -> int:
         """Idle at the site of the previous assignment: what the world applies when our action is missing."""
@@ -271,8 +180,8 @@ class AgentMind:
         self.marg = bf.marginals(self.belief)  # (1, p, L)
         self.prev = sc.start_assignment
         self.known = np.full(self.n, sc.start_assignment, dtype=np.int64)
-        self.chan = channel_rng(self.seed, self.me, episode)
-        self.explore = explore_rng(self.seed, self.me, episode)
+        self.chan = seeds.channel(self.seed, self.me, episode)
+        self.explore = seeds.explore(self.seed, self.me, episode)
         self.log = {"actions": [], "messages": [], "rewards": [], "acted": []}
         out.action = (1, self._act(1))
         return out

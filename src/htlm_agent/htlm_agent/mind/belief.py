@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from htlm_world.model import Model
-from htlm_world.types import Belief, BoolArray, FloatArray, IntArray, Knowledge, Marginals
+from htlm_world.types import Belief, BoolArray, FloatArray, IntArray, Marginals
 
 
 def initial_belief(model: Model, batch: int) -> Belief:
@@ -80,14 +80,10 @@ def agent_evidence(
 def evidence(model: Model, actions: IntArray, observations: IntArray, messages: IntArray) -> FloatArray:
     """Likelihood of every agent's evidence, all messages delivered: (B, N, p, L) (see `agent_evidence`)."""
     n = actions.shape[1]
-    return np.stack(
-        [agent_evidence(model, i, actions, observations[:, i], messages) for i in range(n)], axis=1
-    )
+    return np.stack([agent_evidence(model, i, actions, observations[:, i], messages) for i in range(n)], axis=1)
 
 
-def update(
-    model: Model, belief: Belief, caps: IntArray, likelihood: FloatArray
-) -> tuple[Belief, np.ndarray]:
+def update(model: Model, belief: Belief, caps: IntArray, likelihood: FloatArray) -> tuple[Belief, np.ndarray]:
     """One step of Eq. 2: predict with T, multiply by the evidence, normalise.
 
     Args:
@@ -113,11 +109,3 @@ def marginals(belief: Belief) -> Marginals:
     rescue = belief.sum(axis=-2)
     out = np.stack([fire, rescue], axis=-2)  # (..., S, 2, L)
     return out.reshape(belief.shape[:-3] + (2 * belief.shape[-3], belief.shape[-1]))
-
-
-def knowledge(marg: Marginals, prev: IntArray, n_actions: int) -> Knowledge:
-    """Knowledge state K = {b, a_o} as the Q-network input: marginals (p*L) then one-hot a_o (|G|); a_o = -1 is
-    all zeros (MODEL.md, Knowledge state)."""
-    flat = marg.reshape(marg.shape[:-2] + (-1,))
-    onehot = (prev[..., None] == np.arange(n_actions)).astype(np.float64)
-    return np.concatenate([flat, onehot], axis=-1)

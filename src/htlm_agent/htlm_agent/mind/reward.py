@@ -1,5 +1,5 @@
-"""The reward f_R(a_o, b, a) = R_comp + R_II + T_RP of MODEL.md (Eqs. 3-5 of the paper) and the reduced action
-space A-hat(a_o)."""
+"""The reward f_R(a_o, b, a) = R_comp + R_II + T_RP of MODEL.md (Eqs. 3-5 of the paper). The reduced action space
+Â(a_o) is `Model.action_mask`."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.types import BoolArray, FloatArray, IntArray, Marginals
+from htlm_world.types import FloatArray, IntArray, Marginals
 
 
 @dataclass(frozen=True)
@@ -79,15 +79,3 @@ def reward(
     moved = (prev >= 0) & (model.action_site[np.maximum(prev, 0)] != model.action_site[actions])
     t_rp = np.where(moved, tables.reassign_cost, 0.0)
     return comp + r_ii + t_rp, {"comp": comp, "idle": r_ii, "reassign": t_rp}
-
-
-def action_mask(sc: Scenario, prev: IntArray) -> BoolArray:
-    """A-hat(a_o): the p tasks and the idle location at the site of a_o (HT mode: the p tasks). (..., |G|)."""
-    p = sc.n_tasks
-    mask = np.zeros(prev.shape + (sc.n_actions,), dtype=bool)
-    mask[..., :p] = True
-    if sc.n_idle:
-        site = np.array(sc.action_sites)[np.maximum(prev, 0)]
-        site = np.where(prev >= 0, site, 0)
-        np.put_along_axis(mask, (p + site)[..., None], True, axis=-1)
-    return mask

@@ -24,13 +24,12 @@ from rclpy.node import Node
 
 from htlm_agent.mind.agent import (
     AgentMind,
-    AgentPolicy,
     AgentSettings,
     Effects,
     Transition,
-    builtin_policy,
     validate_agent_settings,
 )
+from htlm_agent.mind.policies import AgentPolicy, builtin_policy
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import (

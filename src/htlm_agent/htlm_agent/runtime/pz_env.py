@@ -16,9 +16,10 @@ and ``infos[agent]["action_mapped"]`` is True. With ``invalid_action="raise"`` i
 naming the agent and the action instead. Anything that is not an element of the action space always raises.
 
 Seeding. ``reset(seed=s)`` sets the master seed s and starts episode 0; each later ``reset()`` without a seed starts
-the next episode of the same master seed, whose world and channel generators are derived from (s, episode) exactly
-as the in-process runtime derives them (`Team(scenario, 1, s, episode=e)`). A first ``reset()`` without any seed
-draws the master seed from the operating system's entropy. No global random state is used.
+the next episode of the same master seed, whose world and channel generators are the streams of (s, episode) in
+`htlm_world.seeds`, exactly as the in-process runtime takes them (`Team(scenario, 1, s, episode=e)`). A first
+``reset()`` without any seed draws the master seed from the operating system's entropy (`seeds.fresh_seed`). No
+global random state is used.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from htlm_agent.runtime.team import Team
+from htlm_world import seeds
 from htlm_world.scenario import Scenario, builtin
 from htlm_world.types import IntArray
 
@@ -121,9 +123,7 @@ class HTLMParallelEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no
             self._episode = 0
         else:
             if self._seed is None:
-                entropy = np.random.SeedSequence().entropy
-                assert isinstance(entropy, int)
-                self._seed = entropy
+                self._seed = seeds.fresh_seed()
             self._episode += 1
         self._team = Team(self.scenario, 1, self._seed, episode=self._episode)
         self.agents = list(self.possible_agents)
@@ -172,7 +172,7 @@ class HTLMParallelEnv(ParallelEnv):  # type: ignore[misc]  # pettingzoo ships no
                     allowed = [sc.action_names[j] for j in np.flatnonzero(mask[i])]
                     raise ValueError(f"agent {name!r}: action {a} ({sc.action_names[a]}) is not in Â(a_o) = {allowed}")
                 # only idle locations can be outside Â: idle at the site of a_o instead (its one idle location)
-                a = sc.n_tasks + int(np.flatnonzero(mask[i, sc.n_tasks :])[0])
+                a = int(team.model.idle_action(team.prev[0, i]))
                 mapped[i] = True
             joint[0, i] = a
         _, rewards, info = team.step(joint)

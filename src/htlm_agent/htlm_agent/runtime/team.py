@@ -11,10 +11,12 @@ from typing import Protocol
 import numpy as np
 
 from htlm_agent.mind import belief as bf
-from htlm_agent.mind.reward import RewardTables, action_mask, reward
+from htlm_agent.mind import knowledge
+from htlm_agent.mind.reward import RewardTables, reward
+from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.simulator import BatchSim, channel_rng, world_rng
+from htlm_world.simulator import BatchSim
 from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
@@ -65,7 +67,7 @@ class Team:
         Args:
             scenario: the operation and the team.
             batch: B episodes advanced together.
-            seed: master seed; the world and every channel derive theirs from it and `episode`.
+            seed: master seed; the world and every channel take their streams from it and `episode` (`seeds`).
             episode: index of this batch (episode index when batch = 1), for seed derivation.
             inactive: agents forced to idle (at the site of their previous assignment) whatever they choose.
         """
@@ -80,8 +82,8 @@ class Team:
         self.sim = BatchSim(
             scenario,
             batch,
-            world_rng(seed, episode),
-            [channel_rng(seed, k, episode) for k in range(scenario.n_agents)],
+            seeds.world(seed, episode),
+            [seeds.channel(seed, k, episode) for k in range(scenario.n_agents)],
             model=self.model,
         )
         self.impossible_count = 0
@@ -99,11 +101,11 @@ class Team:
 
     def knowledge(self) -> FloatArray:
         """Current knowledge states (B, N, K)."""
-        return bf.knowledge(self.marg, self.prev, self.scenario.n_actions)
+        return knowledge.build(self.marg, self.prev, self.scenario.n_actions)
 
     def mask(self) -> BoolArray:
         """Current A-hat(a_o) of every agent (B, N, |G|)."""
-        return action_mask(self.scenario, self.prev)
+        return self.model.action_mask(self.prev)
 
     def context(self) -> Context:
         """What policies see now."""
@@ -113,14 +115,9 @@ class Team:
         """Replace the actions of inactivated agents by idling at their current site (HT mode: no action)."""
         if not self.inactive:
             return actions
-        sc = self.scenario
         actions = actions.copy()
         for k in self.inactive:
-            if sc.n_idle:
-                site = np.where(self.prev[:, k] >= 0, self.model.action_site[np.maximum(self.prev[:, k], 0)], 0)
-                actions[:, k] = sc.n_tasks + site
-            else:
-                actions[:, k] = -1
+            actions[:, k] = self.model.idle_action(self.prev[:, k])
         return actions
 
     def step(self, actions: IntArray) -> tuple[FloatArray, FloatArray, StepInfo]:

@@ -1,0 +1,408 @@
+"""`htlm train` in process: Algorithm 1 with B parallel episodes, validation and selection of the best networks,
+checkpoints, progress.csv / TensorBoard logs and the final greedy evaluation.
+
+A run directory holds: settings.json, scenario.yaml, progress.csv (one row per batch of episodes), tb/ (TensorBoard),
+checkpoint/ (periodic and final; with select_best its networks are the best validated ones, the latest are in its
+training state), eval/ (final evaluation: metrics.json, CSVs, histogram PNG), result.json.
+
+Training episodes draw from their own streams of the run's seed (`seeds.train_world`, `seeds.train_channel`,
+`seeds.train_explore` per batch), validation episodes from the world and channels of `seeds.validation(seed)`, and
+the final evaluation from those of the seed itself.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from htlm_agent.experiments.evaluate import evaluate, evaluate_run, write_reports
+from htlm_agent.experiments.progress import Progress
+from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+from htlm_agent.learning.dqn import Learner
+from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.settings import Settings
+from htlm_agent.runtime.team import Team
+from htlm_world import seeds
+from htlm_world.metrics import episode_metrics
+from htlm_world.scenario import Scenario
+from htlm_world.types import FloatArray
+
+
+@dataclass
+class TrainResult:
+    """What `train` produced."""
+
+    out_dir: Path
+    scenario: Scenario
+    settings: Settings
+    episodes: int
+    wall_time: float
+    """Seconds of the whole call, final evaluation included."""
+    train_time: float
+    """Seconds of training only (no final evaluation, no checkpoint writing)."""
+    metrics: dict[str, Any]
+    """Final greedy evaluation (`evaluate.evaluate`)."""
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+LOG_FIELDS = (
+    "episodes",
+    "wall_s",
+    "episodes_per_s",
+    "epsilon",
+    "updates",
+    "loss",
+    "reward",
+    "completion",
+    "failure_rate",
+    "unused_fraction",
+    "val_completion",
+    "val_failure_rate",
+    "val_unused_fraction",
+)
+"""Columns of progress.csv."""
+
+RESUMABLE_CHANGES = (
+    "episodes",
+    "eval_episodes",
+    "validate_every",
+    "validate_episodes",
+    "checkpoint_every",
+    "keep_replay",
+    "threads",
+)
+"""Settings that may differ when a run is resumed; every other field must match the checkpoint's."""
+
+
+# ----- one batch of training episodes -----------------------------------------------------------------------------
+
+
+def episode_epsilons(settings: Settings, episodes_done: int, batch: int) -> tuple[float, float | FloatArray]:
+    """ε of the schedule, and the ε of each of the batch's episodes: ε for all, or with `eps_spread` from 0 (greedy
+    episodes) to 2ε, mean ε."""
+    eps = settings.epsilon(episodes_done)
+    if settings.eps_spread and batch > 1:
+        return eps, np.minimum(1.0, eps * 2.0 * np.arange(batch) / (batch - 1))
+    return eps, eps
+
+
+def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, float]:
+    """Algorithm 1, lines 3-10, for B episodes at once: run one batch of episodes ε-greedily, storing every agent's
+    transitions in its own memory and training every agent `updates_per_step` times per step. Returns the batch's
+    row of progress.csv (the metrics of `htlm_world.metrics` over its episodes)."""
+    sc, s, seed = learner.scenario, learner.settings, learner.seed
+    team.sim.rng = seeds.train_world(seed, batch_index)
+    team.sim.channel_rngs = [seeds.train_channel(seed, i, batch_index) for i in range(sc.n_agents)]
+    rngs = [seeds.train_explore(seed, i, batch_index) for i in range(sc.n_agents)]
+    eps, eps_env = episode_epsilons(s, learner.episodes_done, team.batch)
+    k = team.reset()
+    m = team.mask()
+    levels, actions = [team.sim.levels.copy()], []
+    rsum = 0.0
+    losses: list[float] = []
+    for t in range(sc.horizon):
+        a = learner.act(k, m, eps_env, rngs)
+        k2, r, info = team.step(a)
+        m2 = team.mask()
+        learner.store_batch(k, a, r, k2, m2, t == sc.horizon - 1)
+        for _ in range(s.updates_per_step):
+            loss = learner.train_step()
+            if loss is not None:
+                losses.append(loss)
+        levels.append(info.levels)
+        actions.append(a)
+        rsum += float(r.mean())
+        k, m = k2, m2
+    learner.episodes_done += team.batch
+    em = episode_metrics(sc, np.stack(levels), np.stack(actions))
+    return {
+        "epsilon": eps,
+        "loss": float(np.mean(losses)) if losses else float("nan"),
+        "reward": rsum / sc.horizon,
+        "completion": float(em.completion.mean()),
+        "failure_rate": float(em.failed.mean()),
+        "unused_fraction": float(em.unused_fraction.mean()),
+    }
+
+
+# ----- validation and selection -----------------------------------------------------------------------------------
+
+
+def validate(learner: Learner, episodes: int) -> dict[str, Any]:
+    """Greedy validation of the current networks on episodes of the run's validation stream."""
+    return evaluate(learner.policy(), learner.scenario, episodes, seed=seeds.validation(learner.seed))
+
+
+class Selection:
+    """The best networks by validation completion step (lower is better; the later one wins a tie)."""
+
+    def __init__(self, learner: Learner, info: dict[str, Any]) -> None:
+        """Start from the best recorded in a checkpoint's `info` (none for a fresh run)."""
+        self.learner = learner
+        self.score: float = float(info.get("best_score", math.inf))
+        self.episode: int = int(info.get("best_episode", -1))
+        self.flat: torch.Tensor | None = None
+
+    def restore(self, ckpt_dir: Path) -> None:
+        """Take the selected networks of a resumed run from its checkpoint (they are its published networks)."""
+        if self.episode >= 0:
+            best = load_checkpoint(ckpt_dir)
+            self.flat = torch.stack([torch.cat([torch.from_numpy(p).reshape(-1) for p in w]) for w in best.weights])
+
+    def offer(self, score: float) -> None:
+        """Keep the current networks if `score` is at least as good as the best so far."""
+        if score <= self.score:
+            self.score, self.episode = score, self.learner.episodes_done
+            self.flat = self.learner.net.flat.detach().clone()
+
+    def info(self) -> dict[str, Any]:
+        """What a checkpoint records of the selection."""
+        return {"best_score": None if math.isinf(self.score) else self.score, "best_episode": self.episode}
+
+
+# ----- the run's files --------------------------------------------------------------------------------------------
+
+
+def write_run_files(out_dir: Path, scenario: Scenario, settings: Settings) -> None:
+    """settings.json and scenario.yaml beside the run's results (STYLE.md 2)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "settings.json").write_text(json.dumps(settings.to_dict(), indent=2) + "\n")
+    (out_dir / "scenario.yaml").write_text(yaml.safe_dump(scenario.to_dict(), sort_keys=False))
+
+
+class RunLog:
+    """progress.csv (one row per batch of episodes) and, optionally, TensorBoard scalars of a training run."""
+
+    def __init__(self, out: Path, episodes_done: int, resume: bool, tensorboard: bool) -> None:
+        """Open the logs; a resumed run keeps its rows up to the checkpoint (drops those of an interrupted tail)."""
+        self.writer: Any = None
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter  # heavy and optional: only when asked for
+
+            self.writer = SummaryWriter(str(out / "tb"), purge_step=episodes_done if resume else None)
+        path = out / "progress.csv"
+        rows_before: list[dict[str, str]] = []
+        if resume and path.exists():
+            with path.open() as f:
+                rows_before = [r for r in csv.DictReader(f) if int(r["episodes"]) <= episodes_done]
+        self.file = path.open("w", newline="")
+        self.csv = csv.DictWriter(self.file, LOG_FIELDS, extrasaction="ignore")
+        self.csv.writeheader()
+        self.csv.writerows(rows_before)
+
+    def row(self, row: dict[str, float], episodes: int) -> None:
+        """Write one batch's row (and its scalars to TensorBoard)."""
+        self.csv.writerow(row)
+        self.file.flush()
+        if self.writer is not None:
+            for key, val in row.items():
+                if key not in ("episodes", "wall_s") and not math.isnan(val):
+                    self.writer.add_scalar(f"train/{key}", val, episodes)
+
+    def evaluation(self, metrics: dict[str, Any], episodes: int) -> None:
+        """The final evaluation's scalars (TensorBoard only)."""
+        if self.writer is not None:
+            self.writer.add_scalar("eval/completion", metrics["completion"]["mean"], episodes)
+            self.writer.add_scalar("eval/failure_rate", metrics["completion"]["failure_rate"], episodes)
+            self.writer.add_scalar("eval/unused_fraction", metrics["unused_fraction"]["mean"], episodes)
+
+    def close_progress(self) -> None:
+        """Close progress.csv (training is over)."""
+        self.file.close()
+
+    def close(self) -> None:
+        """Close everything."""
+        if not self.file.closed:
+            self.file.close()
+        if self.writer is not None:
+            self.writer.close()
+
+
+# ----- the training loop ------------------------------------------------------------------------------------------
+
+
+def start_learner(
+    scenario: Scenario, settings: Settings, ckpt_dir: Path, resume: bool
+) -> tuple[Learner, dict[str, Any]]:
+    """A fresh learner, or the one of the checkpoint to resume (only RESUMABLE_CHANGES may differ in `settings`),
+    and the checkpoint's info (empty for a fresh run)."""
+    if not resume:
+        if (ckpt_dir / "meta.json").exists():
+            raise FileExistsError(
+                f"{ckpt_dir.parent}: already holds a run; resume it or choose another output directory"
+            )
+        return Learner(scenario, settings), {}
+    ck = load_checkpoint(ckpt_dir)
+    fixed = {k: v for k, v in ck.settings.to_dict().items() if k not in RESUMABLE_CHANGES}
+    mine = {k: v for k, v in settings.to_dict().items() if k in fixed}
+    if fixed != mine:
+        diff = sorted(k for k in fixed if fixed[k] != mine[k])
+        raise CheckpointError(
+            f"{ck.path}: cannot resume with changed settings {diff}; only {list(RESUMABLE_CHANGES)} may change"
+        )
+    return Learner.load(ckpt_dir, settings), ck.info
+
+
+@dataclass
+class _Run:
+    """The state of a training run between batches."""
+
+    learner: Learner
+    team: Team
+    selection: Selection
+    log: RunLog
+    bar: Progress
+    ckpt_dir: Path
+    t_start: float
+    history: list[dict[str, float]] = field(default_factory=list)
+    train_time: float = 0.0
+    last_ckpt: int = 0
+    last_val: int = 0
+
+    def save(self) -> None:
+        """Write the checkpoint: the selected networks (with select_best) and the training state."""
+        s = self.learner.settings
+        policy = self.selection.flat if s.select_best else None
+        self.learner.save(self.ckpt_dir, replay=s.keep_replay, extra=self.selection.info(), policy_flat=policy)
+
+    def batch(self) -> None:
+        """Train one batch, validate when due, log, and write a periodic checkpoint when due."""
+        learner, s = self.learner, self.learner.settings
+        t0 = time.perf_counter()
+        row = train_batch(learner, self.team, learner.episodes_done // s.envs)
+        self.train_time += time.perf_counter() - t0
+        done = learner.episodes_done
+        row["episodes"] = done
+        row["updates"] = int(learner.updates.max())
+        row["wall_s"] = round(time.perf_counter() - self.t_start, 3)
+        row["episodes_per_s"] = self.bar.rate
+        final = done >= s.episodes
+        if s.validate_every and s.validate_episodes and (done - self.last_val >= s.validate_every or final):
+            self.validate(row)
+        self.history.append(row)
+        self.log.row(row, done)
+        self.bar.update(
+            done,
+            completion=f"{row['completion']:.2f}",
+            unused=f"{row['unused_fraction']:.2f}",
+            eps=f"{row['epsilon']:.2f}",
+        )
+        if s.checkpoint_every and done - self.last_ckpt >= s.checkpoint_every and not final:
+            self.last_ckpt = done
+            self.save()
+
+    def validate(self, row: dict[str, float]) -> None:
+        """Validate the current networks into `row`; once ε has decayed, offer them to the selection."""
+        s = self.learner.settings
+        self.last_val = self.learner.episodes_done
+        vm = validate(self.learner, s.validate_episodes)
+        row["val_completion"] = vm["completion"]["mean"]
+        row["val_failure_rate"] = vm["completion"]["failure_rate"]
+        row["val_unused_fraction"] = vm["unused_fraction"]["mean"]
+        if self.learner.episodes_done >= s.eps_fraction * s.episodes:
+            self.selection.offer(vm["completion"]["mean"])
+
+
+def final_evaluation(run: _Run, out: Path) -> dict[str, Any]:
+    """Greedy evaluation of the checkpoint's networks (settings.eval_episodes episodes, seed settings.seed) into
+    out/eval; returns its metrics."""
+    s, scenario = run.learner.settings, run.learner.scenario
+    policy = QPolicy.from_checkpoint(load_checkpoint(run.ckpt_dir))
+    evaluation = evaluate_run(policy, scenario, s.eval_episodes, seed=s.seed, policy_name="htlm-dqn")
+    write_reports(evaluation, out / "eval")
+    run.log.evaluation(evaluation.metrics, run.learner.episodes_done)
+    return evaluation.metrics
+
+
+def write_result(run: _Run, out: Path, metrics: dict[str, Any], progress: bool) -> float:
+    """result.json (and the final line on stderr with `progress`); returns the wall time of the run."""
+    s = run.learner.settings
+    wall = time.perf_counter() - run.t_start
+    summary = {
+        "episodes": run.learner.episodes_done,
+        "wall_time_s": round(wall, 2),
+        "train_time_s": round(run.train_time, 2),
+        "selected_episode": run.selection.episode if s.select_best else None,
+        "metrics": metrics,
+    }
+    (out / "result.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if progress and metrics:
+        c = metrics["completion"]
+        print(
+            f"final greedy evaluation ({metrics['episodes']} episodes): completion {c['mean']:.2f} ± {c['se']:.2f}"
+            f", failures {c['failure_rate']:.1%}, unused capability {metrics['unused_fraction']['mean']:.1%}"
+            f" ({wall:.0f} s)",
+            file=sys.stderr,
+        )
+    return wall
+
+
+def train(
+    scenario: Scenario,
+    settings: Settings,
+    out_dir: str | Path,
+    progress: bool = True,
+    resume: bool = False,
+    tensorboard: bool = True,
+    evaluate_at_end: bool = True,
+) -> TrainResult:
+    """Train a team in process (Algorithm 1 with B parallel episodes) and evaluate it greedily at the end; writes the
+    run directory of the module docstring.
+
+    Args:
+        scenario: operation and team (ignored when resuming: the checkpoint's is used).
+        settings: learning settings (when resuming, only the fields in RESUMABLE_CHANGES may differ).
+        out_dir: the run directory.
+        progress: show a progress line on stderr.
+        resume: continue the run in out_dir from its checkpoint.
+        tensorboard: also write TensorBoard logs.
+        evaluate_at_end: run the final greedy evaluation (settings.eval_episodes episodes, seed settings.seed).
+    """
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    torch.set_num_threads(settings.threads)
+    torch.use_deterministic_algorithms(True)
+    ckpt_dir = out / "checkpoint"
+    learner, info = start_learner(scenario, settings, ckpt_dir, resume)
+    scenario, s = learner.scenario, settings
+    write_run_files(out, scenario, s)
+    selection = Selection(learner, info)
+    if resume:
+        selection.restore(ckpt_dir)
+    done = learner.episodes_done
+    run = _Run(
+        learner=learner,
+        team=Team(scenario, s.envs, s.seed),
+        selection=selection,
+        log=RunLog(out, done, resume, tensorboard),
+        bar=Progress(s.episodes, initial=done, unit="ep", enabled=progress),
+        ckpt_dir=ckpt_dir,
+        t_start=t_start,
+        last_ckpt=done,
+        last_val=done,
+    )
+    metrics: dict[str, Any] = {}
+    try:
+        try:
+            while learner.episodes_done < s.episodes:
+                run.batch()
+        finally:
+            run.bar.close()
+            run.log.close_progress()
+        run.save()
+        if evaluate_at_end and s.eval_episodes > 0:
+            metrics = final_evaluation(run, out)
+    finally:
+        run.log.close()
+    wall = write_result(run, out, metrics, progress)
+    return TrainResult(out, scenario, s, learner.episodes_done, wall, run.train_time, metrics, run.history)

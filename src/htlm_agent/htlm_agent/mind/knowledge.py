@@ -1,0 +1,46 @@
+"""The knowledge state K = {b, a_o} as a vector (MODEL.md, Knowledge state): the one place that builds and reads
+its layout.
+
+Layout of the last axis (K = p·L + |Ḡ| entries): the per-task marginals of the belief, task-major (p rows of L
+levels, tasks in the order fire@site1, rescue@site1, fire@site2, ...), then the one-hot previous assignment a_o over
+Ḡ; a_o = -1 (no assignment yet) is all zeros. `Scenario.knowledge_size` is its length and `Scenario.layout_hash` its
+fingerprint.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from htlm_world.scenario import Scenario
+from htlm_world.types import IntArray, Knowledge, Marginals
+
+AnyFloats = NDArray[np.floating[Any]]
+"""Knowledge states as stored anywhere: float64 in the runtimes, float32 in the replay memories."""
+
+
+def build(marg: Marginals, prev: IntArray, n_actions: int) -> Knowledge:
+    """K from marginals (..., p, L) and previous assignments (...,): (..., p·L + |Ḡ|)."""
+    flat = marg.reshape(marg.shape[:-2] + (-1,))
+    onehot = (prev[..., None] == np.arange(n_actions)).astype(np.float64)
+    return np.concatenate([flat, onehot], axis=-1)
+
+
+def marginals(k: AnyFloats, scenario: Scenario) -> AnyFloats:
+    """The marginals (..., p, L) held in knowledge states (..., K)."""
+    p, levels = scenario.n_tasks, scenario.levels
+    return k[..., : p * levels].reshape(k.shape[:-1] + (p, levels))
+
+
+def previous(k: AnyFloats, scenario: Scenario) -> IntArray:
+    """The previous assignments a_o (...,) held in knowledge states (..., K): the index of the one-hot entry, -1 when
+    there is none."""
+    onehot = k[..., scenario.n_tasks * scenario.levels :] > 0.5
+    return np.where(onehot.any(axis=-1), onehot.argmax(axis=-1), -1).astype(np.int64)
+
+
+def split(k: AnyFloats, scenario: Scenario) -> tuple[AnyFloats, IntArray]:
+    """The inverse of `build`: marginals (..., p, L) and previous assignments (...,) of knowledge states (..., K)."""
+    return marginals(k, scenario), previous(k, scenario)

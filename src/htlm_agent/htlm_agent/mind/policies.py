@@ -1,0 +1,121 @@
+"""One agent's decision rule and ε-greedy exploration (MODEL.md, Reduced action space), shared by every runtime.
+
+`epsilon_greedy` is the one definition of exploration: the in-process learner (`Learner.act`), the agent processes
+over ROS (`AgentMind`, through `choose`) and `DecentralizedPolicy` (the ROS agents' rule inside `team.rollout`) all
+call it, each agent with its own generator from `htlm_world.seeds`.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from htlm_agent.baselines.heuristics import GreedyPolicy
+from htlm_agent.mind.knowledge import split as split_knowledge
+from htlm_agent.runtime.team import Context, Policy
+from htlm_world import seeds
+from htlm_world.scenario import Scenario
+from htlm_world.types import BoolArray, FloatArray, IntArray
+
+
+class AgentPolicy(Protocol):
+    """One agent's decision rule on its own knowledge: (B, K) knowledge and (B, |G|) mask -> (B,) actions."""
+
+    def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
+        """Choose an action in the mask for every row."""
+        ...
+
+
+def epsilon_greedy(
+    greedy: IntArray, mask: BoolArray, epsilon: float | FloatArray, rng: np.random.Generator
+) -> IntArray:
+    """ε-greedy over the reduced action space Â(a_o) for one agent: with probability ε a uniform action of the mask,
+    else the greedy one.
+
+    Two uniforms (u_explore, u_action) are drawn per row whatever ε is, so the generator stays in step: the row
+    explores when u_explore < ε and then takes the ⌊u_action · |Â|⌋-th allowed action.
+
+    Args:
+        greedy: (B,) the policy's actions (in the mask).
+        mask: (B, |Ḡ|) Â(a_o) of every row.
+        epsilon: ε, one number or one per row (B,).
+        rng: this agent's exploration generator.
+
+    Returns:
+        (B,) actions.
+    """
+    greedy = np.asarray(greedy, dtype=np.int64)
+    u = rng.random((greedy.shape[0], 2))
+    allowed = mask.sum(axis=1)
+    nth = np.minimum((u[:, 1] * allowed).astype(np.int64), allowed - 1)
+    uniform = (np.cumsum(mask, axis=1) > nth[:, None]).argmax(axis=1)
+    out = np.where(u[:, 0] < epsilon, uniform, greedy).astype(np.int64)
+    assert mask[np.arange(out.shape[0]), out].all(), f"policy chose {out} outside the mask {mask}"
+    return out
+
+
+def choose(
+    policy: AgentPolicy, knowledge: FloatArray, mask: BoolArray, epsilon: float, rng: np.random.Generator
+) -> IntArray:
+    """`epsilon_greedy` around an agent policy: (B, K) knowledge and (B, |Ḡ|) masks -> (B,) actions."""
+    return epsilon_greedy(np.asarray(policy.act(knowledge, mask), dtype=np.int64), mask, epsilon, rng)
+
+
+class RowPolicy:
+    """Agent `agent`'s column of a decentralized team policy (a `team.Policy` whose agent i reads only row i of the
+    Context, such as `GreedyPolicy`), fed with that agent's own knowledge state and mask."""
+
+    def __init__(self, scenario: Scenario, policy: Policy, agent: int) -> None:
+        """Wrap `policy` for agent index `agent`."""
+        self.scenario = scenario
+        self.policy = policy
+        self.agent = agent
+
+    def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
+        """See AgentPolicy.act: read the agent's marginals and a_o from K = {b, a_o} and ask the team policy."""
+        sc = self.scenario
+        b, n = knowledge.shape[0], sc.n_agents
+        marg, prev = split_knowledge(knowledge, sc)
+        ctx = Context(
+            knowledge=np.repeat(knowledge[:, None], n, axis=1),
+            mask=np.repeat(mask[:, None], n, axis=1),
+            marginals=np.repeat(marg[:, None], n, axis=1),
+            prev=np.repeat(prev[:, None], n, axis=1),
+            t=0,
+            true_levels=np.zeros((b, sc.n_tasks), dtype=np.int64),  # decentralized policies never read it
+        )
+        return np.asarray(self.policy.act(ctx)[:, self.agent], dtype=np.int64)
+
+
+def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPolicy, float]:
+    """A policy that needs no network, and its ε: "greedy" (`GreedyPolicy` on the agent's own row) or "random"
+    (uniform over Â(a_o) from the agent's exploration generator, ε = 1)."""
+    if name not in ("greedy", "random"):
+        raise ValueError(f"unknown built-in policy {name!r}; choose greedy or random")
+    return RowPolicy(scenario, GreedyPolicy(scenario), agent), (1.0 if name == "random" else 0.0)
+
+
+class DecentralizedPolicy:
+    """The in-process Team policy made of independent per-agent policies, each on its own row of the context,
+    with ε-greedy from `seeds.explore(seed, agent, episode)`: what the agent processes do over ROS."""
+
+    def __init__(self, policies: list[AgentPolicy], seed: int, epsilon: float | list[float] = 0.0) -> None:
+        """One policy per agent; call `begin(episode)` before each `team.rollout` of batch 1."""
+        self.policies = policies
+        self.seed = seed
+        self.epsilon = [epsilon] * len(policies) if isinstance(epsilon, float) else list(epsilon)
+        self.rngs: list[np.random.Generator] = []
+
+    def begin(self, episode: int) -> None:
+        """Take every agent's exploration generator of `episode`."""
+        self.rngs = [seeds.explore(self.seed, i, episode) for i in range(len(self.policies))]
+
+    def act(self, ctx: Context) -> IntArray:
+        """Every agent's action from its own knowledge and mask (B, N)."""
+        assert self.rngs, "call begin(episode) first"
+        cols = [
+            choose(pol, ctx.knowledge[:, i], ctx.mask[:, i], self.epsilon[i], self.rngs[i])
+            for i, pol in enumerate(self.policies)
+        ]
+        return np.stack(cols, axis=1)
