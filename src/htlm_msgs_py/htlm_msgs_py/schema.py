@@ -410,7 +410,7 @@ EPISODE_METRICS = Schema(
         "absent": IntList(0, "step", length="agents"),
         "seconds": Float(0.0, 1e9),
     },
-    doc="Metrics of MODEL.md for one episode; `absent` counts the steps each agent missed (treated as idle).",
+    doc="Metrics of docs/model.md for one episode; `absent` counts the steps each agent missed (treated as idle).",
 )
 
 SCHEMAS: dict[str, Schema] = {

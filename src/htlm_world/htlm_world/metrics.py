@@ -1,4 +1,4 @@
-"""Episode metrics of MODEL.md and agent importance (Eqs. 6-9 of the paper), from recorded trajectories."""
+"""Episode metrics of docs/model.md and agent importance (Eqs. 6-9 of the paper), from recorded trajectories."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def completion_step(levels: IntArray) -> tuple[IntArray, np.ndarray]:
 
 @dataclass(frozen=True)
 class EpisodeMetrics:
-    """Per-episode metrics of MODEL.md for B episodes."""
+    """Per-episode metrics of docs/model.md for B episodes."""
 
     completion: IntArray  # (B,)
     failed: np.ndarray  # (B,) bool
@@ -42,7 +42,7 @@ class EpisodeMetrics:
 
 
 def episode_metrics(sc: Scenario, levels: IntArray, actions: IntArray) -> EpisodeMetrics:
-    """Metrics of MODEL.md from (h+1, B, p) true levels and (h, B, N) actions (-1 counts as idle)."""
+    """Metrics of docs/model.md from (h+1, B, p) true levels and (h, B, N) actions (-1 counts as idle)."""
     h, b, n = actions.shape
     p = sc.n_tasks
     comp, failed = completion_step(levels)

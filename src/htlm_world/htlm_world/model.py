@@ -1,4 +1,4 @@
-"""The transition T, observation O and information I models of MODEL.md, as probability tables.
+"""The transition T, observation O and information I models of docs/model.md, as probability tables.
 
 Each model is defined once, as a table; the simulator samples from the very same tables that the belief filter
 and the optimal baseline use (inverse-CDF sampling), so the three can never disagree.
@@ -15,7 +15,7 @@ from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
 def p_drop_table(sc: Scenario) -> FloatArray:
-    """p_drop(c, l) for c in 0..capability_max and l in 0..L-1 (MODEL.md, Transition T)."""
+    """p_drop(c, l) for c in 0..capability_max and l in 0..L-1 (docs/model.md, Transition T)."""
     cm, L = sc.capability_max, sc.levels
     table = np.zeros((cm + 1, L))
     for c in range(1, cm + 1):
@@ -27,7 +27,7 @@ def p_drop_table(sc: Scenario) -> FloatArray:
 
 
 def fire_table(sc: Scenario) -> FloatArray:
-    """T_fire[c, f, f']: next fire level given joint fire capability c and level f (MODEL.md)."""
+    """T_fire[c, f, f']: next fire level given joint fire capability c and level f (docs/model.md)."""
     cm, L = sc.capability_max, sc.levels
     pd = p_drop_table(sc)
     t = np.zeros((cm + 1, L, L))
@@ -67,7 +67,7 @@ def rescue_table(sc: Scenario) -> FloatArray:
 
 
 def observation_table(sc: Scenario) -> FloatArray:
-    """O[s, l, z]: probability of observing z when the true level is l, for sensing s (MODEL.md)."""
+    """O[s, l, z]: probability of observing z when the true level is l, for sensing s (docs/model.md)."""
     cm, L = sc.capability_max, sc.levels
     t = np.zeros((cm + 1, L, L))
     for s in range(cm + 1):
@@ -86,7 +86,7 @@ def keep_probability(sc: Scenario, comm: int) -> float:
 
 
 def information_table(sc: Scenario) -> FloatArray:
-    """I[s, comm, l, m] = tau O_s(m | l) + (1 - tau) / L: likelihood of a teammate's message (MODEL.md)."""
+    """I[s, comm, l, m] = tau O_s(m | l) + (1 - tau) / L: likelihood of a teammate's message (docs/model.md)."""
     cm, L = sc.capability_max, sc.levels
     obs = observation_table(sc)
     t = np.zeros((cm + 1, cm + 1, L, L))
@@ -154,7 +154,7 @@ class Model:
         return (self.scenario.n_tasks + site).astype(np.int64)
 
     def action_mask(self, prev: IntArray) -> BoolArray:
-        """Â(a_o), the reduced action space (MODEL.md): the p tasks and the idle location at the site of a_o
+        """Â(a_o), the reduced action space (docs/model.md): the p tasks and the idle location at the site of a_o
         (HT mode: the p tasks). (...,) previous assignments -> (..., |G|) mask."""
         prev = np.asarray(prev, dtype=np.int64)
         p = self.scenario.n_tasks
@@ -187,7 +187,7 @@ class Model:
         return out
 
     def sample_transition(self, levels: IntArray, caps: IntArray, u: FloatArray) -> IntArray:
-        """Next levels of T by inverse CDF from uniforms u of shape (..., p) (MODEL.md, Transition T)."""
+        """Next levels of T by inverse CDF from uniforms u of shape (..., p) (docs/model.md, Transition T)."""
         fire_lv = levels[..., 0::2]
         nxt = np.empty_like(levels)
         fcdf = self.fire_cdf[caps[..., 0::2], fire_lv]

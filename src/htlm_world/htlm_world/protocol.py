@@ -163,7 +163,7 @@ class WorldEpisode:
         return StepOutcome(actions=actions, acted=acted, levels=nxt[0], observations=obs[0])
 
     def metrics(self) -> dict[str, Any]:
-        """The episode_metrics record of the finished episode (MODEL.md metrics plus absences)."""
+        """The episode_metrics record of the finished episode (docs/model.md metrics plus absences)."""
         sc = self.scenario
         levels = np.stack(self.level_log)[:, None, :]  # (t+1, 1, p)
         actions = np.stack(self.action_log)[:, None, :]  # (t, 1, N)

@@ -1,6 +1,6 @@
-"""Scenario files: every number of the model (MODEL.md), as frozen dataclasses loaded from YAML.
+"""Scenario files: every number of the model (docs/model.md), as frozen dataclasses loaded from YAML.
 
-The built-in scenario "paper" with the three teams of MODEL.md is the default. A scenario file only needs the keys
+The built-in scenario "paper" with the three teams of docs/model.md is the default. A scenario file only needs the keys
 it changes; anything it says is checked (types by `htlm_msgs_py.validation.convert`, ranges by `validate`), and a
 bad value stops loading with a message naming the file, the field and the value.
 """
@@ -23,10 +23,10 @@ TEAMS: dict[str, tuple[tuple[int, int], ...]] = {
     "semi-heterogeneous": ((3, 1), (3, 1), (1, 1), (2, 2), (2, 2)),
     "homogeneous": ((2, 1),) * 5,
 }
-"""(fire, rescue) capability of agents 1..5 in each team of MODEL.md."""
+"""(fire, rescue) capability of agents 1..5 in each team of docs/model.md."""
 
 REASSIGN_COSTS: dict[str, float] = {"none": 0.0, "medium": -1.0, "high": -4.0}
-"""Traversing cost tc of the reassignment penalty T_RP, by level name (MODEL.md)."""
+"""Traversing cost tc of the reassignment penalty T_RP, by level name (docs/model.md)."""
 
 TASK_TYPES: tuple[str, str] = ("fire", "rescue")
 
@@ -37,7 +37,7 @@ class ScenarioError(ValueError):
 
 @dataclass(frozen=True)
 class RewardParams:
-    """Parameters of the reward f_R = R_comp + R_II + T_RP (MODEL.md, Eq. 3-5 of the paper)."""
+    """Parameters of the reward f_R = R_comp + R_II + T_RP (docs/model.md, Eq. 3-5 of the paper)."""
 
     level_rewards: tuple[float, ...] = (10.0, 5.0, 2.0, 1.0, 0.0)
     """R_l, the completion reward of a task confidently at level l (one per level)."""
@@ -75,7 +75,7 @@ class AgentSpec:
 
 @dataclass(frozen=True)
 class Scenario:
-    """Every number of the HTLM model (MODEL.md). Defaults are the scenario "paper", heterogeneous team."""
+    """Every number of the HTLM model (docs/model.md). Defaults are the scenario "paper", heterogeneous team."""
 
     name: str = "paper"
     """Scenario name, written into every report and checkpoint."""
@@ -215,7 +215,7 @@ def _to_plain(x: Any) -> Any:
 
 
 def make_team(team: str, **reward: Any) -> tuple[AgentSpec, ...]:
-    """The agents of a built-in team of MODEL.md."""
+    """The agents of a built-in team of docs/model.md."""
     if team not in TEAMS:
         raise ScenarioError(f"unknown team {team!r}; choose one of {sorted(TEAMS)}")
     return tuple(AgentSpec(name=f"agent{i + 1}", fire=f, rescue=r) for i, (f, r) in enumerate(TEAMS[team]))
@@ -227,7 +227,7 @@ def builtin(
     reassign: str = "medium",
     mode: Literal["htlm", "ht"] = "htlm",
 ) -> Scenario:
-    """The built-in scenario "paper" with a team of MODEL.md and the given load-management settings."""
+    """The built-in scenario "paper" with a team of docs/model.md and the given load-management settings."""
     if reassign not in REASSIGN_COSTS:
         raise ScenarioError(f"unknown reassignment level {reassign!r}; choose one of {list(REASSIGN_COSTS)}")
     reward = RewardParams(idle_incentive=idle_incentive, reassign_cost=REASSIGN_COSTS[reassign])

@@ -31,7 +31,7 @@ class StepResult:
 def sample_world_step(
     model: Model, levels: Levels, actions: Actions, rng: np.random.Generator
 ) -> tuple[Levels, Observations, IntArray]:
-    """Apply T to the joint assignment and draw every working agent's observation O (MODEL.md).
+    """Apply T to the joint assignment and draw every working agent's observation O (docs/model.md).
 
     Returns the next levels, the observations (-1 for idle agents) and the joint capabilities.
     """

@@ -1,5 +1,5 @@
 """The centralized, fully observed optimum: value iteration over the joint state of every site with every joint
-action (MODEL.md, Reference figures). Joint actions are grouped by the capability vector they produce, since T
+action (docs/model.md, Reference figures). Joint actions are grouped by the capability vector they produce, since T
 depends on the assignment only through it.
 """
 
@@ -58,7 +58,7 @@ def capability_vectors(model: Model) -> tuple[IntArray, IntArray]:
 
 
 def solve(sc: Scenario) -> OptimalSolution:
-    """Finite-horizon value iteration for the expected completion step (MODEL.md, Reference figures).
+    """Finite-horizon value iteration for the expected completion step (docs/model.md, Reference figures).
 
     V_0(s) = 0; V_k(s) = 0 if s is complete, else 1 + min_c sum_s' T_c(s, s') V_{k-1}(s'). V_h(s0) is the
     expected completion step with never-completed episodes counted as h.

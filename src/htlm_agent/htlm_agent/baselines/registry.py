@@ -17,7 +17,7 @@ from htlm_world.scenario import Scenario
 
 
 def ht_scenario(scenario: Scenario) -> Scenario:
-    """The HT Dec-POMDP version of a scenario: no idle locations, R_LM = 0 (MODEL.md)."""
+    """The HT Dec-POMDP version of a scenario: no idle locations, R_LM = 0 (docs/model.md)."""
     return scenario.replace(mode="ht")
 
 

@@ -27,7 +27,7 @@ ROS_BENCH = "htlm_agent.experiments.ros_bench"
 """Module providing `ros_bench(args: argparse.Namespace) -> dict` and optionally `add_arguments(parser)`."""
 
 OPTIMUM = {"heterogeneous": 7.09, "semi-heterogeneous": 6.70, "homogeneous": 7.61}
-"""Expected completion step of the centralized optimum (MODEL.md, Reference figures)."""
+"""Expected completion step of the centralized optimum (docs/model.md, Reference figures)."""
 
 TARGETS = {"completion_ratio": 1.25, "failure_rate": 0.01, "unused_fraction": 0.71}
 """Quality targets of a default run: completion <= 1.25 x optimum, failures <= 1 %, unused capability >= 71 %."""

@@ -1,6 +1,6 @@
 """`htlm evaluate`: greedy evaluation of a trained team (--policy) or a baseline (--baseline) in the batched simulator.
 
-Reports the metrics of MODEL.md per team and per agent, and writes metrics.json, summary.csv, episodes.csv and
+Reports the metrics of docs/model.md per team and per agent, and writes metrics.json, summary.csv, episodes.csv and
 completion_hist.png. `--inactivate` makes agents always idle, without retraining.
 """
 

@@ -1,6 +1,6 @@
 """Greedy evaluation of a team policy in the batched runtime, and the reports of `htlm evaluate` / `htlm importance`.
 
-Every figure is a metric of MODEL.md (Metrics of one episode) computed by `htlm_world.metrics` from the recorded
+Every figure is a metric of docs/model.md (Metrics of one episode) computed by `htlm_world.metrics` from the recorded
 trajectories; this module only runs the episodes, aggregates and writes files.
 """
 
@@ -73,7 +73,7 @@ def summarize(
 ) -> dict[str, Any]:
     """Aggregate per-episode metrics into the report dictionary (team and per agent).
 
-    Besides the metrics of MODEL.md, "completion" holds `mean_completed` (mean over the episodes that completed) and
+    Besides the metrics of docs/model.md, "completion" holds `mean_completed` (mean over the completed episodes) and
     `false_completion_rate` (episodes that failed although every agent's belief says every task is done: agents that
     idle on a wrong belief, which no learning from the belief-based reward can correct).
     """

@@ -58,7 +58,7 @@ class Config:
         return f"{'R_II' if self.idle else 'no R_II'}, {self.reassign} T_RP"
 
     def scenario(self) -> Scenario:
-        """The scenario of this configuration (MODEL.md defaults otherwise)."""
+        """The scenario of this configuration (docs/model.md defaults otherwise)."""
         return builtin(self.team, 1.0 if self.idle else 0.0, self.reassign, mode="ht" if self.mode == "ht" else "htlm")
 
 
@@ -88,7 +88,7 @@ class Budget:
     envs: int | None
     """Parallel training episodes (None: default)."""
     eval_episodes: int
-    """Evaluation episodes per configuration (MODEL.md: 500)."""
+    """Evaluation episodes per configuration (docs/model.md: 500)."""
     inactivation_episodes: int
     """Episodes per inactivation histogram (paper: 200)."""
 

@@ -1,4 +1,4 @@
-"""Q-networks (MODEL.md, Knowledge state, actions, Q-network): one MLP per agent, stacked for speed.
+"""Q-networks (docs/model.md, Knowledge state, actions, Q-network): one MLP per agent, stacked for speed.
 
 Every agent has its own network Q(K, ·; θ_i) from its knowledge state (p·L marginals + one-hot a_o) to one Q-value
 per element of Ḡ. The N networks of a team are stored as stacked parameters of shape (N, ...) and evaluated as one

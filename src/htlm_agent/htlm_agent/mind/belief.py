@@ -1,4 +1,4 @@
-"""The belief filter of MODEL.md (Eq. 2 of the paper): per-site joint belief over (fire, rescue) levels.
+"""The belief filter of docs/model.md (Eq. 2 of the paper): per-site joint belief over (fire, rescue) levels.
 
 Vectorized over a batch of episodes and the agents of a team: beliefs have shape (B, N, S, L, L).
 """
@@ -47,7 +47,7 @@ def agent_evidence(
 ) -> FloatArray:
     """Likelihood of agent `agent`'s evidence of one step for every task level: (B, p, L).
 
-    Its own observation is weighed with O, teammate k's message with I_k (MODEL.md, Information I).
+    Its own observation is weighed with O, teammate k's message with I_k (docs/model.md, Information I).
 
     Args:
         actions: (B, N) the joint assignment of the step (as the agent knows it).
@@ -93,7 +93,7 @@ def update(model: Model, belief: Belief, caps: IntArray, likelihood: FloatArray)
 
     Returns:
         The new belief and a (...) mask of agents whose evidence had zero probability: they keep the prediction
-        (MODEL.md), and the caller counts the event.
+        (docs/model.md), and the caller counts the event.
     """
     pred = predict(model, belief, caps)
     post = pred * likelihood[..., 0::2, :, None] * likelihood[..., 1::2, None, :]

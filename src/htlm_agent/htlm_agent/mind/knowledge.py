@@ -1,4 +1,4 @@
-"""The knowledge state K = {b, a_o} as a vector (MODEL.md, Knowledge state): the one place that builds and reads
+"""The knowledge state K = {b, a_o} as a vector (docs/model.md, Knowledge state): the one place that builds and reads
 its layout.
 
 Layout of the last axis (K = p·L + |Ḡ| entries): the per-task marginals of the belief, task-major (p rows of L

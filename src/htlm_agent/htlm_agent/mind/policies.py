@@ -1,4 +1,4 @@
-"""One agent's decision rule and ε-greedy exploration (MODEL.md, Reduced action space), shared by every runtime.
+"""One agent's decision rule and ε-greedy exploration (docs/model.md, Reduced action space), shared by every runtime.
 
 `epsilon_greedy` is the one definition of exploration: the in-process learner (`Learner.act`), the agent processes
 over ROS (`AgentMind`, through `choose`) and `DecentralizedPolicy` (the ROS agents' rule inside `team.rollout`) all

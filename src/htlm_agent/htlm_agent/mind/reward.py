@@ -1,4 +1,4 @@
-"""The reward f_R(a_o, b, a) = R_comp + R_II + T_RP of MODEL.md (Eqs. 3-5 of the paper). The reduced action space
+"""The reward f_R(a_o, b, a) = R_comp + R_II + T_RP of docs/model.md (Eqs. 3-5 of the paper). The reduced action space
 Â(a_o) is `Model.action_mask`."""
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def confident_levels(marg: Marginals, threshold: FloatArray) -> IntArray:
 def reward(
     model: Model, tables: RewardTables, prev: IntArray, marg: Marginals, actions: IntArray
 ) -> tuple[FloatArray, dict[str, FloatArray]]:
-    """f_R for every agent (MODEL.md, Reward), from its own updated belief.
+    """f_R for every agent (docs/model.md, Reward), from its own updated belief.
 
     Args:
         prev: (B, N) previous assignments a_o (-1: none).

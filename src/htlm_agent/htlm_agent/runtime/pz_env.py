@@ -1,11 +1,11 @@
 """A PettingZoo ParallelEnv over the in-process `Team` (one episode at a time), for the MARL tools users know.
 
-Every agent of the scenario is a PettingZoo agent. Its observation is its knowledge state K = {b, a_o} (MODEL.md,
+Every agent of the scenario is a PettingZoo agent. Its observation is its knowledge state K = {b, a_o} (docs/model.md,
 Knowledge state) with the reduced action space Â(a_o) as an action mask, in PettingZoo's convention::
 
     {"observation": Box(0, 1, (p·L + |Ḡ|,), float64), "action_mask": MultiBinary(|Ḡ|)}
 
-Its action is an index into Ḡ (Discrete(|Ḡ|)), its reward its own f_R (MODEL.md, Reward). Episodes always run the
+Its action is an index into Ḡ (Discrete(|Ḡ|)), its reward its own f_R (docs/model.md, Reward). Episodes always run the
 whole horizon: terminations are always False and every agent is truncated at step h.
 
 Actions outside Â(a_o). Â excludes only the idle locations at other sites than a_o's, so the one kind of action
