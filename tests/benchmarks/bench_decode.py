@@ -8,6 +8,15 @@ timing, each variant is checked to accept the record and to reject a few bad one
 
 Run: `.venv/bin/python tests/benchmarks/bench_decode.py [--n 20000] [--repeat 5]` (pydantic is optional: it is
 not a dependency of the project, the variant is skipped when it is not installed).
+
+Measured on the 2-core development machine (Python 3.11, msgspec 0.22.0, pydantic 2.14.3), µs per transition
+record of 1036 characters: hand-written 27.4, pydantic 12.7, msgspec 5.7; schema.decode on msgspec 7.1 (it also
+keeps ints in float fields as ints and checks the distinct entries msgspec has no constraint for). Under load the
+numbers double, the ratios stay. msgspec was chosen: about 2x faster than pydantic and 4-5x faster than the
+hand-written checks; strict by default where pydantic's strict mode still lets true and 1.0 pass for `Literal[1]`
+(the "v" member); no dependencies of its own; one library for the records and the settings files
+(`msgspec.convert`). Its errors name the path (`$.k[5]`) but not the value, so the value is looked up at that
+path when a record is rejected (the rare path; accepted records pay nothing for it).
 """
 
 from __future__ import annotations
