@@ -10,24 +10,15 @@ import numpy as np
 import pytest
 
 from htlm_agent.baselines.heuristics import GreedyPolicy
-from htlm_agent.learning.transition_store import (
-    StoreError,
-    TrainerSettings,
-    TransitionStore,
-    read_store,
-    validate_trainer_settings,
-)
-from htlm_agent.mind.agent import (
-    AgentMind,
-    AgentSettings,
-    loopback_episode,
-    validate_agent_settings,
-)
+from htlm_agent.learning.transition_store import StoreError, TransitionStore, read_store
+from htlm_agent.mind.agent import AgentMind, loopback_episode
 from htlm_agent.mind.policies import DecentralizedPolicy, builtin_policy
 from htlm_agent.ros.launch import LaunchConfig, process_specs, ros_env, write_params
+from htlm_agent.ros.settings import AgentSettings, TrainerSettings, validate_agent_settings, validate_trainer_settings
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.model import Model
-from htlm_world.protocol import WorldEpisode, WorldSettings, validate_world_settings
+from htlm_world.protocol import WorldEpisode
+from htlm_world.ros.settings import WorldSettings, validate_world_settings
 from htlm_world.scenario import builtin
 
 FIELDS = ("levels", "actions", "observations", "messages", "rewards")

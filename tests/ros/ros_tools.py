@@ -4,7 +4,8 @@
 - fuzz: publish malformed records on every subscribed topic of a team, then write how many went out per topic;
 - rogue: a stranger without the team key publishing plausible, well-formed forged observations, broadcasts and
   actions for every step of the episodes it sees begin;
-- setparam: set a parameter of a running node (what `ros2 param set` does).
+- setparam: set a parameter of a running node (what `ros2 param set` does);
+- describe: list and describe every parameter of running nodes (what `ros2 param describe` shows).
 """
 
 from __future__ import annotations
@@ -260,6 +261,40 @@ def setparam(args: argparse.Namespace) -> None:
     Path(args.out).write_text(json.dumps({"successful": ok, "reasons": reasons}))
 
 
+def describe(args: argparse.Namespace) -> None:
+    from rclpy.parameter_client import AsyncParameterClient
+
+    node = Node("test_describe")
+    out: dict[str, dict[str, Any]] = {}
+    for name in args.nodes.split(","):
+        client = AsyncParameterClient(node, name)
+        if not client.wait_for_services(timeout_sec=30.0):
+            raise SystemExit(f"no parameter services of {name}")
+        future = client.list_parameters()
+        rclpy.spin_until_future_complete(node, future, timeout_sec=20.0)
+        listed = future.result()
+        if listed is None:
+            raise SystemExit(f"{name}: list_parameters did not answer")
+        names = sorted(listed.result.names)
+        future = client.describe_parameters(names)
+        rclpy.spin_until_future_complete(node, future, timeout_sec=20.0)
+        described = future.result()
+        if described is None:
+            raise SystemExit(f"{name}: describe_parameters did not answer")
+        out[name] = {
+            d.name: {
+                "type": d.type,
+                "description": d.description,
+                "additional_constraints": d.additional_constraints,
+                "read_only": d.read_only,
+                "floating_point_range": [[r.from_value, r.to_value, r.step] for r in d.floating_point_range],
+                "integer_range": [[r.from_value, r.to_value, r.step] for r in d.integer_range],
+            }
+            for d in described.descriptors
+        }
+    Path(args.out).write_text(json.dumps(out))
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -289,11 +324,14 @@ def main() -> None:
     sp.add_argument("--node", default="/htlm_world")
     sp.add_argument("--name", required=True)
     sp.add_argument("--value", required=True, help="JSON value")
+    ds = sub.add_parser("describe")
+    ds.add_argument("--out", required=True)
+    ds.add_argument("--nodes", required=True, help="comma-separated node names, e.g. /htlm_world,/htlm_trainer")
     args = p.parse_args()
     faulthandler.register(signal.SIGUSR1)
     rclpy.init()
     try:
-        {"diag": diag, "fuzz": fuzz, "rogue": rogue, "setparam": setparam}[args.cmd](args)
+        {"diag": diag, "fuzz": fuzz, "rogue": rogue, "setparam": setparam, "describe": describe}[args.cmd](args)
     finally:
         rclpy.try_shutdown()
 

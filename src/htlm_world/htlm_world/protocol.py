@@ -1,105 +1,67 @@
-"""The world's side of the lockstep protocol, without ROS: settings of the world node and one episode's state.
+"""The world's side of the lockstep protocol, without ROS: one episode's state (`WorldEpisode`) and the protocol
+that sequences episodes and steps (`WorldProtocol`).
 
-The world node (world_node.py) only moves messages and deadlines; this module applies the model. One episode
-of batch 1 draws from seeds.world(seed, episode) exactly as the in-process Team(scenario, 1, seed, episode) does,
-so with the same actions both runtimes produce the same levels and observations.
+The world node (htlm_world.ros.world_node) only decodes messages, feeds them and the time to `WorldProtocol` and
+publishes the records it returns; everything the world decides (phases, deadlines, which agents are present, late
+and duplicate answers, the free-running clock, the start and end of episodes and of the run) is decided here, so the
+unit tests drive it in one process. One episode of batch 1 draws from seeds.world(seed, episode) exactly as the
+in-process Team(scenario, 1, seed, episode) does, so with the same actions both runtimes produce the same levels and
+observations.
 """
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from htlm_world import seeds
 from htlm_world.metrics import episode_metrics
 from htlm_world.model import Model
-from htlm_world.scenario import TEAMS, Scenario, ScenarioError, builtin, load
-from htlm_world import seeds
+from htlm_world.scenario import Scenario
 from htlm_world.simulator import sample_world_step
 from htlm_world.types import IntArray
 
+NUDGE = 0.5
+"""Seconds between two announcements of an episode's begin while the world waits for the agents."""
+
+ABSENT_LOG_PERIOD = 5.0
+"""Least seconds between two warnings about agents that missed a step."""
+
 
 @dataclass(frozen=True)
-class WorldSettings:
-    """Parameters of the world node (one ROS parameter per field)."""
+class LockstepSettings:
+    """What the world's side of the protocol needs to know about the run (the world node's parameters)."""
 
-    scenario: str = ""
-    """Scenario YAML file; empty: the built-in scenario "paper" with `team`."""
-    team: str = "heterogeneous"
-    """Built-in team when `scenario` is empty."""
     seed: int = 0
-    """Master seed of the run: the world and every agent derive their generators from it."""
+    """Master seed of the run."""
     mode: str = "evaluate"
-    """train (agents explore and send transitions), evaluate or deploy (greedy policies)."""
+    """train, evaluate or deploy (announced to the agents and the trainer)."""
     episodes: int = 10
-    """Episodes to run; 0 runs until stopped (may be changed while running: the run ends after that many)."""
+    """Episodes to run; 0 runs until stopped (read again after every episode)."""
     first_episode: int = 0
-    """Index of the first episode (seeds are derived from the episode index)."""
+    """Index of the first episode."""
     clock: str = "lockstep"
     """lockstep: advance as soon as every live agent answered; free: one step every `period` seconds."""
     period: float = 0.5
     """Step period of the free-running clock, seconds."""
     act_deadline: float = 2.0
-    """Longest wait for the agents' actions of a step, seconds; a silent agent is idle for that step."""
+    """Longest wait for the agents' actions of a step, seconds."""
     update_deadline: float = 2.0
-    """Longest wait for the agents' ready after their belief update, seconds."""
+    """Longest wait for the agents' ready after the last step, seconds."""
     begin_deadline: float = 3.0
-    """Longest wait at the start of an episode for agents to reset (a restarted agent rejoins here), seconds."""
+    """Longest wait at the start of an episode for every agent to answer, seconds."""
     join_timeout: float = 60.0
-    """Longest wait at the start of the run for every agent to be up, seconds."""
+    """Longest wait at the start of the first episode for every agent to answer, seconds."""
     linger: float = 1.0
-    """Seconds to keep running after the last episode so every node sees the run stop."""
-    run_id: str = ""
-    """Run identifier announced on /htlm/scenario; empty: derived from the seed and the clock."""
-    run_dir: str = ""
-    """Directory for the world's episode log (world.jsonl); empty: no file."""
-    diagnostics_period: float = 1.0
-    """Seconds between /diagnostics messages."""
-    executor: str = "events"
-    """events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
-
-
-def validate_world_settings(s: WorldSettings) -> list[str]:
-    """Problems of a WorldSettings, each naming the parameter and the value (empty when valid)."""
-    bad: list[str] = []
-    if s.scenario == "" and s.team not in TEAMS:
-        bad.append(f"team: {s.team!r} is not one of {sorted(TEAMS)}")
-    if s.seed < 0:
-        bad.append(f"seed: {s.seed!r} must be >= 0")
-    if s.mode not in ("train", "evaluate", "deploy"):
-        bad.append(f"mode: {s.mode!r} is not one of train, evaluate, deploy")
-    if s.episodes < 0:
-        bad.append(f"episodes: {s.episodes!r} must be >= 0")
-    if s.first_episode < 0:
-        bad.append(f"first_episode: {s.first_episode!r} must be >= 0")
-    if s.clock not in ("lockstep", "free"):
-        bad.append(f"clock: {s.clock!r} is not one of lockstep, free")
-    for name in ("period", "act_deadline", "update_deadline", "begin_deadline", "join_timeout", "diagnostics_period"):
-        v = getattr(s, name)
-        if not 0.0 < v <= 3600.0:
-            bad.append(f"{name}: {v!r} must be in (0, 3600] seconds")
-    if not 0.0 <= s.linger <= 60.0:
-        bad.append(f"linger: {s.linger!r} must be in [0, 60] seconds")
-    if s.run_id and not all(c.isalnum() or c in "_.:-" for c in s.run_id):
-        bad.append(f"run_id: {s.run_id!r} may hold only letters, digits and _.:-")
-    if s.executor not in ("events", "single"):
-        bad.append(f"executor: {s.executor!r} is not one of events, single")
-    return bad
-
-
-def load_scenario(s: WorldSettings) -> Scenario:
-    """The scenario the settings name (a file, else the built-in one with the team).
-
-    Raises:
-        ScenarioError: the file is missing or invalid.
-    """
-    if s.scenario:
-        return load(s.scenario)
-    if s.team not in TEAMS:
-        raise ScenarioError(f"team: {s.team!r} is not one of {sorted(TEAMS)}")
-    return builtin(s.team)
+    """Seconds between the end of the last episode and the end of the run."""
+    run_id: str = "run"
+    """Run identifier announced on /htlm/scenario."""
 
 
 @dataclass
@@ -115,8 +77,9 @@ class StepOutcome:
 class WorldEpisode:
     """One episode of the operation as the world process runs it: batch 1, its own world generator."""
 
-    def __init__(self, scenario: Scenario, model: Model, seed: int, episode: int) -> None:
-        """Start episode `episode` of the run with master seed `seed` at the initial levels."""
+    def __init__(self, scenario: Scenario, model: Model, seed: int, episode: int, started: float | None = None) -> None:
+        """Start episode `episode` of the run with master seed `seed` at the initial levels (at monotonic time
+        `started`, now when None)."""
         self.scenario = scenario
         self.model = model
         self.episode = episode
@@ -129,16 +92,11 @@ class WorldEpisode:
         self.level_log: list[IntArray] = [self.levels[0].copy()]
         self.action_log: list[IntArray] = []
         self.obs_log: list[IntArray] = []
-        self.started = time.monotonic()
+        self.started = time.monotonic() if started is None else started
 
     def idle_action(self, agent: int) -> int:
         """What an absent agent does: idle at the site of its previous assignment (HT mode: nothing, -1)."""
-        sc = self.scenario
-        if sc.n_idle == 0:
-            return -1
-        prev = int(self.prev[agent])
-        site = int(self.model.action_site[prev]) if prev >= 0 else 0
-        return sc.n_tasks + site
+        return int(self.model.idle_action(self.prev[agent]))
 
     def step(self, chosen: dict[int, int]) -> StepOutcome:
         """Apply T to the joint assignment: `chosen` maps agent -> action; every other agent is absent (idle)."""
@@ -162,8 +120,9 @@ class WorldEpisode:
         self.obs_log.append(obs[0].copy())
         return StepOutcome(actions=actions, acted=acted, levels=nxt[0], observations=obs[0])
 
-    def metrics(self) -> dict[str, Any]:
-        """The episode_metrics record of the finished episode (docs/model.md metrics plus absences)."""
+    def metrics(self, now: float | None = None) -> dict[str, Any]:
+        """The episode_metrics record of the finished episode (docs/model.md metrics plus absences), finished at
+        monotonic time `now` (now when None)."""
         sc = self.scenario
         levels = np.stack(self.level_log)[:, None, :]  # (t+1, 1, p)
         actions = np.stack(self.action_log)[:, None, :]  # (t, 1, N)
@@ -177,7 +136,7 @@ class WorldEpisode:
             "idle_before": int(m.idle_before[0]),
             "reassign_before": int(m.reassign_before[0]),
             "absent": [int(x) for x in self.absent],
-            "seconds": round(time.monotonic() - self.started, 6),
+            "seconds": round((time.monotonic() if now is None else now) - self.started, 6),
         }
 
     def trajectory(self) -> dict[str, Any]:
@@ -186,4 +145,348 @@ class WorldEpisode:
             "levels": np.stack(self.level_log).tolist(),
             "actions": np.stack(self.action_log).tolist() if self.action_log else [],
             "observations": np.stack(self.obs_log).tolist() if self.obs_log else [],
+        }
+
+
+# ----- the protocol -----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class WorldEffects:
+    """What the node must do after feeding the protocol one message or one look at the clock, in this order."""
+
+    publish: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
+    """Records to publish, in order, as (kind, fields): kind is scenario, step, observation (fields name the
+    agent), ground_truth (only worth publishing when someone listens) or episode_metrics."""
+    log: list[tuple[str, str]] = field(default_factory=list)
+    """Log lines as (level, text), level info or warning."""
+    counters: Counter[str] = field(default_factory=Counter)
+    """Counters to add to the node's diagnostics (absent_agent_steps, late_ready)."""
+    drops: list[tuple[str, str]] = field(default_factory=list)
+    """Well-formed records the protocol dropped, as (topic, reason): past, future, duplicate."""
+    rejects: list[tuple[str, str, str]] = field(default_factory=list)
+    """Records refused as invalid for the state of the episode, as (topic, reason, detail)."""
+    episode_log: list[dict[str, Any]] = field(default_factory=list)
+    """Finished episodes for the world's episode log (world.jsonl): run, metrics, levels, actions, observations."""
+    status_changed: bool = False
+    """The run ended (or stopped): publish the node's status now."""
+
+
+class WorldProtocol:
+    """The world's side of the lockstep protocol (docs/ros.md), fed with decoded messages and the time.
+
+    Per episode: announce `begin` (again every NUDGE seconds) until every agent answered with its action for step 1
+    and listens to its observations, or the begin deadline (`join_timeout` for the first episode); per step t: wait
+    for the actions of the live agents until `act_deadline` (a silent agent idles at its site for the step, is
+    counted absent, and is no longer waited for until it is heard again), apply T, send every agent its observation
+    and the ground truth; each agent's next action, sent after its belief update, is also its "ready"; after the
+    last step wait for the agents' ready (`update_deadline`), then publish `end` and the episode metrics. With the
+    free-running clock, a step is applied every `period` seconds whoever answered. A record of a past or future step
+    is dropped and counted, a repeated one too; an agent heard one step late is waited for again from then on.
+
+    Every method takes `now` (monotonic seconds) and returns the `WorldEffects` to carry out; `next_wakeup` says
+    when the protocol next needs a `tick` even if no message arrives.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        settings: LockstepSettings,
+        model: Model | None = None,
+        listening: Callable[[int], bool] | None = None,
+    ) -> None:
+        """The protocol of one run; `listening(agent)` tells whether the agent's observations have a reader (the
+        begin of an episode waits for it; None: always)."""
+        self.scenario = scenario
+        self.model = model if model is not None else Model.build(scenario)
+        self.settings = settings
+        self.listening = listening if listening is not None else (lambda _agent: True)
+        self.layout = scenario.layout_hash()
+        self.scenario_dict = scenario.to_dict()
+        self.phase = "idle"
+        """idle (not started), act (waiting for the actions of step t), end (waiting for the readies after the
+        last step), stopped (the run is over)."""
+        self.joining = False
+        """Whether the episode's begin is being announced (phase act, step 1)."""
+        self.episode = -1
+        self.t = 0
+        self.ep: WorldEpisode | None = None
+        self.answers: dict[int, int] = {}
+        """What each agent answered in the current phase: its action, or 0 for a ready."""
+        self.present: set[int] = set()
+        """The agents heard lately: the live agents a lockstep step waits for."""
+        self.waiting: set[int] = set()
+        """The agents the current phase waits for (the live set `present` itself while it grows)."""
+        self.deadline = math.inf
+        self.nudge_at = math.inf
+        self.clock_at = 0.0
+        self.linger_until = math.inf
+        self.first = True
+        self.done = False
+        self.episodes_done = 0
+        self.absent_total = 0
+        self._absent_warned = -math.inf
+
+    # ----- the run ------------------------------------------------------------------------------------------------
+    def start(self, now: float) -> WorldEffects:
+        """Announce the run and the begin of its first episode."""
+        out = WorldEffects()
+        out.publish.append(("scenario", self.scenario_record("running")))
+        self._next_episode(self.settings.first_episode, now, out)
+        self._progress(now, out)
+        return out
+
+    def stop(self, now: float) -> WorldEffects:
+        """The node was told to stop: end the run at once (the scenario's state turns to stopped)."""
+        out = WorldEffects()
+        if self.phase != "stopped":
+            self.phase = "stopped"
+            self.joining = False
+            out.publish.append(("scenario", self.scenario_record("stopped")))
+            out.status_changed = True
+        self.done = True
+        return out
+
+    def in_run(self, episode: int) -> bool:
+        """Whether `episode` is one of the run's (with the current `episodes`)."""
+        s = self.settings
+        return s.episodes == 0 or episode < s.first_episode + s.episodes
+
+    def next_wakeup(self) -> float:
+        """The monotonic time of the next deadline, announcement or clock tick (inf: none)."""
+        if self.done:
+            return math.inf
+        if self.phase == "stopped":
+            return self.linger_until
+        if self.joining:
+            return min(self.deadline, self.nudge_at)
+        return self.deadline
+
+    def tick(self, now: float) -> WorldEffects:
+        """Look at the clock (and, while an episode begins, at who listens): apply what is due."""
+        out = WorldEffects()
+        self._progress(now, out)
+        return out
+
+    # ----- messages in --------------------------------------------------------------------------------------------
+    def on_action(self, rec: dict[str, Any], now: float) -> WorldEffects:
+        """A decoded action record {agent, episode, step, action}."""
+        out = WorldEffects()
+        if not self._accept("action", rec, "act", out):
+            return out
+        k, a = rec["agent"], rec["action"]
+        if k in self.answers:
+            out.drops.append(("action", "duplicate"))
+            return out
+        assert self.ep is not None
+        if not self.model.action_mask(self.ep.prev[k])[a]:  # an idle location away from the site of a_o
+            out.rejects.append(("action", "range", f"agent {k} action {a} is not in Â(a_o) of a_o {self.ep.prev[k]}"))
+            return out
+        self.answers[k] = a
+        self.present.add(k)
+        self._progress(now, out)
+        return out
+
+    def on_ready(self, rec: dict[str, Any], now: float) -> WorldEffects:
+        """A decoded ready record {agent, episode, step}."""
+        out = WorldEffects()
+        if not self._accept("ready", rec, "end", out):
+            return out
+        k = rec["agent"]
+        if k in self.answers:
+            out.drops.append(("ready", "duplicate"))
+            return out
+        self.answers[k] = 0
+        self.present.add(k)
+        self._progress(now, out)
+        return out
+
+    def _accept(self, topic: str, rec: dict[str, Any], phase: str, out: WorldEffects) -> bool:
+        e, t = rec["episode"], rec["step"]
+        if self.phase == phase and e == self.episode and t == self.t:
+            return True
+        if (e, t) <= (self.episode, self.t):
+            out.drops.append((topic, "past"))
+            if e == self.episode and t == self.t - 1:
+                # alive but slow: wait for it again from the next phase on, or it would lose every race
+                self.present.add(rec["agent"])
+        else:
+            out.drops.append((topic, "future"))
+        return False
+
+    # ----- phases -------------------------------------------------------------------------------------------------
+    def _progress(self, now: float, out: WorldEffects) -> None:
+        """Carry out whatever the answers so far and the time allow (several steps when the clock is behind)."""
+        while not self.done and self._advance(now, out):
+            pass
+
+    def _advance(self, now: float, out: WorldEffects) -> bool:
+        """Take the next transition that is due, if any; returns whether one was taken."""
+        s = self.settings
+        if self.phase == "stopped":
+            self.done = now >= self.linger_until
+            return False
+        if self.joining:
+            everyone = set(range(self.scenario.n_agents))
+            if (everyone <= self.answers.keys() and all(self.listening(k) for k in self.answers)) or (
+                now >= self.deadline
+            ):
+                self._start_steps(now, out)
+                return True
+            if now >= self.nudge_at:
+                self._announce_begin(now, out)
+            return False
+        if self.phase == "act":
+            if s.clock == "free":
+                if now < self.deadline:
+                    return False
+                self.clock_at = self.deadline
+            elif not (self.waiting <= self.answers.keys() or now >= self.deadline):
+                return False
+            self._apply_step(now, out)
+            return True
+        if self.phase == "end" and (self.waiting <= self.answers.keys() or now >= self.deadline):
+            self._finish_episode(now, out)
+            return True
+        return False
+
+    def _next_episode(self, e: int, now: float, out: WorldEffects) -> None:
+        s = self.settings
+        if not self.in_run(e):
+            self.phase = "stopped"
+            out.publish.append(("scenario", self.scenario_record("stopped")))
+            out.status_changed = True
+            self.linger_until = now + s.linger
+            return
+        self.ep = WorldEpisode(self.scenario, self.model, s.seed, e, started=now)
+        self.episode, self.t, self.phase = e, 1, "act"
+        self.answers = {}
+        self.joining = True
+        self.deadline = now + (s.join_timeout if self.first else s.begin_deadline)
+        self._announce_begin(now, out)
+
+    def _announce_begin(self, now: float, out: WorldEffects) -> None:
+        out.publish.append(("step", {"episode": self.episode, "step": 0, "phase": "begin"}))
+        self.nudge_at = min(self.deadline, now + NUDGE)
+
+    def _start_steps(self, now: float, out: WorldEffects) -> None:
+        """The begin is over: those who answered are the live agents; step 1 goes at once."""
+        n = self.scenario.n_agents
+        self.joining = False
+        self.present = set(self.answers)
+        if self.first and len(self.present) < n:
+            out.log.append(("warning", f"starting without agents {sorted(set(range(n)) - self.present)}"))
+        self.first = False
+        self.clock_at = self.deadline = now  # step 1 goes at once, also on the free clock
+        self.waiting = set()
+
+    def _apply_step(self, now: float, out: WorldEffects) -> None:
+        """Apply T to the answers of step t (missing live agents idle), publish the results, wait for the next."""
+        assert self.ep is not None
+        s, sc = self.settings, self.scenario
+        e, t, h = self.episode, self.t, sc.horizon
+        chosen = dict(self.answers)
+        missing = self.present - chosen.keys()
+        if missing:
+            self.absent_total += len(missing)
+            out.counters["absent_agent_steps"] += len(missing)
+            if now - self._absent_warned >= ABSENT_LOG_PERIOD:
+                self._absent_warned = now
+                out.log.append(
+                    (
+                        "warning",
+                        f"episode {e} step {t}: no action from agents {sorted(missing)} within the deadline; idle",
+                    )
+                )
+        self.present = set(chosen)
+        res = self.ep.step(chosen)
+        self.answers = {}  # from here on, the agents' answers are their actions of step t + 1 (ready after step h)
+        for k in range(sc.n_agents):
+            a = int(res.actions[k])
+            out.publish.append(
+                (
+                    "observation",
+                    {
+                        "agent": k,
+                        "episode": e,
+                        "step": t,
+                        "task": a if 0 <= a < sc.n_tasks else -1,
+                        "level": int(res.observations[k]),
+                        "acted": res.acted,
+                    },
+                )
+            )
+        out.publish.append(
+            ("ground_truth", {"episode": e, "step": t, "levels": res.levels.tolist(), "actions": res.actions.tolist()})
+        )
+        if t < h:
+            self.t, self.phase = t + 1, "act"
+            if s.clock == "free":
+                self.deadline = self.clock_at + s.period
+            else:  # the live agents; with none live, anyone until the deadline (never race ahead)
+                self.waiting = self.present if self.present else set(range(sc.n_agents))
+                self.deadline = now + s.act_deadline
+        else:
+            self.t, self.phase = h, "end"
+            self.waiting = set(res.acted)
+            self.deadline = now + s.update_deadline
+
+    def _finish_episode(self, now: float, out: WorldEffects) -> None:
+        assert self.ep is not None
+        late = self.waiting - self.answers.keys()
+        if late:
+            out.counters["late_ready"] += len(late)
+        out.publish.append(("step", {"episode": self.episode, "step": self.scenario.horizon, "phase": "end"}))
+        m = self.ep.metrics(now)
+        out.publish.append(("episode_metrics", m))
+        self.episodes_done += 1
+        out.log.append(
+            (
+                "info",
+                f"episode {m['episode']}: completion {m['completion']}{' (failed)' if m['failed'] else ''}, "
+                f"idle {m['idle_before']}, reassign {m['reassign_before']}, absent {m['absent']}, "
+                f"{m['seconds']:.2f} s",
+            )
+        )
+        out.episode_log.append({"run": self.settings.run_id, "metrics": m, **self.ep.trajectory()})
+        self._next_episode(self.episode + 1, now, out)
+
+    # ----- records and status -------------------------------------------------------------------------------------
+    def scenario_record(self, state: str) -> dict[str, Any]:
+        """The fields of the /htlm/scenario record announcing the run in `state` (running or stopped)."""
+        s = self.settings
+        return {
+            "run": s.run_id,
+            "seed": s.seed,
+            "mode": s.mode,
+            "clock": s.clock,
+            "first_episode": s.first_episode,
+            "episodes": s.episodes,
+            "state": state,
+            "layout": self.layout,
+            "scenario": self.scenario_dict,
+        }
+
+    def status(self) -> tuple[bool, str]:
+        """(healthy, message) of the world for its diagnostics: not healthy while live agents are missing."""
+        n = self.scenario.n_agents
+        text = f"{self.phase} episode {self.episode} step {self.t}"
+        if self.joining:
+            return (
+                True,
+                f"episode {self.episode}: waiting for agents {sorted(set(range(n)) - self.answers.keys())} to begin",
+            )
+        if self.phase in ("act", "end") and len(self.present) < n:
+            return False, f"{text}: agents {sorted(set(range(n)) - self.present)} absent"
+        return True, text
+
+    def values(self) -> dict[str, str]:
+        """The protocol's state for the node's diagnostics."""
+        return {
+            "phase": self.phase,
+            "episode": str(self.episode),
+            "step": str(self.t),
+            "present": ",".join(str(k) for k in sorted(self.present)),
+            "episodes_done": str(self.episodes_done),
+            "absent_agent_steps": str(self.absent_total),
         }

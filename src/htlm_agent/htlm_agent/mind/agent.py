@@ -128,11 +128,7 @@ class AgentMind:
 
     def idle_action(self) -> int:
         """Idle at the site of the previous assignment: what the world applies when our action is missing."""
-        sc = self.scenario
-        if sc.n_idle == 0:
-            return -1
-        site = int(self.model.action_site[self.prev]) if self.prev >= 0 else 0
-        return sc.n_tasks + site
+        return int(self.model.idle_action(np.asarray(self.prev, dtype=np.int64)))
 
     def _where(self, episode: int) -> str | None:
         if self.episode is None:
@@ -417,82 +413,3 @@ def loopback_episode(
         "messages": msgs,
         "rewards": rewards,
     }
-
-
-# ----- settings of the agent node ---------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class AgentSettings:
-    """Parameters of the agent node (one ROS parameter per field)."""
-
-    agent: str = ""
-    """This agent's name in the scenario (agent1, agent2, ...); required."""
-    policy: str = "auto"
-    """auto (train: from the trainer; else the checkpoint), checkpoint, trainer, greedy or random."""
-    checkpoint: str = ""
-    """Checkpoint directory of `htlm train` (policy checkpoint, or auto outside training)."""
-    epsilon: float = -1.0
-    """ε of ε-greedy; -1: the learner's schedule while training, 0 otherwise."""
-    transitions: str = "auto"
-    """Send transitions to the trainer: auto (in train mode), on, off."""
-    resend_period: float = 1.0
-    """Seconds before an unacknowledged transition is sent again."""
-    resend_batch: int = 200
-    """Most transitions sent again per resend period (oldest first), so a restarted trainer is not flooded."""
-    outbox_limit: int = 100_000
-    """Most unacknowledged transitions kept; the oldest are dropped (counted) beyond it."""
-    belief_every: int = 1
-    """Publish the belief summary every this many steps (0: never)."""
-    broadcast_timeout: float = 1.0
-    """Seconds to wait for the broadcasts of the teammates that acted before updating without them (keep it
-    below the world's act_deadline)."""
-    resync_timeout: float = 10.0
-    """Seconds without any accepted world message after which the agent rejoins at the next episode start."""
-    discovery_grace: float = 3.0
-    """Seconds after the scenario arrives during which the agent answers the world only once it is matched
-    with the world and every teammate on the step topics."""
-    stop_timeout: float = 5.0
-    """Seconds to wait for the trainer's acknowledgements when the run stops."""
-    exit_on_stop: bool = True
-    """Exit when the world announces the end of the run."""
-    frame_id: str = "map"
-    """Frame of the goal poses."""
-    run_dir: str = ""
-    """Directory for this agent's episode log (<agent>.jsonl); empty: no file."""
-    diagnostics_period: float = 1.0
-    """Seconds between /diagnostics messages."""
-    executor: str = "events"
-    """events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
-
-
-def validate_agent_settings(s: AgentSettings) -> list[str]:
-    """Problems of an AgentSettings, each naming the parameter and the value (empty when valid)."""
-    bad: list[str] = []
-    if not s.agent or not s.agent.replace("_", "").isalnum() or not s.agent[0].isalpha():
-        bad.append(f"agent: {s.agent!r} must be an agent name of the scenario (letters, digits, _)")
-    if s.policy not in ("auto", "checkpoint", "trainer", "greedy", "random"):
-        bad.append(f"policy: {s.policy!r} is not one of auto, checkpoint, trainer, greedy, random")
-    if s.policy == "checkpoint" and not s.checkpoint:
-        bad.append("checkpoint: '' : policy checkpoint needs a checkpoint directory")
-    if not (s.epsilon == -1.0 or 0.0 <= s.epsilon <= 1.0):
-        bad.append(f"epsilon: {s.epsilon!r} must be -1 or in [0, 1]")
-    if s.transitions not in ("auto", "on", "off"):
-        bad.append(f"transitions: {s.transitions!r} is not one of auto, on, off")
-    for name in ("resend_period", "broadcast_timeout", "resync_timeout", "discovery_grace", "diagnostics_period"):
-        v = getattr(s, name)
-        if not 0.0 < v <= 3600.0:
-            bad.append(f"{name}: {v!r} must be in (0, 3600] seconds")
-    if not 0.0 <= s.stop_timeout <= 600.0:
-        bad.append(f"stop_timeout: {s.stop_timeout!r} must be in [0, 600] seconds")
-    if s.resend_batch < 1:
-        bad.append(f"resend_batch: {s.resend_batch!r} must be >= 1")
-    if s.outbox_limit < 1:
-        bad.append(f"outbox_limit: {s.outbox_limit!r} must be >= 1")
-    if s.belief_every < 0:
-        bad.append(f"belief_every: {s.belief_every!r} must be >= 0")
-    if not s.frame_id:
-        bad.append("frame_id: '' must not be empty")
-    if s.executor not in ("events", "single"):
-        bad.append(f"executor: {s.executor!r} is not one of events, single")
-    return bad

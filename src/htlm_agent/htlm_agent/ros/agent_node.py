@@ -22,14 +22,9 @@ from typing import Any
 
 from rclpy.node import Node
 
-from htlm_agent.mind.agent import (
-    AgentMind,
-    AgentSettings,
-    Effects,
-    Transition,
-    validate_agent_settings,
-)
+from htlm_agent.mind.agent import AgentMind, Effects, Transition
 from htlm_agent.mind.policies import AgentPolicy, builtin_policy
+from htlm_agent.ros.settings import AgentSettings, validate_agent_settings
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import (

@@ -9,24 +9,36 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import os
+import sys
 import time
 import typing
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from .. import qos as _qos
+from ..params import INT64_MAX, Constraint, constraints
 from ..schema import Schema, WireError, decode, encode
 from ..signing import Signer
+from ..validation import ConversionError, convert, convert_value
+
+T = TypeVar("T")
 
 __all__ = [
     "DiagnosticArray",
@@ -37,6 +49,7 @@ __all__ = [
     "declare_settings",
     "field_docs",
     "make_executor",
+    "parameter_descriptor",
     "pose",
     "qos_profile",
 ]
@@ -184,7 +197,7 @@ class SettingsError(ValueError):
 
 
 def field_docs(cls: type) -> dict[str, str]:
-    """The one-line docstring under each field of a dataclass (the attribute docstring convention)."""
+    """The docstring under each field of a dataclass (the attribute docstring convention), on one line."""
     import ast
     import inspect
     import textwrap
@@ -205,69 +218,100 @@ def field_docs(cls: type) -> dict[str, str]:
             and isinstance(b.value, ast.Constant)
             and isinstance(b.value.value, str)
         ):
-            docs[a.target.id] = b.value.value.strip().splitlines()[0]
+            docs[a.target.id] = " ".join(b.value.value.split())
     return docs
 
 
-def _coerce(name: str, value: Any, tp: Any) -> Any:
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-    elif tp is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-    elif tp is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-    elif tp is str and isinstance(value, str):
-        return value
-    raise SettingsError(f"parameter {name}: expected {tp.__name__}, got {type(value).__name__} {value!r}")
+_PARAMETER_TYPES = {
+    bool: ParameterType.PARAMETER_BOOL,
+    int: ParameterType.PARAMETER_INTEGER,
+    float: ParameterType.PARAMETER_DOUBLE,
+    str: ParameterType.PARAMETER_STRING,
+}
+"""The ROS parameter type of each field type a settings dataclass may use."""
+
+
+def parameter_descriptor(name: str, tp: type, doc: str, c: Constraint) -> ParameterDescriptor:
+    """The descriptor of the parameter of a settings field: its type, description, range, choices, read-only."""
+    d = ParameterDescriptor(
+        name=name,
+        type=_PARAMETER_TYPES[tp],
+        description=doc,
+        additional_constraints=c.describe(),
+        read_only=not c.tunable,
+    )
+    if tp is float and (c.lo is not None or c.hi is not None):
+        lo = -sys.float_info.max if c.lo is None else float(c.lo)
+        hi = sys.float_info.max if c.hi is None else float(c.hi)
+        d.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
+    elif tp is int and (c.lo is not None or c.hi is not None):
+        lo_i = -INT64_MAX - 1 if c.lo is None else int(c.lo)
+        hi_i = INT64_MAX if c.hi is None else int(c.hi)
+        d.integer_range = [IntegerRange(from_value=lo_i, to_value=hi_i, step=0)]
+    return d
 
 
 def declare_settings(
-    node: Node,
-    cls: type,
-    validate: Callable[[Any], None],
-    tunable: tuple[str, ...] = (),
-    on_change: Callable[[Any], None] | None = None,
-) -> Any:
+    node: Node, cls: type[T], validate: Callable[[T], None], on_change: Callable[[T], None] | None = None
+) -> T:
     """Declare one parameter per field of the frozen settings dataclass `cls` and return the settings.
 
-    Every parameter gets a descriptor with the field's docstring; fields not in `tunable` are read-only. The values
-    (defaults or given with `--ros-args -p name:=value`) are converted to the field's type and checked with
-    `validate(settings)`, which raises SettingsError naming the parameter and the value. Later changes of tunable
-    parameters go through the same check and are refused with SetParametersResult(successful=False, reason=...).
+    Every parameter is statically typed and gets a descriptor (`parameter_descriptor`) with the field's docstring,
+    its range (`floating_point_range` / `integer_range`) and choices from the field's `htlm_msgs_py.params`
+    constraint, and `read_only` unless the field is tunable, so `ros2 param describe` shows them. The values
+    (defaults, or given with `--ros-args -p name:=value` or a parameters file; an integer is taken for a float) are
+    converted with `htlm_msgs_py.validation.convert` and checked with `validate(settings)` before anything is
+    declared; both raise SettingsError naming the parameter and the value. Later changes of tunable parameters go
+    through rclpy's type and range checks and then the same `validate`; a refusal is a
+    SetParametersResult(successful=False, reason=...) naming the parameter and the value, and an accepted change
+    calls `on_change(new settings)`.
     """
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
+    cons = constraints(cls)
+    # rclpy keeps the values given on the command line and in parameter files here until they are declared
+    overrides: dict[str, Any] = getattr(node, "_parameter_overrides", {})
     values: dict[str, Any] = {}
-    for f in dataclasses.fields(cls):
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-        desc = ParameterDescriptor(
-            description=docs.get(f.name, ""), read_only=f.name not in tunable, dynamic_typing=True
-        )
-        param = node.declare_parameter(f.name, default, desc)
-        values[f.name] = _coerce(f.name, param.value, hints[f.name])
-    settings = cls(**values)
+    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        if f.name in overrides:
+            values[f.name] = overrides[f.name].value
+        else:
+            values[f.name] = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+    try:
+        settings = convert(values, cls, "parameters")
+    except ConversionError as e:
+        raise SettingsError(str(e)) from None
     validate(settings)
+    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        desc = parameter_descriptor(f.name, hints[f.name], docs.get(f.name, ""), cons[f.name])
+        node.declare_parameter(f.name, getattr(settings, f.name), desc, ignore_override=True)
+    floats = {name for name, tp in hints.items() if tp is float}
     state = {"settings": settings}
 
-    def on_set(params: list[Any]) -> SetParametersResult:
-        changes = {}
+    def widen(params: list[Parameter]) -> list[Parameter]:
+        """An integer given for a float parameter (`ros2 param set /node period 1`) is taken as that float."""
+        return [
+            Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+            if p.name in floats and p.type_ == Parameter.Type.INTEGER
+            else p
+            for p in params
+        ]
+
+    def on_set(params: list[Parameter]) -> SetParametersResult:
         try:
-            for p in params:
-                if p.name not in hints:
-                    continue
-                changes[p.name] = _coerce(p.name, p.value, hints[p.name])
-            new = dataclasses.replace(state["settings"], **changes)
+            changes = {
+                p.name: convert_value(p.value, hints[p.name], p.name, "parameters") for p in params if p.name in hints
+            }
+            new = dataclasses.replace(state["settings"], **changes)  # type: ignore[type-var]
             validate(new)
-        except SettingsError as e:
+        except (ConversionError, SettingsError) as e:
             return SetParametersResult(successful=False, reason=str(e))
         state["settings"] = new
         if on_change is not None:
             on_change(new)
         return SetParametersResult(successful=True)
 
+    node.add_pre_set_parameters_callback(widen)
     node.add_on_set_parameters_callback(on_set)
     return settings
 
@@ -315,7 +359,6 @@ def run_node(
     """
     import faulthandler
     import signal
-    import sys
 
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions

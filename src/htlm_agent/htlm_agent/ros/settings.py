@@ -1,0 +1,130 @@
+"""Settings of the agent node and the trainer node: one ROS parameter per field, with its range and whether it may
+change at run time.
+
+Plain dataclasses (no rclpy): `htlm_msgs_py.ros.declare_settings` declares the parameters from them, the unit tests
+check them without ROS, and the nodes hand the ROS-free cores (htlm_agent.mind.agent.AgentMind,
+htlm_agent.learning.trainer.TrainerCore) what they need.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from htlm_agent.learning.trainer import Schedule, load_learner_data
+from htlm_msgs_py.params import SECONDS, problems, setting
+
+EXECUTORS = ("events", "single")
+"""events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
+
+
+@dataclass(frozen=True)
+class AgentSettings:
+    """Parameters of the agent node (one ROS parameter per field)."""
+
+    agent: str = setting("")
+    """This agent's name in the scenario (agent1, agent2, ...); required."""
+    policy: str = setting("auto", choices=("auto", "checkpoint", "trainer", "greedy", "random"))
+    """auto (train: from the trainer; else the checkpoint), checkpoint, trainer, greedy or random."""
+    checkpoint: str = setting("")
+    """Checkpoint directory of `htlm train` (policy checkpoint, or auto outside training)."""
+    epsilon: float = setting(-1.0, lo=-1.0, hi=1.0)
+    """ε of ε-greedy, -1 or in [0, 1]; -1: the learner's schedule while training, 0 otherwise."""
+    transitions: str = setting("auto", choices=("auto", "on", "off"))
+    """Send transitions to the trainer: auto (in train mode), on, off."""
+    resend_period: float = setting(1.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds before an unacknowledged transition is sent again."""
+    resend_batch: int = setting(200, lo=1, hi=1_000_000)
+    """Most transitions sent again per resend period (oldest first), so a restarted trainer is not flooded."""
+    outbox_limit: int = setting(100_000, lo=1, hi=100_000_000)
+    """Most unacknowledged transitions kept; the oldest are dropped (counted) beyond it."""
+    belief_every: int = setting(1, lo=0, hi=1_000_000)
+    """Publish the belief summary every this many steps (0: never)."""
+    broadcast_timeout: float = setting(1.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds to wait for the broadcasts of the teammates that acted before updating without them (keep it below
+    the world's act_deadline)."""
+    resync_timeout: float = setting(10.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds without any accepted world message after which the agent rejoins at the next episode start."""
+    discovery_grace: float = setting(3.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds after the scenario arrives during which the agent answers the world only once it is matched with
+    the world and every teammate on the step topics."""
+    stop_timeout: float = setting(5.0, lo=0.0, hi=600.0)
+    """Seconds to wait for the trainer's acknowledgements when the run stops."""
+    exit_on_stop: bool = setting(True)
+    """Exit when the world announces the end of the run."""
+    frame_id: str = setting("map")
+    """Frame of the goal poses."""
+    run_dir: str = setting("")
+    """Directory for this agent's episode log (<agent>.jsonl); empty: no file."""
+    diagnostics_period: float = setting(1.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds between /diagnostics messages."""
+    executor: str = setting("events", choices=EXECUTORS)
+    """events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
+
+
+def validate_agent_settings(s: AgentSettings) -> list[str]:
+    """Problems of an AgentSettings, each naming the parameter and the value (empty when valid)."""
+    bad: list[str] = []
+    if not s.agent or not s.agent.replace("_", "").isalnum() or not s.agent[0].isalpha():
+        bad.append(f"agent: {s.agent!r} must be an agent name of the scenario (letters, digits, _)")
+    bad += problems(s)
+    if s.policy == "checkpoint" and not s.checkpoint:
+        bad.append("checkpoint: '' : policy checkpoint needs a checkpoint directory")
+    if -1.0 < s.epsilon < 0.0:
+        bad.append(f"epsilon: {s.epsilon!r} must be -1 or in [0, 1]")
+    if not s.frame_id:
+        bad.append("frame_id: '' must not be empty")
+    return bad
+
+
+@dataclass(frozen=True)
+class TrainerSettings:
+    """Parameters of the trainer node (one ROS parameter per field)."""
+
+    run_dir: str = setting("")
+    """Directory of the store (transitions.bin), the checkpoint (checkpoint/) and the training log; required."""
+    settings_file: str = setting("")
+    """Learner settings file (JSON or YAML, the fields of htlm_agent.learning.settings.Settings); empty: the
+    defaults."""
+    settings_json: str = setting("")
+    """Learner settings overriding the file, as one JSON object, e.g. {"learning_starts": 500}."""
+    resume: bool = setting(True)
+    """Continue from run_dir's checkpoint and store when they exist."""
+    ack_period: float = setting(0.05, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds between store flushes (fsync) and acknowledgements."""
+    train_every: int = setting(5, lo=0, hi=1_000_000, tunable=True)
+    """Transitions received per round of learner updates (0: store only, never train)."""
+    train_budget: float = setting(0.005, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
+    """Longest stretch of training between two looks at the network, seconds (training gets at most about half of
+    the trainer's time; receiving and acknowledging transitions comes first)."""
+    max_backlog: int = setting(500, lo=0, hi=1_000_000_000, tunable=True)
+    """Most rounds of updates the trainer may lag behind the transitions it received; older rounds are skipped."""
+    publish_every: int = setting(1, lo=1, hi=1_000_000, tunable=True)
+    """Episodes between weight publications."""
+    checkpoint_every: int = setting(10, lo=0, hi=1_000_000, tunable=True)
+    """Episodes between checkpoints (0: only when the run stops; always one then)."""
+    exit_on_stop: bool = setting(True)
+    """Exit when the world announces the end of the run."""
+    stop_grace: float = setting(3.0, lo=SECONDS[0], hi=SECONDS[1])
+    """After the run stopped, seconds without a transition before exiting (agents resend unacknowledged ones)."""
+    diagnostics_period: float = setting(1.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds between /diagnostics messages."""
+    executor: str = setting("events", choices=EXECUTORS)
+    """events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
+
+    def schedule(self) -> Schedule:
+        """The trainer core's schedule from these settings."""
+        return Schedule(**{f.name: getattr(self, f.name) for f in dataclasses.fields(Schedule)})
+
+
+def validate_trainer_settings(s: TrainerSettings) -> list[str]:
+    """Problems of a TrainerSettings, each naming the parameter and the value (empty when valid)."""
+    bad: list[str] = []
+    if not s.run_dir:
+        bad.append("run_dir: '' : the trainer needs a directory for its store and checkpoints")
+    if s.settings_json:
+        try:
+            load_learner_data("", s.settings_json)
+        except ValueError as e:
+            bad.append(str(e))
+    return bad + problems(s)

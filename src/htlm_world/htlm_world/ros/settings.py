@@ -1,0 +1,86 @@
+"""Settings of the world node: one ROS parameter per field, with its range and whether it may change at run time.
+
+Plain dataclasses (no rclpy): `htlm_msgs_py.ros.declare_settings` declares the parameters from them, the unit tests
+check them without ROS, and the node hands the ROS-free protocol (htlm_world.protocol) what it needs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from htlm_msgs_py.params import INT64_MAX, SECONDS, problems, setting
+from htlm_msgs_py.schema import EPISODE_MAX
+from htlm_world.protocol import LockstepSettings
+from htlm_world.scenario import TEAMS, Scenario, ScenarioError, builtin, load
+
+EXECUTORS = ("events", "single")
+"""events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
+
+
+@dataclass(frozen=True)
+class WorldSettings:
+    """Parameters of the world node (one ROS parameter per field)."""
+
+    scenario: str = setting("")
+    """Scenario YAML file; empty: the built-in scenario "paper" with `team`."""
+    team: str = setting("heterogeneous")
+    """Built-in team when `scenario` is empty (heterogeneous, semi-heterogeneous, homogeneous)."""
+    seed: int = setting(0, lo=0, hi=INT64_MAX)
+    """Master seed of the run: the world and every agent derive their generators from it."""
+    mode: str = setting("evaluate", choices=("train", "evaluate", "deploy"))
+    """train (agents explore and send transitions), evaluate or deploy (greedy policies)."""
+    episodes: int = setting(10, lo=0, hi=EPISODE_MAX, tunable=True)
+    """Episodes to run; 0 runs until stopped (may be changed while running: the run ends after that many)."""
+    first_episode: int = setting(0, lo=0, hi=EPISODE_MAX)
+    """Index of the first episode (seeds are derived from the episode index)."""
+    clock: str = setting("lockstep", choices=("lockstep", "free"))
+    """lockstep: advance as soon as every live agent answered; free: one step every `period` seconds."""
+    period: float = setting(0.5, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
+    """Step period of the free-running clock, seconds."""
+    act_deadline: float = setting(2.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
+    """Longest wait for the agents' actions of a step, seconds; a silent agent is idle for that step."""
+    update_deadline: float = setting(2.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
+    """Longest wait for the agents' ready after their belief update, seconds."""
+    begin_deadline: float = setting(3.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
+    """Longest wait at the start of an episode for agents to reset (a restarted agent rejoins here), seconds."""
+    join_timeout: float = setting(60.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Longest wait at the start of the run for every agent to be up, seconds."""
+    linger: float = setting(1.0, lo=0.0, hi=60.0)
+    """Seconds to keep running after the last episode so every node sees the run stop."""
+    run_id: str = setting("")
+    """Run identifier announced on /htlm/scenario (letters, digits, _.:-); empty: derived from the seed and the time."""
+    run_dir: str = setting("")
+    """Directory for the world's episode log (world.jsonl); empty: no file."""
+    diagnostics_period: float = setting(1.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds between /diagnostics messages."""
+    executor: str = setting("events", choices=EXECUTORS)
+    """events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
+
+    def lockstep(self, run_id: str) -> LockstepSettings:
+        """What the world's side of the protocol takes from these settings, for the run `run_id`."""
+        kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(LockstepSettings) if f.name != "run_id"}
+        return LockstepSettings(run_id=run_id, **kw)
+
+
+def validate_world_settings(s: WorldSettings) -> list[str]:
+    """Problems of a WorldSettings, each naming the parameter and the value (empty when valid)."""
+    bad = problems(s)
+    if s.scenario == "" and s.team not in TEAMS:
+        bad.append(f"team: {s.team!r} is not one of {sorted(TEAMS)}")
+    if s.run_id and (len(s.run_id) > 64 or not all(c.isalnum() or c in "_.:-" for c in s.run_id)):
+        bad.append(f"run_id: {s.run_id!r} may hold only letters, digits and _.:- (at most 64)")
+    return bad
+
+
+def load_scenario(s: WorldSettings) -> Scenario:
+    """The scenario the settings name (a file, else the built-in one with the team).
+
+    Raises:
+        ScenarioError: the file is missing or invalid.
+    """
+    if s.scenario:
+        return load(s.scenario)
+    if s.team not in TEAMS:
+        raise ScenarioError(f"team: {s.team!r} is not one of {sorted(TEAMS)}")
+    return builtin(s.team)

@@ -1,0 +1,338 @@
+"""The world's side of the lockstep protocol without ROS (htlm_world.protocol.WorldProtocol): phases, deadlines,
+presence, late and duplicate answers, the free-running clock, the end of episodes and of the run, driven in one
+process with the time passed in; and the protocol with one AgentMind per agent, every message delivered in one
+process, equal to the in-process `team.rollout`."""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import numpy as np
+import pytest
+
+from htlm_agent.mind.agent import AgentMind, Effects
+from htlm_agent.mind.policies import AgentPolicy, DecentralizedPolicy, builtin_policy
+from htlm_agent.runtime.team import Team, rollout
+from htlm_world.model import Model
+from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol
+from htlm_world.scenario import Scenario, builtin
+
+SC = builtin()
+N, H = SC.n_agents, SC.horizon
+
+
+def _protocol(listening: Any = None, **kw: Any) -> WorldProtocol:
+    settings = LockstepSettings(**{"episodes": 1, "linger": 0.0, "run_id": "test", **kw})
+    return WorldProtocol(SC, settings, listening=listening)
+
+
+def _records(eff: WorldEffects, kind: str) -> list[dict[str, Any]]:
+    return [fields for k, fields in eff.publish if k == kind]
+
+
+def _act(
+    p: WorldProtocol, agent: int, action: int, now: float, episode: int | None = None, step: int | None = None
+) -> WorldEffects:
+    """Agent `agent` sends `action` for `step` of `episode` (default: the protocol's current ones)."""
+    e = p.episode if episode is None else episode
+    rec = {"agent": agent, "episode": e, "step": p.t if step is None else step, "action": action}
+    return p.on_action(rec, now)
+
+
+def _ready(p: WorldProtocol, agent: int, now: float, episode: int = 0, step: int = H) -> WorldEffects:
+    return p.on_ready({"agent": agent, "episode": episode, "step": step}, now)
+
+
+def _everyone_acts(p: WorldProtocol, now: float, agents: range | list[int] = range(N)) -> WorldEffects:
+    """Every agent in `agents` sends a task (its own index mod p) for the current step; the effects of the last."""
+    eff = WorldEffects()
+    for k in agents:
+        eff = _act(p, k, k % SC.n_tasks, now)
+    return eff
+
+
+def test_begin_then_a_normal_step() -> None:
+    p = _protocol()
+    eff = p.start(0.0)
+    assert [k for k, _ in eff.publish] == ["scenario", "step"]
+    assert eff.publish[0][1]["state"] == "running" and eff.publish[0][1]["run"] == "test"
+    assert eff.publish[1][1] == {"episode": 0, "step": 0, "phase": "begin"}
+    assert p.joining and p.next_wakeup() == pytest.approx(0.5)  # the begin is announced again after NUDGE
+    assert _records(p.tick(0.5), "step") == [{"episode": 0, "step": 0, "phase": "begin"}]
+    for k in range(N - 1):
+        assert _act(p, k, k % SC.n_tasks, 0.6).publish == []  # waiting for the last agent
+    eff = _act(p, N - 1, (N - 1) % SC.n_tasks, 0.6)  # everyone answered: step 1 goes at once
+    obs = _records(eff, "observation")
+    assert [o["agent"] for o in obs] == list(range(N)) and all(o["step"] == 1 for o in obs)
+    assert all(o["acted"] == list(range(N)) and o["task"] == k % SC.n_tasks for k, o in enumerate(obs))
+    (truth,) = _records(eff, "ground_truth")
+    assert truth["actions"] == [k % SC.n_tasks for k in range(N)] and len(truth["levels"]) == SC.n_tasks
+    assert (p.phase, p.t, p.joining, p.present) == ("act", 2, False, set(range(N)))
+    assert p.next_wakeup() == pytest.approx(0.6 + p.settings.act_deadline)
+    eff = _everyone_acts(p, 0.7)  # step 2 as soon as the live agents answered, long before the deadline
+    assert [o["step"] for o in _records(eff, "observation")] == [2] * N and p.t == 3
+    assert not eff.counters and not eff.drops
+
+
+def test_begin_waits_for_listeners_then_the_deadline() -> None:
+    listens = {k: k != 3 for k in range(N)}
+    p = _protocol(listening=lambda k: listens[k], join_timeout=5.0)
+    p.start(0.0)
+    eff = _everyone_acts(p, 0.1)
+    assert _records(eff, "observation") == [] and p.joining  # agent 3 does not read its observations yet
+    listens[3] = True
+    assert len(_records(p.tick(0.2), "observation")) == N and p.t == 2
+    q = _protocol(join_timeout=5.0)
+    q.start(0.0)
+    _everyone_acts(q, 0.1, agents=[0, 1])
+    assert _records(q.tick(4.9), "observation") == []
+    eff = q.tick(5.0)  # the join timeout: the episode starts with the agents that answered
+    assert eff.log == [("warning", "starting without agents [2, 3, 4]")]
+    assert _records(eff, "observation")[0]["acted"] == [0, 1] and q.present == {0, 1}
+
+
+def test_a_silent_agent_idles_at_its_site_and_is_counted() -> None:
+    p = _protocol()
+    p.start(0.0)
+    _everyone_acts(p, 0.0)  # step 1: agent 4 works on task 4 % p
+    assert p.ep is not None
+    prev4 = int(p.ep.prev[4])
+    assert _everyone_acts(p, 0.1, agents=range(N - 1)).publish == []  # step 2: agent 4 is silent; wait for it
+    eff = p.tick(0.1 + p.settings.act_deadline)  # the deadline: go on without it
+    (truth,) = _records(eff, "ground_truth")
+    assert truth["actions"][4] == int(Model.build(SC).idle_action(np.int64(prev4))) >= SC.n_tasks
+    assert _records(eff, "observation")[4]["task"] == -1 and _records(eff, "observation")[4]["level"] == -1
+    assert _records(eff, "observation")[0]["acted"] == [0, 1, 2, 3]
+    assert eff.counters["absent_agent_steps"] == 1 and p.absent_total == 1
+    assert eff.log and eff.log[0][0] == "warning" and "agents [4]" in eff.log[0][1]
+    assert p.status() == (False, "act episode 0 step 3: agents [4] absent")
+    # no longer waited for: step 3 goes as soon as the others answered, and it is not counted again
+    eff = _everyone_acts(p, 2.2, agents=range(N - 1))
+    assert _records(eff, "ground_truth")[0]["actions"][4] >= SC.n_tasks and not eff.counters
+    assert p.ep.absent.tolist() == [0, 0, 0, 0, 2]
+
+
+def test_late_duplicate_future_and_misplaced_answers_are_dropped() -> None:
+    p = _protocol()
+    assert _act(p, 0, 0, 0.0, step=1).drops == [("action", "future")]  # nothing started yet
+    p.start(0.0)
+    _everyone_acts(p, 0.0)
+    _act(p, 0, 1, 0.1)
+    assert _act(p, 0, 2, 0.1).drops == [("action", "duplicate")]
+    assert p.answers[0] == 1  # the first answer stands
+    assert _act(p, 1, 0, 0.1, step=3).drops == [("action", "future")]
+    assert _act(p, 1, 0, 0.1, episode=1, step=1).drops == [("action", "future")]
+    assert _ready(p, 1, 0.1, step=2).drops == [("ready", "past")]  # a ready is for the end phase only
+    idle_elsewhere = next(a for a in range(SC.n_tasks, SC.n_actions) if not p.model.action_mask(p.ep.prev[2])[a])  # type: ignore[union-attr]
+    eff = _act(p, 2, idle_elsewhere, 0.1)
+    assert eff.rejects and eff.rejects[0][:2] == ("action", "range") and 2 not in p.answers
+    # agent 4 misses step 2; its action for step 2 arrives after the step was applied: dropped, but it is
+    # waited for again from then on
+    _everyone_acts(p, 0.2, agents=[1, 2, 3])
+    p.tick(10.0)
+    assert p.t == 3 and 4 not in p.present
+    assert _act(p, 4, 0, 10.1, step=2).drops == [("action", "past")] and 4 in p.present
+    _everyone_acts(p, 10.2, agents=range(N - 1))
+    assert p.t == 3  # waits for agent 4 again
+    _act(p, 4, 0, 10.3)
+    assert p.t == 4
+
+
+def _play_to_the_end(p: WorldProtocol, now: float, episode: int = 0) -> WorldEffects:
+    eff = WorldEffects()
+    while p.phase == "act" and p.episode == episode:
+        eff = _everyone_acts(p, now)
+    return eff
+
+
+def test_episode_end_late_ready_and_the_end_of_the_run() -> None:
+    p = _protocol(episodes=2, linger=0.5, first_episode=3)
+    p.start(0.0)
+    _play_to_the_end(p, 0.0, episode=3)
+    assert (p.phase, p.t) == ("end", H)
+    for k in range(N - 1):
+        assert _ready(p, k, 1.0, episode=3).publish == []
+    assert _ready(p, 0, 1.0, episode=3).drops == [("ready", "duplicate")]
+    eff = p.tick(1.0 + p.settings.update_deadline)  # agent 4's ready never came
+    assert eff.counters["late_ready"] == 1
+    kinds = [k for k, _ in eff.publish]
+    assert kinds == ["step", "episode_metrics", "step"]
+    assert eff.publish[0][1] == {"episode": 3, "step": H, "phase": "end"}
+    m = eff.publish[1][1]
+    assert m["episode"] == 3 and m["absent"] == [0] * N and m["seconds"] == pytest.approx(3.0)
+    assert eff.publish[2][1] == {"episode": 4, "step": 0, "phase": "begin"}
+    (line,) = eff.episode_log
+    assert line["run"] == "test" and line["metrics"] == m and len(line["levels"]) == H + 1 and len(line["actions"]) == H
+    assert any(text.startswith("episode 3: completion") for _, text in eff.log)
+    assert _ready(p, 4, 3.1, episode=3).drops == [("ready", "past")]  # too late: the next episode began
+    assert p.deadline == pytest.approx(3.0 + p.settings.begin_deadline)  # later episodes: begin_deadline
+    assert p.next_wakeup() == pytest.approx(3.0 + 0.5)  # the next announcement of the begin
+    _play_to_the_end(p, 4.0, episode=4)
+    eff = WorldEffects()
+    for k in range(N):
+        eff = _ready(p, k, 5.0, episode=4)
+    assert [k for k, _ in eff.publish] == ["step", "episode_metrics", "scenario"]
+    assert eff.publish[2][1]["state"] == "stopped" and eff.status_changed
+    assert p.phase == "stopped" and not p.done and p.episodes_done == 2
+    assert _act(p, 0, 0, 5.1, episode=5, step=1).drops == [("action", "future")]
+    p.tick(5.4)
+    assert not p.done
+    p.tick(5.5)  # after `linger`
+    assert p.done and p.next_wakeup() == float("inf")
+
+
+def test_episodes_can_change_while_running_and_stop_ends_at_once() -> None:
+    p = _protocol(episodes=1)
+    p.start(0.0)
+    _play_to_the_end(p, 0.0)
+    p.settings = LockstepSettings(**{**p.settings.__dict__, "episodes": 2})
+    eff = WorldEffects()
+    for k in range(N):
+        eff = _ready(p, k, 1.0)
+    assert eff.publish[-1] == ("step", {"episode": 1, "step": 0, "phase": "begin"})  # one more episode
+    eff = p.stop(1.5)
+    assert eff.publish[0][0] == "scenario" and eff.publish[0][1]["state"] == "stopped" and p.done
+    assert p.stop(1.6).publish == []
+
+
+def test_free_running_clock_steps_every_period() -> None:
+    p = _protocol(clock="free", period=0.1)
+    p.start(0.0)
+    eff = _everyone_acts(p, 0.0)
+    assert p.t == 2 and len(_records(eff, "observation")) == N  # step 1 goes as soon as the begin is over
+    assert _everyone_acts(p, 0.01).publish == []  # everyone answered step 2: the clock still waits
+    assert p.next_wakeup() == pytest.approx(0.1)
+    assert p.tick(0.09).publish == []
+    eff = p.tick(0.1)
+    assert [o["step"] for o in _records(eff, "observation")] == [2] * N and p.t == 3
+    assert _records(eff, "observation")[0]["acted"] == list(range(N))
+    eff = p.tick(0.35)  # the node looked late: the steps due at 0.2 and 0.3 go now, nobody answered them
+    assert [t["step"] for t in _records(eff, "ground_truth")] == [3, 4] and p.t == 5
+    assert eff.counters["absent_agent_steps"] == N  # counted once: absent agents are no longer live
+    assert p.next_wakeup() == pytest.approx(0.4)
+
+
+# ----- the protocol with the agents' minds, in one process --------------------------------------------------------
+
+
+def _loopback_run(
+    scenario: Scenario,
+    seed: int,
+    first: int,
+    episodes: int,
+    policies: list[AgentPolicy],
+    epsilon: float,
+    silent: frozenset[int] = frozenset(),
+) -> tuple[list[dict[str, Any]], dict[int, list[dict[str, Any]]]]:
+    """Run `episodes` episodes of WorldProtocol with one AgentMind per agent, delivering every record in order
+    (the actions and readies of the `silent` agents are lost); when nothing is left to deliver, the clock jumps to
+    the protocol's next deadline. Returns the world's episode log and each agent's episode logs."""
+    model = Model.build(scenario)
+    proto = WorldProtocol(
+        scenario, LockstepSettings(seed=seed, first_episode=first, episodes=episodes, linger=0.0), model
+    )
+    minds = [AgentMind(scenario, i, seed, policies[i], model=model) for i in range(scenario.n_agents)]
+    queue: deque[tuple[str, str, Any]] = deque()
+    world_log: list[dict[str, Any]] = []
+    agent_logs: dict[int, list[dict[str, Any]]] = {i: [] for i in range(scenario.n_agents)}
+
+    def from_world(eff: WorldEffects) -> None:
+        # an agent answers a repeated begin with the same action again: the world drops the duplicate
+        assert set(eff.drops) <= {("action", "duplicate")} and not eff.rejects, (eff.drops, eff.rejects)
+        queue.extend(("world", kind, fields) for kind, fields in eff.publish)
+        world_log.extend(eff.episode_log)
+
+    def from_agent(i: int, eff: Effects) -> None:
+        assert eff.drop is None, eff.drop
+        m = minds[i]
+        if eff.broadcast is not None:
+            queue.append(("agent", "broadcast", (i, m.episode, *eff.broadcast)))
+        if eff.action is not None and i not in silent:
+            queue.append(
+                ("agent", "action", {"agent": i, "episode": m.episode, "step": eff.action[0], "action": eff.action[1]})
+            )
+        if eff.ready is not None:
+            agent_logs[i].append({"episode": m.episode, **m.log})
+            if i not in silent:
+                queue.append(("agent", "ready", {"agent": i, "episode": m.episode, "step": eff.ready}))
+
+    now = 0.0
+    from_world(proto.start(now))
+    while not proto.done:
+        if not queue:
+            now = proto.next_wakeup()
+            from_world(proto.tick(now))
+            continue
+        _, kind, rec = queue.popleft()
+        if kind == "step" and rec["phase"] == "begin":
+            for i, m in enumerate(minds):
+                from_agent(i, m.begin(rec["episode"], epsilon))
+        elif kind == "step":
+            for i, m in enumerate(minds):
+                from_agent(i, m.end(rec["episode"], rec["step"]))
+        elif kind == "observation":
+            i = rec["agent"]
+            from_agent(i, minds[i].observe(rec["episode"], rec["step"], rec["level"], rec["acted"], now))
+        elif kind == "broadcast":
+            j, e, t, a, level = rec
+            for i, m in enumerate(minds):
+                if i != j:
+                    from_agent(i, m.hear(j, e, t, a, level))
+        elif kind == "action":
+            from_world(proto.on_action(rec, now))
+        elif kind == "ready":
+            from_world(proto.on_ready(rec, now))
+    return world_log, agent_logs
+
+
+def _assert_equal_to_rollout(
+    world_log: list[dict[str, Any]], agent_logs: dict[int, list[dict[str, Any]]], ref: Any
+) -> None:
+    for w in world_log:
+        e = w["metrics"]["episode"]
+        tr = ref(e)
+        assert np.array_equal(tr.levels[:, 0], w["levels"]), f"episode {e}: levels"
+        assert np.array_equal(tr.actions[:, 0], w["actions"]), f"episode {e}: actions"
+        assert np.array_equal(tr.observations[:, 0], w["observations"]), f"episode {e}: observations"
+        for i, logs in agent_logs.items():
+            (rec,) = [x for x in logs if x["episode"] == e]
+            assert rec["actions"] == tr.actions[:, 0, i].tolist(), f"episode {e} agent {i}: actions"
+            assert rec["messages"] == tr.messages[:, 0, i].tolist(), f"episode {e} agent {i}: broadcasts"
+            assert rec["rewards"] == tr.rewards[:, 0, i].tolist(), f"episode {e} agent {i}: rewards"
+
+
+@pytest.mark.parametrize(
+    ("team", "name", "seed", "first"), [("heterogeneous", "greedy", 11, 0), ("homogeneous", "random", 5, 40)]
+)
+def test_protocol_with_the_minds_equals_team_rollout(team: str, name: str, seed: int, first: int) -> None:
+    sc = builtin(team)
+    pols = [builtin_policy(sc, name, i) for i in range(sc.n_agents)]
+    policies, eps = [p for p, _ in pols], pols[0][1]
+    world_log, agent_logs = _loopback_run(sc, seed, first, 3, policies, eps)
+    assert [w["metrics"]["episode"] for w in world_log] == [first, first + 1, first + 2]
+    assert all(w["metrics"]["absent"] == [0] * sc.n_agents for w in world_log)
+
+    def ref(e: int) -> Any:
+        dp = DecentralizedPolicy(policies, seed, eps)
+        dp.begin(e)
+        return rollout(Team(sc, 1, seed, episode=e), dp)
+
+    _assert_equal_to_rollout(world_log, agent_logs, ref)
+
+
+def test_protocol_with_a_silent_agent_equals_an_inactive_one() -> None:
+    """Agent 2's actions never reach the world: the episode starts without it at the join timeout, it idles at its
+    site every step, and the run equals the in-process Team with agent 2 inactive."""
+    pols = [builtin_policy(SC, "greedy", i) for i in range(N)]
+    policies = [p for p, _ in pols]
+    world_log, agent_logs = _loopback_run(SC, 4, 3, 1, policies, 0.0, silent=frozenset({2}))
+    (w,) = world_log
+    assert w["metrics"]["absent"] == [0, 0, H, 0, 0]
+
+    def ref(e: int) -> Any:
+        dp = DecentralizedPolicy(policies, 4, 0.0)
+        dp.begin(e)
+        return rollout(Team(SC, 1, 4, episode=e, inactive=(2,)), dp)
+
+    _assert_equal_to_rollout(world_log, agent_logs, ref)
