@@ -121,8 +121,13 @@ class TrainerNode(Node):
             h.reject(topic, reason, detail)
         h.counters.update(eff.counters)
         log = self.get_logger()
-        for level, text in eff.log:
-            {"error": log.error, "warning": log.warning}.get(level, log.info)(text)
+        for level, text in eff.log:  # one call site per severity: rclpy's logger refuses to mix them on one line
+            if level == "error":
+                log.error(text)
+            elif level == "warning":
+                log.warning(text)
+            else:
+                log.info(text)
         if eff.fatal is not None:
             self.fatal = eff.fatal
             h.error(eff.fatal)

@@ -119,8 +119,11 @@ class WorldNode(Node):
                     continue  # monitoring only: not worth encoding for nobody
             pub.publish(string(encode(SCHEMAS[kind], fields, self.signer)))
         log = self.get_logger()
-        for level, text in eff.log:
-            (log.warning if level == "warning" else log.info)(text)
+        for level, text in eff.log:  # one call site per severity: rclpy's logger refuses to mix them on one line
+            if level == "warning":
+                log.warning(text)
+            else:
+                log.info(text)
         if self.log_file is not None and eff.episode_log:
             for line in eff.episode_log:
                 self.log_file.write(json.dumps(line) + "\n")
