@@ -1,7 +1,7 @@
-"""The belief filter (Eq. 2, MODEL.md) against brute-force Bayes over the 25 states of every site.
+"""The belief filter (Eq. 2, docs/model.md) against brute-force Bayes over the 25 states of every site.
 
 The brute force loops over states in plain Python with the reference model of test_model.py, which is re-derived
-from the text of MODEL.md, not from the module's tables.
+from the text of docs/model.md, not from the module's tables.
 """
 
 from __future__ import annotations

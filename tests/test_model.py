@@ -1,6 +1,6 @@
-"""The T, O and I models (htlm_world.model) against MODEL.md, and the simulator's draws against the tables.
+"""The T, O and I models (htlm_world.model) against docs/model.md, and the simulator's draws against the tables.
 
-The reference model below is re-derived from the text of MODEL.md in plain Python, independently of the module's
+The reference model below is re-derived from the text of docs/model.md in plain Python, independently of the module's
 tables; test_belief.py reuses it for its brute-force Bayes filter.
 
 Sampling tolerance: an empirical frequency of n draws with probability p must lie within Z_TOL standard errors
@@ -25,7 +25,7 @@ CMAX = 5  # capability cap
 N_DRAWS = 200_000
 Z_TOL = 4.5
 
-# ----- reference model, from the text of MODEL.md ----------------------------------------------------------------
+# ----- reference model, from the text of docs/model.md ----------------------------------------------------------------
 
 
 def ref_p_drop(c: int, level: int) -> float:
@@ -106,7 +106,7 @@ def test_p_drop_by_margin(model: Model) -> None:
             want = 0.0 if c == 0 or lv == 0 else expected[max(min(c - lv, 0), -5)]
             assert table[c, lv] == pytest.approx(want), (c, lv)
             assert table[c, lv] == pytest.approx(ref_p_drop(c, lv))
-    # a few explicit values of MODEL.md
+    # a few explicit values of docs/model.md
     assert table[3, 4] == pytest.approx(0.60)
     assert table[2, 4] == pytest.approx(0.35)
     assert table[1, 4] == pytest.approx(0.15)

@@ -1,4 +1,4 @@
-"""`htlm optimal`: the centralized, fully observed optimum reproduces MODEL.md's reference figures."""
+"""`htlm optimal`: the centralized, fully observed optimum reproduces docs/model.md's reference figures."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The PettingZoo ParallelEnv over the in-process team (STYLE.md 5)."""
+"""The PettingZoo ParallelEnv over the in-process team."""
 
 from __future__ import annotations
 

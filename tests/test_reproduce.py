@@ -8,13 +8,23 @@ import subprocess
 import sys
 from pathlib import Path
 
-FIGURES = ("idle_effect.png", "reassign_effect.png", "behaviour.png", "inactivation.png", "baselines.png",
-           "learning_curves.png")
+FIGURES = (
+    "idle_effect.png",
+    "reassign_effect.png",
+    "behaviour.png",
+    "inactivation.png",
+    "baselines.png",
+    "learning_curves.png",
+)
 
 
 def _run(out: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "htlm_agent.cli", "reproduce", "--quick", "--out", str(out)],
-                          capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "htlm_agent.cli", "reproduce", "--quick", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
 
 
 def test_quick_reproduction_produces_every_result(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""The reward f_R = R_comp + R_II + T_RP and the reduced action space Â(a_o) (MODEL.md, Reward)."""
+"""The reward f_R = R_comp + R_II + T_RP and the reduced action space Â(a_o) (docs/model.md, Reward)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Scenario files: the built-in teams of MODEL.md, the shipped paper.yaml, and messages for bad files that name the
+"""Scenario files: the built-in teams of docs/model.md, the shipped paper.yaml, and messages for bad files that name the
 file, the field and the value."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Determinism of the simulator and the in-process team (same seed, same trajectory), and the episode metrics of
-MODEL.md and agent importance (Eqs. 6-9) on hand-made arrays."""
+docs/model.md and agent importance (Eqs. 6-9) on hand-made arrays."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""QoS profiles of the HTLM topics, named once (ARCHITECTURE.md, The wire contract).
+"""QoS profiles of the HTLM topics, named once (docs/architecture.md, The wire contract).
 
 Plain data, so this module imports without rclpy; `htlm_msgs_py.ros.qos_profile` turns a spec into an
 rclpy QoSProfile.

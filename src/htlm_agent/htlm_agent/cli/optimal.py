@@ -39,6 +39,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(out))
     else:
-        print(f"{sc.team}: expected completion step of the centralized optimum = {sol.expected_completion:.2f} "
-              f"(h = {sc.horizon}, {out['capability_vectors']} capability vectors, {out['seconds']} s)")
+        print(
+            f"{sc.team}: expected completion step of the centralized optimum = {sol.expected_completion:.2f} "
+            f"(h = {sc.horizon}, {out['capability_vectors']} capability vectors, {out['seconds']} s)"
+        )
     return 0

@@ -23,11 +23,18 @@ def run(args: argparse.Namespace) -> int:
     from htlm_agent.experiments.reproduce import reproduce
 
     out = Path(args.out)
-    cmd = "htlm " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["reproduce"] else \
-        "htlm reproduce"
-    data = reproduce(out, quick=args.quick, force=args.force, seeds=tuple(args.seeds) if args.seeds else None,
-                     command=cmd, jobs_in_parallel=args.jobs,
-                     episodes=args.episodes)
+    cmd = (
+        "htlm " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:2] == ["reproduce"] else "htlm reproduce"
+    )
+    data = reproduce(
+        out,
+        quick=args.quick,
+        force=args.force,
+        seeds=tuple(args.seeds) if args.seeds else None,
+        command=cmd,
+        jobs_in_parallel=args.jobs,
+        episodes=args.episodes,
+    )
     for c in data["claims"]:
         print(f"{c['id']}: {'held' if c['held'] else 'NOT held'} — {c['numbers']}")
     print(f"report: {out / 'report.md'} ({data['wall_time_s'] / 60:.1f} min)")

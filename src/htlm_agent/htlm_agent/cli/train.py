@@ -110,7 +110,7 @@ def experiment_name(sc: Scenario) -> str:
 
 
 def run_name(experiment: str, seed: int) -> str:
-    """{experiment}__{seed}__{timestamp} (STYLE.md 11)."""
+    """{experiment}__{seed}__{timestamp}."""
     return f"{experiment}__{seed}__{time.strftime('%Y%m%d-%H%M%S')}"
 
 

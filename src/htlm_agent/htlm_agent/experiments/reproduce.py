@@ -1,6 +1,6 @@
 """`htlm reproduce`: every result of the paper's Results section, from scratch, in the in-process runtime.
 
-Reads top to bottom, one function per figure or table (STYLE.md 11). Training runs are cached in OUT/runs/ and
+Reads top to bottom, one function per figure or table. Training runs are cached in OUT/runs/ and
 never retrained unless forced; figures read the runs' results and never retrain.
 """
 

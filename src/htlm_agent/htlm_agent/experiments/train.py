@@ -174,7 +174,7 @@ class Selection:
 
 
 def write_run_files(out_dir: Path, scenario: Scenario, settings: Settings) -> None:
-    """settings.json and scenario.yaml beside the run's results (STYLE.md 2)."""
+    """settings.json and scenario.yaml beside the run's results."""
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "settings.json").write_text(json.dumps(settings.to_dict(), indent=2) + "\n")
     (out_dir / "scenario.yaml").write_text(yaml.safe_dump(scenario.to_dict(), sort_keys=False))

@@ -86,7 +86,7 @@ class Settings:
     without them a resumed run refills its memories first."""
 
     def __post_init__(self) -> None:
-        """Validate every field (STYLE.md 3): a bad value raises ValueError naming it."""
+        """Validate every field: a bad value raises ValueError naming it."""
         positive = (
             "n_step",
             "lr",

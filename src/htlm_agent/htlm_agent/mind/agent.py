@@ -72,7 +72,7 @@ class _Pending:
 class AgentMind:
     """Belief, previous assignment, policy and simulated channel of one agent, and the protocol's order.
 
-    The lockstep protocol as the agent sees it (ARCHITECTURE.md, data flow of one step): the world's begin of an
+    The lockstep protocol as the agent sees it (docs/architecture.md, data flow of one step): the world's begin of an
     episode resets the mind, which answers with its action for step 1. The world's observation of step t (which
     lists the agents whose action it applied) makes the mind draw its channel and broadcast; once it has heard the
     broadcast of every other agent that acted (or `tick` finds it waited too long), it updates its belief (Eq. 2),

@@ -1,4 +1,4 @@
-"""agent_node: one agent of the team as its own process over ROS 2 (ARCHITECTURE.md, data flow of one step).
+"""agent_node: one agent of the team as its own process over ROS 2 (docs/architecture.md, data flow of one step).
 
 The node decodes messages and feeds them to its `AgentMind` (htlm_agent.mind.agent), which holds the agent's belief,
 previous assignment, policy and simulated channel; it publishes what the mind returns: the action, the broadcast,

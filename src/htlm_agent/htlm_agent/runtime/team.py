@@ -121,7 +121,7 @@ class Team:
         return actions
 
     def step(self, actions: IntArray) -> tuple[FloatArray, FloatArray, StepInfo]:
-        """One step of the data flow of ARCHITECTURE.md for every agent of every episode.
+        """One step of the data flow of docs/architecture.md for every agent of every episode.
 
         Returns the next knowledge states (B, N, K), rewards (B, N) and side results.
         """

@@ -349,7 +349,7 @@ def run_node(
     cleanup: Callable[[Any], None],
     args: list[str] | None = None,
 ) -> int:
-    """The Jazzy node skeleton shared by every HTLM node's `main` (STYLE.md 8).
+    """The Jazzy node skeleton shared by every HTLM node's `main`.
 
     Construct the node before `try` (bad parameters exit with code 2 and the reason on stderr), route SIGINT and
     SIGTERM into `node.stop_signal` so `run` can stop cleanly, let SIGUSR1 dump every thread's stack to the log,
