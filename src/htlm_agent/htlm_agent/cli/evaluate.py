@@ -12,7 +12,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from htlm_agent.cli.train import add_scenario_arguments, experiment_name, run_name, scenario_from_args
+from htlm_agent.cli.common import (
+    add_scenario_arguments,
+    checkpoint_run_dir,
+    experiment_name,
+    run_name,
+    scenario_from_args,
+)
 from htlm_world.scenario import Scenario, ScenarioError
 
 
@@ -117,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
             learner_settings: Any = ck.settings
             name = "htlm-dqn" if sc.mode == "htlm" else "ht-dqn"
             seed = ck.seed if args.seed is None else args.seed
-            run_dir = ck.path.parent if ck.path.name == "checkpoint" else ck.path
+            run_dir = checkpoint_run_dir(ck.path)
             inactive = parse_agents(sc, args.inactivate)
             tag = f"seed{seed}-{args.episodes}" + (
                 "-without-" + "-".join(sc.agents[i].name for i in inactive) if inactive else ""

@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from htlm_agent.cli.common import checkpoint_run_dir
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm importance`."""
@@ -35,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"htlm importance: {e}") from None
     seed = ck.seed if args.seed is None else args.seed
     table = importance_table(QPolicy.from_checkpoint(ck), ck.scenario, args.episodes, seed=seed)
-    run_dir = ck.path.parent if ck.path.name == "checkpoint" else ck.path
+    run_dir = checkpoint_run_dir(ck.path)
     out = Path(args.out) if args.out else run_dir / "importance" / f"seed{seed}-{args.episodes}"
     paths = write_importance(table, out)
     if args.json:

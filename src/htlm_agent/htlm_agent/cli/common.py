@@ -1,0 +1,71 @@
+"""Argument helpers shared by the `htlm` verbs: the scenario options, run names and trained runs on disk.
+
+Every verb module (`cli/<verb>.py`) defines `add_arguments(parser)` and `run(args) -> int`; what two verbs share
+lives here, so `htlm train`, `htlm evaluate` and `htlm importance` read their options and name their runs alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from htlm_world.scenario import REASSIGN_COSTS, TEAMS, Scenario, builtin, load
+
+
+def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
+    """--team, --idle-incentive, --reassign, --scenario, --mode."""
+    g = p.add_argument_group("scenario")
+    g.add_argument("--team", choices=sorted(TEAMS), default=None, help="built-in team (default: heterogeneous)")
+    g.add_argument(
+        "--idle-incentive",
+        type=float,
+        default=None,
+        metavar="X",
+        help="scale of the idle incentive R_II; 0 turns it off (default: 1.0)",
+    )
+    g.add_argument(
+        "--reassign",
+        choices=list(REASSIGN_COSTS),
+        default=None,
+        help="reassignment penalty T_RP level (default: medium)",
+    )
+    g.add_argument("--scenario", default=None, metavar="FILE", help="scenario YAML (default: the built-in 'paper')")
+    g.add_argument(
+        "--mode",
+        choices=["htlm", "ht"],
+        default=None,
+        help="htlm (default) or ht: the HT Dec-POMDP baseline (no idle locations, R_LM = 0)",
+    )
+
+
+def scenario_from_args(args: argparse.Namespace) -> Scenario:
+    """The scenario the options describe: a file or the built-in one, then the team, R_II, T_RP and mode given."""
+    sc = load(args.scenario) if args.scenario else builtin(args.team or "heterogeneous")
+    if args.scenario and args.team:
+        sc = sc.replace(agents=builtin(args.team).agents, team=args.team)
+    if args.idle_incentive is not None:
+        sc = sc.with_reward(idle_incentive=args.idle_incentive)
+    if args.reassign is not None:
+        sc = sc.with_reward(reassign_cost=REASSIGN_COSTS[args.reassign])
+    if args.mode is not None:
+        sc = sc.replace(mode=args.mode)
+    return sc
+
+
+def experiment_name(sc: Scenario) -> str:
+    """A short name of a training configuration, e.g. heterogeneous-ii1-medium."""
+    levels = {v: k for k, v in REASSIGN_COSTS.items()}
+    tc = levels.get(sc.reward.reassign_cost, f"tc{sc.reward.reassign_cost:g}")
+    base = sc.team if sc.name == "paper" else f"{sc.name}-{sc.team}"
+    return f"{base}-ii{sc.reward.idle_incentive:g}-{tc}" + ("-ht" if sc.mode == "ht" else "")
+
+
+def run_name(experiment: str, seed: int) -> str:
+    """{experiment}__{seed}__{timestamp}."""
+    return f"{experiment}__{seed}__{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def checkpoint_run_dir(checkpoint_path: Path) -> Path:
+    """The run directory of a loaded checkpoint (RUN/checkpoint -> RUN; a bare checkpoint directory is its own)."""
+    return checkpoint_path.parent if checkpoint_path.name == "checkpoint" else checkpoint_path
