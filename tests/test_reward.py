@@ -165,3 +165,48 @@ def test_idle_action_is_the_idle_location_at_the_site_of_the_previous_assignment
     assert Model.build(builtin()).idle_action(prev).tolist() == [IDLE1, IDLE1, IDLE1, IDLE2, IDLE2, IDLE1, IDLE2]
     assert Model.build(builtin()).idle_action(prev[None, :2]).shape == (1, 2)
     assert Model.build(builtin(mode="ht")).idle_action(prev[:5]).tolist() == [-1] * 5  # HT mode: no idle location
+
+
+def _uncertain_done(p_done: tuple[float, ...], n: int = 5) -> np.ndarray:
+    """(1, n, p, L) marginals with P(level 0) = p_done[j] and the rest at level 1, the same for every agent."""
+    m = np.zeros((1, n, len(p_done), L))
+    for j, q in enumerate(p_done):
+        m[0, :, j, 0] = q
+        m[0, :, j, 1] = 1.0 - q
+    return m
+
+
+@pytest.mark.parametrize(
+    ("kind", "expected_site1", "expected_site2"),
+    [
+        ("constant", 1.0, 1.0),
+        ("site", 0.9 * 0.5, 1.0 * 0.8),  # tasks 0, 1 at site 1; tasks 2, 3 at site 2
+        ("mission", 0.9 * 0.5 * 1.0 * 0.8, 0.9 * 0.5 * 1.0 * 0.8),
+    ],
+)
+def test_idle_bonus_depends_on_the_belief(kind: str, expected_site1: float, expected_site2: float) -> None:
+    """R_II(b): the idle bonus times the believed probability that the idle site's tasks (or all tasks) are done."""
+    sc = builtin().with_reward(idle_belief=kind, idle_bonus=2.0)
+    marg = _uncertain_done((0.9, 0.5, 1.0, 0.8))
+    _, parts = run(sc, [IDLE1, IDLE2, IDLE1, IDLE2, FIRE1], marg, [IDLE1, IDLE2, IDLE1, IDLE2, FIRE1])
+    np.testing.assert_allclose(parts["idle"][:4], [2 * expected_site1, 2 * expected_site2] * 2)
+    assert parts["idle"][4] == 0.0  # working on a task: no bonus (capability 3 vs confident level 1: no excess)
+
+
+def test_idle_belief_per_agent_preference() -> None:
+    """Agents may carry their own R_II(b): one constant, the others from the builtin's shared reward."""
+    sc = builtin().with_reward(idle_belief="mission")
+    own = RewardParams(idle_belief="constant")
+    agents = (AgentSpec(**{**sc.agents[0].__dict__, "reward": own}), *sc.agents[1:])
+    sc = sc.replace(agents=agents)
+    _, parts = run(sc, [IDLE1] * 5, _uncertain_done((0.5, 0.5, 0.5, 0.5)), [IDLE1] * 5)
+    np.testing.assert_allclose(parts["idle"], [1.0] + [0.5**4] * 4)
+
+
+def test_unknown_idle_belief_is_rejected_naming_the_value(tmp_path) -> None:
+    from htlm_world.scenario import ScenarioError, load
+
+    f = tmp_path / "bad.yaml"
+    f.write_text("reward: {idle_belief: sometimes}\n")
+    with pytest.raises(ScenarioError, match=r"reward\.idle_belief.*sometimes"):
+        load(f)

@@ -46,7 +46,10 @@ class RewardParams:
     idle_incentive: float = 1.0
     """Scale of the idle incentive R_II; 0 turns it off."""
     idle_bonus: float = 1.0
-    """R_II when the action is an idle location (before scaling)."""
+    """R_II when the action is an idle location (before scaling), times the belief weight of `idle_belief`."""
+    idle_belief: Literal["constant", "site", "mission"] = "constant"
+    """How R_II(b) depends on the belief: constant (the full bonus whenever idle), site (bonus times the believed
+    probability that every task at the idle location's site is done), mission (times that every task is done)."""
     excess_penalty: float = -1.0
     """R_II when working on a task with capability >= confident level + excess_margin (before scaling)."""
     excess_margin: int = 2

@@ -21,6 +21,7 @@ class RewardTables:
     idle_bonus: FloatArray  # (N,) already scaled by idle_incentive
     excess_penalty: FloatArray  # (N,) already scaled by idle_incentive
     excess_margin: IntArray  # (N,)
+    idle_belief: tuple[str, ...]  # (N,) constant, site or mission: how the idle bonus depends on the belief
     reassign_cost: FloatArray  # (N,)
     load_management: bool  # False in HT mode: R_LM = 0
 
@@ -34,6 +35,7 @@ class RewardTables:
             idle_bonus=np.array([r.idle_bonus * r.idle_incentive for r in rs]),
             excess_penalty=np.array([r.excess_penalty * r.idle_incentive for r in rs]),
             excess_margin=np.array([r.excess_margin for r in rs], dtype=np.int64),
+            idle_belief=tuple(r.idle_belief for r in rs),
             reassign_cost=np.array([r.reassign_cost for r in rs]),
             load_management=sc.mode == "htlm",
         )
@@ -44,6 +46,28 @@ def confident_levels(marg: Marginals, threshold: FloatArray) -> IntArray:
     cdf = np.cumsum(marg, axis=-1)
     ok = cdf >= threshold[:, None, None] - 1e-9
     return np.asarray(ok.argmax(axis=-1), dtype=np.int64)
+
+
+def idle_weight(model: Model, tables: RewardTables, marg: Marginals, actions: IntArray) -> FloatArray:
+    """The belief factor of R_II(b) for every agent (B, N) (docs/model.md, Reward): 1 for `constant`; for `site`,
+    the agent's believed probability that every task at the site of its action is at level 0; for `mission`, that
+    every task is at level 0. Probabilities are products of the per-task marginals (the agent's knowledge state)."""
+    weight = np.ones(actions.shape)
+    kinds = set(tables.idle_belief)
+    if kinds == {"constant"}:
+        return weight
+    done = marg[..., 0]  # (B, N, p) P(level_j = 0)
+    mission = np.prod(done, axis=-1)
+    site_of_task = model.task_site  # (p,)
+    action_site = model.action_site[np.maximum(actions, 0)]  # (B, N)
+    at_site = site_of_task[None, None, :] == action_site[..., None]  # (B, N, p)
+    site = np.prod(np.where(at_site, done, 1.0), axis=-1)
+    for i, kind in enumerate(tables.idle_belief):
+        if kind == "site":
+            weight[:, i] = site[:, i]
+        elif kind == "mission":
+            weight[:, i] = mission[:, i]
+    return weight
 
 
 def reward(
@@ -75,7 +99,8 @@ def reward(
     my_cap = model.agent_caps[np.arange(n)[None, :], task]  # (B, N)
     task_level = np.take_along_axis(lv, task[..., None], axis=2)[..., 0]
     excess = (~idle) & (my_cap >= task_level + tables.excess_margin)
-    r_ii = np.where(idle, tables.idle_bonus, np.where(excess, tables.excess_penalty, 0.0))
+    bonus = tables.idle_bonus * idle_weight(model, tables, marg, actions)
+    r_ii = np.where(idle, bonus, np.where(excess, tables.excess_penalty, 0.0))
     moved = (prev >= 0) & (model.action_site[np.maximum(prev, 0)] != model.action_site[actions])
     t_rp = np.where(moved, tables.reassign_cost, 0.0)
     return comp + r_ii + t_rp, {"comp": comp, "idle": r_ii, "reassign": t_rp}
