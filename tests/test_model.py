@@ -327,3 +327,12 @@ def test_sample_observation_matches_o(model: Model) -> None:
             true = np.full(n, lv, dtype=np.int64)
             z = model.sample_observation(true, np.full(n, s, dtype=np.int64), rng.random(n))
             assert_frequencies(z, ref_obs(s, lv), f"sensing {s} level {lv}")
+
+
+@pytest.mark.parametrize(("base", "comm", "tau"), [(0.0, 3, 0.6), (0.2, 3, 0.8), (0.2, 0, 0.2), (0.5, 4, 1.0)])
+def test_channel_reliability_tau(base: float, comm: int, tau: float) -> None:
+    """tau = min(1, channel_base + comm / capability_max); the information table I mixes O with uniform by it."""
+    sc = builtin().replace(channel_base=base)
+    sc = sc.replace(agents=tuple(a.__class__(**{**a.__dict__, "comm": comm}) for a in sc.agents))
+    model = Model.build(sc)
+    np.testing.assert_allclose(model.keep, tau)

@@ -81,8 +81,8 @@ def observation_table(sc: Scenario) -> FloatArray:
 
 
 def keep_probability(sc: Scenario, comm: int) -> float:
-    """tau = comm / capability_max: probability that a broadcast level passes the channel intact."""
-    return comm / sc.capability_max if sc.channel else 1.0
+    """tau = min(1, channel_base + comm / capability_max): probability that a broadcast level passes intact."""
+    return min(1.0, sc.channel_base + comm / sc.capability_max) if sc.channel else 1.0
 
 
 def information_table(sc: Scenario) -> FloatArray:
@@ -109,6 +109,7 @@ class Model:
     rescue_cdf: FloatArray
     obs_cdf: FloatArray
     agent_caps: IntArray  # (N, |G|) capability each agent brings to each element of G-bar (0 for idle)
+    task_caps: IntArray  # (N, |G|+1, p) capability agent i brings to every task under action a (row |G|: none)
     sensing: IntArray  # (N,)
     comm: IntArray  # (N,)
     keep: FloatArray  # (N,) tau of each agent's channel
@@ -125,6 +126,8 @@ class Model:
         for i, a in enumerate(sc.agents):
             for j in range(p):
                 caps[i, j] = a.fire if j % 2 == 0 else a.rescue
+        task_caps = np.zeros((sc.n_agents, na + 1, p), dtype=np.int64)
+        task_caps[:, np.arange(p), np.arange(p)] = caps[:, :p]
         return Model(
             scenario=sc,
             fire=fire,
@@ -135,6 +138,7 @@ class Model:
             rescue_cdf=_cdf(rescue),
             obs_cdf=_cdf(obs),
             agent_caps=caps,
+            task_caps=task_caps,
             sensing=np.array([a.sensing for a in sc.agents], dtype=np.int64),
             comm=np.array([a.comm for a in sc.agents], dtype=np.int64),
             keep=np.array([keep_probability(sc, a.comm) for a in sc.agents]),
@@ -167,16 +171,15 @@ class Model:
     def joint_capability(self, actions: IntArray) -> IntArray:
         """Joint capability on every task, capped: (..., N) actions -> (..., p) capabilities."""
         sc = self.scenario
-        n = actions.shape[-1]
+        n, na = actions.shape[-1], sc.n_actions
         flat = actions.reshape(-1, n)
-        out = np.zeros((flat.shape[0], sc.n_actions), dtype=np.int64)
-        rows = np.arange(flat.shape[0])
+        if flat.size and int(flat.max()) >= na:
+            raise IndexError(f"action {int(flat.max())} is out of range -1..{na - 1}")
+        caps = np.zeros((flat.shape[0], sc.n_tasks), dtype=np.int64)
         for i in range(n):
-            a = flat[:, i]
-            valid = a >= 0
-            np.add.at(out, (rows[valid], a[valid]), self.agent_caps[i, a[valid]])
-        caps = np.minimum(out[:, : sc.n_tasks], sc.capability_max)
-        return caps.reshape(actions.shape[:-1] + (sc.n_tasks,))
+            caps += self.task_caps[i].take(np.where(flat[:, i] >= 0, flat[:, i], na), axis=0)  # negative: nothing
+        out: IntArray = np.minimum(caps, sc.capability_max).reshape(actions.shape[:-1] + (sc.n_tasks,))
+        return out
 
     def transition_rows(self, levels: IntArray, caps: IntArray) -> FloatArray:
         """Distribution of every task's next level: (..., p) levels and capabilities -> (..., p, L)."""
@@ -188,25 +191,36 @@ class Model:
 
     def sample_transition(self, levels: IntArray, caps: IntArray, u: FloatArray) -> IntArray:
         """Next levels of T by inverse CDF from uniforms u of shape (..., p) (docs/model.md, Transition T)."""
+        L = self.scenario.levels
         fire_lv = levels[..., 0::2]
         nxt = np.empty_like(levels)
-        fcdf = self.fire_cdf[caps[..., 0::2], fire_lv]
-        rcdf = self.rescue_cdf[caps[..., 1::2], fire_lv, levels[..., 1::2]]
-        nxt[..., 0::2] = (u[..., 0::2, None] >= fcdf).sum(-1)
-        nxt[..., 1::2] = (u[..., 1::2, None] >= rcdf).sum(-1)
-        return np.minimum(nxt, self.scenario.levels - 1)
+        nxt[..., 0::2] = _inverse_cdf(self.fire_cdf, caps[..., 0::2] * L + fire_lv, u[..., 0::2])
+        nxt[..., 1::2] = _inverse_cdf(
+            self.rescue_cdf, (caps[..., 1::2] * L + fire_lv) * L + levels[..., 1::2], u[..., 1::2]
+        )
+        return nxt
 
     def sample_observation(self, true_level: IntArray, sensing: IntArray, u: FloatArray) -> IntArray:
         """Observed levels of O by inverse CDF: true levels, sensing and uniforms of one shape."""
-        cdf = self.obs_cdf[sensing, true_level]
-        z: IntArray = np.minimum((u[..., None] >= cdf).sum(-1), self.scenario.levels - 1)
-        return z
+        return _inverse_cdf(self.obs_cdf, sensing * self.scenario.levels + true_level, u)
 
     def apply_channel(self, level: IntArray, keep: FloatArray, u_keep: FloatArray, u_level: FloatArray) -> IntArray:
         """The simulated channel: with probability 1 - tau replace the level by a uniformly random one."""
         L = self.scenario.levels
         random_level = np.minimum((u_level * L).astype(np.int64), L - 1)
         return np.where(u_keep < keep, level, random_level)
+
+
+def _inverse_cdf(cdf: FloatArray, row: IntArray, u: FloatArray) -> IntArray:
+    """The level drawn by inverse CDF from uniforms u, in flat row `row` of the cumulative table `cdf` (..., L):
+    the number of cumulative entries <= u, at most L - 1. The entries of a row never decrease, so counting the first
+    L - 1 of them caps the level."""
+    L = cdf.shape[-1]
+    flat = cdf.reshape(-1, L)
+    z = np.zeros(np.shape(row), dtype=np.int8 if L <= 128 else np.int64)
+    for lv in range(L - 1):
+        z += u >= flat[:, lv][row]
+    return z.astype(np.int64)
 
 
 def _cdf(t: FloatArray) -> FloatArray:

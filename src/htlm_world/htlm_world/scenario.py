@@ -112,6 +112,8 @@ class Scenario:
     """Observation accuracy gained per sensing level."""
     channel: bool = True
     """Simulate the communication channel (random replacement of broadcast levels); off for real robots."""
+    channel_base: float = 0.0
+    """Channel reliability added to comm / capability_max: tau = min(1, channel_base + comm / capability_max)."""
     agents: tuple[AgentSpec, ...] = tuple(
         AgentSpec(name=f"agent{i + 1}", fire=f, rescue=r) for i, (f, r) in enumerate(TEAMS["heterogeneous"])
     )
@@ -315,7 +317,7 @@ def validate(sc: Scenario, src: str) -> None:
         raise ScenarioError(f"{src}: p_drop: needs at least one entry")
     for k, x in enumerate(sc.p_drop):
         _check_prob(src, f"p_drop[{k}]", x)
-    for name in ("fire_growth", "rescue_double_share", "sensing_base"):
+    for name in ("fire_growth", "rescue_double_share", "sensing_base", "channel_base"):
         _check_prob(src, name, getattr(sc, name))
     if not 0.0 <= sc.sensing_slope <= 1.0:
         raise ScenarioError(f"{src}: sensing_slope: {sc.sensing_slope!r} is not in [0, 1]")
