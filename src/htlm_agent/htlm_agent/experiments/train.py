@@ -84,6 +84,12 @@ RESUMABLE_CHANGES = (
 """Settings that may differ when a run is resumed; every other field must match the checkpoint's."""
 
 
+def deterministic_torch() -> None:
+    """`torch.use_deterministic_algorithms(True)` without the import of torch._inductor it makes (a second or more at
+    start-up) only to set the compiler's own flag: training compiles nothing."""
+    torch._C._set_deterministic_algorithms(True)
+
+
 # ----- one batch of training episodes -----------------------------------------------------------------------------
 
 
@@ -371,7 +377,7 @@ def train(
     t_start = time.perf_counter()
     out = Path(out_dir)
     torch.set_num_threads(settings.threads)
-    torch.use_deterministic_algorithms(True)
+    deterministic_torch()
     ckpt_dir = out / "checkpoint"
     learner, info = start_learner(scenario, settings, ckpt_dir, resume)
     scenario, s = learner.scenario, settings

@@ -40,6 +40,7 @@ from htlm_agent.learning.qpolicy import QPolicy, greedy_actions
 from htlm_agent.learning.replay import Batch, Replay
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
+from htlm_agent.learning.update import TwinNets, UpdateBatch
 from htlm_agent.mind.knowledge import AnyFloats, previous
 from htlm_agent.mind.policies import epsilon_greedy
 from htlm_world import seeds
@@ -64,10 +65,9 @@ class Learner:
         self.seed = settings.seed if seed is None else int(seed)
         n = scenario.n_agents
         self.sizes = layer_sizes(scenario, settings.hidden)
-        self.net = StackedQ.fresh(self.sizes, [seeds.network_init(self.seed, i) for i in range(n)])
-        self.target = StackedQ.fresh(self.sizes, [0] * n)
-        self.target.flat.copy_(self.net.flat)
-        self.target.requires_grad_(False)
+        self.twins = TwinNets(self.sizes, [seeds.network_init(self.seed, i) for i in range(n)])
+        self.net = self.twins.online
+        self.target = self.twins.target
         self.opt = StackedAdam(self.net.flat, self.net.grad, settings.lr)
         self.replay = Replay(
             n,
@@ -82,6 +82,12 @@ class Learner:
         self.model = Model.build(scenario)
         self._nstep = [NStep(settings.n_step, self.gamma, settings.reward_scale) for _ in range(n)]
         self._nstep_batch = NStep(settings.n_step, self.gamma, settings.reward_scale)
+        # Â(a_o) of every previous assignment a_o = -1 .. (one-hot length - 1), looked up by `knowledge_mask`
+        self._mask_table = self.model.action_mask(
+            np.arange(-1, scenario.knowledge_size - scenario.n_tasks * scenario.levels)
+        )
+        ks, m = scenario.knowledge_size, settings.batch_size
+        self._x = np.zeros((2, n, 2 * m, ks), dtype=np.float32)  # the input of `TwinNets.update`, reused
 
     @property
     def n_agents(self) -> int:
@@ -148,7 +154,10 @@ class Learner:
         return np.asarray(self.replay.size >= need)
 
     def loss(self, batch: Batch, active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Sum over active agents of each agent's mean Huber TD error, and the per-agent losses (N,)."""
+        """Sum over active agents of each agent's mean Huber TD error, and the per-agent losses (N,).
+
+        The definition of the loss, through autograd; `train_step` computes the same loss and its gradient by hand
+        (`update.TwinNets.update`, checked against this in tests/test_learner_update.py)."""
         s = self.settings
         k = torch.from_numpy(batch.k)
         k2 = torch.from_numpy(batch.k2)
@@ -177,26 +186,51 @@ class Learner:
 
     def knowledge_mask(self, k: AnyFloats) -> torch.Tensor:
         """Â(a_o) (..., |Ḡ|) of knowledge states (..., K), from the previous assignment they hold."""
-        return torch.from_numpy(self.model.action_mask(previous(k, self.scenario)))
+        return torch.from_numpy(self._mask_table[previous(k, self.scenario) + 1])
+
+    def update_batch(self, ready: BoolArray) -> UpdateBatch:
+        """A minibatch of every agent marked in `ready` (others: padding) from its own memory, as the tensors of
+        `TwinNets.update`."""
+        s, sc = self.settings, self.scenario
+        rec = self.replay.sample_records(s.batch_size, ready)  # (N, M, D)
+        c = self.replay.cols
+        m = s.batch_size
+        x = self._x
+        x[0, :, :m] = rec[..., c["k"]]
+        x[0, :, m:] = rec[..., c["k2"]]
+        x[1] = x[0]
+        mask2 = rec[..., c["mask2"]] > 0.5
+        if not ready.all():
+            mask2 |= ~ready[:, None, None]  # padding rows of idle learners: any action
+        return UpdateBatch(
+            x=torch.from_numpy(x).view(2 * sc.n_agents, 2 * m, sc.knowledge_size),
+            a=torch.from_numpy(rec[..., c["a"]][..., 0].astype(np.int64)),
+            r=torch.from_numpy(np.ascontiguousarray(rec[..., c["r"]][..., 0])),
+            discount=torch.from_numpy(np.ascontiguousarray(rec[..., c["discount"]][..., 0])),
+            mask=self.knowledge_mask(rec[..., c["k"]]),
+            mask2=torch.from_numpy(mask2),
+        )
 
     def train_step(self) -> float | None:
         """One gradient update of every agent whose memory holds enough data (line 10 of Algorithm 1); returns the
-        mean loss of those agents, or None when no agent is ready yet."""
+        mean loss of those agents, or None when no agent is ready yet.
+
+        The update is `TwinNets.update` (the gradient of `loss`, written without autograd)."""
         ready = self.ready()
         if not ready.any():
             return None
+        s = self.settings
         active = torch.from_numpy(ready)
-        batch = self.replay.sample(self.settings.batch_size, ready)
-        total, per_agent = self.loss(batch, active)
-        self.net.zero_grad_()
-        self.net.backward(total)
-        clip_grad_per_agent(self.net.grad, self.settings.grad_clip)
+        all_active = bool(ready.all())
+        batch = self.update_batch(ready)
+        per_agent = self.twins.update(batch, active, all_active, s.advantage_learning, s.huber_delta, s.double_dqn)
+        clip_grad_per_agent(self.net.grad, s.grad_clip)
         self.opt.step(active)
         self.updates += ready
         sync = ready & (self.updates % self.settings.target_sync == 0)
         if sync.any():
             self.sync_target(sync)
-        return float(per_agent[active].mean())
+        return float(per_agent.mean() if all_active else per_agent[active].mean())
 
     def sync_target(self, agents: BoolArray) -> None:
         """Copy the online networks of the marked agents into their target networks."""

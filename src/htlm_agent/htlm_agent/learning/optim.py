@@ -8,7 +8,11 @@ import torch
 
 class StackedAdam:
     """Adam over stacked per-agent parameters (N, P) with a step count per agent: identical to one Adam per agent,
-    and an agent's parameters and moments change only on updates it takes part in."""
+    and an agent's parameters and moments change only on updates it takes part in.
+
+    The update is torch's fused CPU Adam kernel (`torch._fused_adam_`, what `torch.optim.Adam(fused=True)` runs) over
+    the agents' rows, each row with its own step count: one pass over parameters, gradients and moments.
+    """
 
     def __init__(
         self,
@@ -24,26 +28,43 @@ class StackedAdam:
         self.m = torch.zeros_like(param)
         self.v = torch.zeros_like(param)
         self.t = torch.zeros(param.shape[0], dtype=torch.float64)
+        n = param.shape[0]
+        self._steps = torch.zeros(n, dtype=torch.float32)  # the step counts as the fused kernel reads them
+        self._rows = [
+            [self.param[i], self.grad[i], self.m[i], self.v[i], self._steps[i]] for i in range(n)
+        ]  # every agent's row views
+        self._all = tuple(list(x) for x in zip(*self._rows, strict=True))  # the same, by kind
 
     @torch.no_grad()
     def step(self, active: torch.Tensor) -> None:
         """Apply the gradient rows of the agents marked in `active` (N,) bool."""
+        act = active.numpy()
+        t = self.t.numpy()  # shares memory with self.t
+        t += act
+        self._steps.copy_(self.t)
+        if act.all():
+            params, grads, ms, vs, steps = self._all
+        else:
+            rows = [r for r, a in zip(self._rows, act.tolist(), strict=True) if a]
+            if not rows:
+                return
+            params, grads, ms, vs, steps = (list(x) for x in zip(*rows, strict=True))
         b1, b2 = self.betas
-        g = self.grad
-        self.t += active.to(self.t.dtype)
-        t = self.t.clamp(min=1.0)
-        c1 = (1.0 - b1**t).to(torch.float32)[:, None]
-        c2 = (1.0 - b2**t).to(torch.float32)[:, None]
-        if bool(active.all()):
-            self.m.mul_(b1).add_(g, alpha=1.0 - b1)
-            self.v.mul_(b2).addcmul_(g, g, value=1.0 - b2)
-            self.param.sub_(self.lr * (self.m / c1) / ((self.v / c2).sqrt_().add_(self.eps)))
-            return
-        a = active[:, None]
-        self.m.copy_(torch.where(a, b1 * self.m + (1.0 - b1) * g, self.m))
-        self.v.copy_(torch.where(a, b2 * self.v + (1.0 - b2) * g * g, self.v))
-        upd = self.lr * (self.m / c1) / ((self.v / c2).sqrt() + self.eps)
-        self.param.sub_(torch.where(a, upd, torch.zeros_like(upd)))
+        torch._fused_adam_(
+            params,
+            grads,
+            ms,
+            vs,
+            [],
+            steps,
+            lr=self.lr,
+            beta1=b1,
+            beta2=b2,
+            weight_decay=0.0,
+            eps=self.eps,
+            amsgrad=False,
+            maximize=False,
+        )
 
     def state(self) -> dict[str, torch.Tensor]:
         """Tensors of the optimizer state."""
@@ -61,6 +82,8 @@ def clip_grad_per_agent(g: torch.Tensor, max_norm: float) -> torch.Tensor:
     the norms (N,) before clipping."""
     norm = g.norm(dim=1)
     if max_norm > 0:
-        g.mul_((max_norm / (norm + 1e-6)).clamp(max=1.0)[:, None])
+        scale = (max_norm / (norm + 1e-6)).clamp(max=1.0)
+        if bool((scale < 1.0).any()):  # (scaling by 1 changes nothing: skip the pass over the gradient)
+            g.mul_(scale[:, None])
     out: torch.Tensor = norm
     return out

@@ -72,8 +72,20 @@ class StackedQ(torch.nn.Module):
     `torch.baddbmm` per layer.
     """
 
-    def __init__(self, sizes: Sequence[int], agent_params: Sequence[Sequence[torch.Tensor]]) -> None:
-        """Stack per-agent parameter lists (each in `param_shapes(sizes)` order) into one module."""
+    def __init__(
+        self,
+        sizes: Sequence[int],
+        agent_params: Sequence[Sequence[torch.Tensor]],
+        storage: torch.Tensor | None = None,
+    ) -> None:
+        """Stack per-agent parameter lists (each in `param_shapes(sizes)` order) into one module.
+
+        Args:
+            sizes: layer sizes (K, hidden..., |Ḡ|).
+            agent_params: every agent's parameters.
+            storage: a contiguous float32 (N, P) tensor to hold `flat` (e.g. one half of the learner's joint online
+                and target parameters, see `update.TwinNets`); default: a new one.
+        """
         super().__init__()
         self.sizes = tuple(int(s) for s in sizes)
         self.n_agents = n = len(agent_params)
@@ -85,7 +97,13 @@ class StackedQ(torch.nn.Module):
         rows = [
             torch.cat([torch.as_tensor(p, dtype=torch.float32).reshape(-1) for p in params]) for params in agent_params
         ]
-        self.flat = torch.stack(rows).contiguous()
+        if storage is None:
+            self.flat = torch.stack(rows).contiguous()
+        else:
+            assert storage.shape == (n, self.offsets[-1]) and storage.dtype == torch.float32 and storage.is_contiguous()
+            self.flat = storage
+            with torch.no_grad():
+                self.flat.copy_(torch.stack(rows))
         self.grad = torch.zeros_like(self.flat)
         self.weights = torch.nn.ParameterList()
         self.biases = torch.nn.ParameterList()
@@ -155,12 +173,8 @@ def masked_argmax(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         q: (..., |Ḡ|) Q-values.
         mask: (..., |Ḡ|) bool, at least one True per row.
     """
-    masked = q.masked_fill(~mask, -math.inf)
-    # argmax of the first maximum, made explicit (torch.argmax's tie rule is documented but not for every backend)
-    best = masked.max(dim=-1, keepdim=True).values
-    hit = (masked == best) & mask
-    idx = torch.arange(q.shape[-1], dtype=torch.int64).expand_as(hit)
-    return torch.where(hit, idx, q.shape[-1]).min(dim=-1).values
+    # torch.argmax returns the first of several maximal values (documented for CPU tensors, where all of this runs)
+    return q.masked_fill(~mask, -math.inf).argmax(dim=-1)
 
 
 def masked_max(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -61,6 +61,7 @@ class Replay:
         self.size = np.zeros(n_agents, dtype=np.int64)
         self.pos = np.zeros(n_agents, dtype=np.int64)
         self.rngs = [np.random.default_rng(s) for s in seeds]
+        self._agent_rows = np.arange(n_agents)[:, None]
 
     def _records(
         self, k: FloatArray, a: Any, r: Any, k2: FloatArray, mask2: BoolArray, discount: Any
@@ -94,11 +95,10 @@ class Replay:
         assert b <= self.capacity
         disc = np.broadcast_to(np.asarray(discount, dtype=np.float32), (b, self.n_agents))
         rec = self._records(k, a, r, k2, mask2, disc)  # (B, N, D)
-        for agent in range(self.n_agents):
-            idx = (self.pos[agent] + np.arange(b)) % self.capacity
-            self.data[agent, idx] = rec[:, agent]
-            self.pos[agent] = (self.pos[agent] + b) % self.capacity
-            self.size[agent] = min(self.size[agent] + b, self.capacity)
+        idx = (self.pos[:, None] + np.arange(b)) % self.capacity  # (N, B): each agent's own write positions
+        self.data[np.arange(self.n_agents)[:, None], idx] = rec.transpose(1, 0, 2)
+        self.pos[:] = (self.pos + b) % self.capacity
+        np.minimum(self.size + b, self.capacity, out=self.size)
 
     def sample_indices(self, batch: int, agents: NDArray[np.bool_]) -> IntArray:
         """(N, batch) indices drawn uniformly with replacement from each marked agent's own memory with its own
@@ -109,11 +109,17 @@ class Replay:
                 idx[agent] = self.rngs[agent].integers(0, self.size[agent], batch)
         return idx
 
+    def sample_records(self, batch: int, agents: NDArray[np.bool_]) -> NDArray[np.float32]:
+        """The records (N, batch, D) of a minibatch of every agent marked in `agents` (N,) bool from its own memory
+        (`sample_indices`; columns in `cols`); other agents' rows are padding the caller ignores."""
+        idx = self.sample_indices(batch, agents)
+        out: NDArray[np.float32] = self.data[self._agent_rows, idx]
+        return out
+
     def sample(self, batch: int, agents: NDArray[np.bool_]) -> Batch:
         """A minibatch of `batch` transitions of every agent marked in `agents` (N,) bool from its own memory
         (`sample_indices`); other agents' rows are padding the caller ignores."""
-        idx = self.sample_indices(batch, agents)
-        rec = self.data[np.arange(self.n_agents)[:, None], idx]  # (N, M, D)
+        rec = self.sample_records(batch, agents)  # (N, M, D)
         c = self.cols
         return Batch(
             k=rec[..., c["k"]],
