@@ -192,23 +192,26 @@ class Learner:
         """A minibatch of every agent marked in `ready` (others: padding) from its own memory, as the tensors of
         `TwinNets.update`."""
         s, sc = self.settings, self.scenario
-        rec = self.replay.sample_records(s.batch_size, ready)  # (N, M, D)
+        n, m = sc.n_agents, s.batch_size
+        rec = self.replay.sample_records(m, ready)  # (N, M, D)
         c = self.replay.cols
-        m = s.batch_size
         x = self._x
         x[0, :, :m] = rec[..., c["k"]]
         x[0, :, m:] = rec[..., c["k2"]]
         x[1] = x[0]
-        mask2 = rec[..., c["mask2"]] > 0.5
+        a = rec[..., c["a"]].astype(np.int64)  # (N, M, 1)
+        off2 = np.where(rec[..., c["mask2"]] > 0.5, np.float32(0.0), np.float32(-np.inf))
         if not ready.all():
-            mask2 |= ~ready[:, None, None]  # padding rows of idle learners: any action
+            off2[~ready] = 0.0  # padding rows of idle learners: any action
+        off = np.where(self._mask_table[previous(rec[..., c["k"]], sc) + 1], np.float32(0.0), np.float32(-np.inf))
         return UpdateBatch(
-            x=torch.from_numpy(x).view(2 * sc.n_agents, 2 * m, sc.knowledge_size),
-            a=torch.from_numpy(rec[..., c["a"]][..., 0].astype(np.int64)),
+            x=torch.from_numpy(x).view(2 * n, 2 * m, sc.knowledge_size),
+            a=torch.from_numpy(np.concatenate([a, a])),
             r=torch.from_numpy(np.ascontiguousarray(rec[..., c["r"]][..., 0])),
             discount=torch.from_numpy(np.ascontiguousarray(rec[..., c["discount"]][..., 0])),
-            mask=self.knowledge_mask(rec[..., c["k"]]),
-            mask2=torch.from_numpy(mask2),
+            off=torch.from_numpy(off),
+            off2=torch.from_numpy(off2),
+            weight=torch.from_numpy(np.where(ready, np.float32(1.0 / m), np.float32(0.0))[:, None]),
         )
 
     def train_step(self) -> float | None:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from htlm_agent.learning.qnet import StackedQ, init_agent_params, masked_argmax, masked_max
+from htlm_agent.learning.qnet import StackedQ, init_agent_params
 
 
 @dataclass
@@ -29,15 +29,18 @@ class UpdateBatch:
     """(2N, 2M, K) float32: rows 0..M-1 of agent i's block hold its K, rows M..2M-1 its K'; the block is repeated for
     the target networks (blocks N..2N-1)."""
     a: torch.Tensor
-    """(N, M) int64 actions."""
+    """(2N, M, 1) int64 actions (repeated for the target networks, like x)."""
     r: torch.Tensor
     """(N, M) float32 (scaled, possibly n-step) returns."""
     discount: torch.Tensor
     """(N, M) float32 factor of the bootstrap term."""
-    mask: torch.Tensor
-    """(N, M, |Ḡ|) bool Â(a_o) of K (for the advantage-learning gap)."""
-    mask2: torch.Tensor
-    """(N, M, |Ḡ|) bool Â(a_o') of K' (any action for the padding rows of agents that do not train)."""
+    off: torch.Tensor
+    """(N, M, |Ḡ|) float32: 0 on Â(a_o) of K, -inf elsewhere (added to Q-values: a masked max is then a max)."""
+    off2: torch.Tensor
+    """(N, M, |Ḡ|) float32: the same for Â(a_o') of K' (0 everywhere on the padding rows of agents that do not
+    train)."""
+    weight: torch.Tensor
+    """(N, 1) float32: 1/M for the agents that train, 0 for the others (the gradient of a mean over M rows)."""
 
 
 class TwinNets:
@@ -93,7 +96,7 @@ class TwinNets:
             The per-agent losses (N,).
         """
         n = self.n_agents
-        m = b.a.shape[1]
+        m = b.r.shape[1]
         acts = [b.x]
         h = b.x
         last = len(self.weights) - 1
@@ -102,27 +105,27 @@ class TwinNets:
             if li < last:
                 h = h.relu_()
                 acts.append(h)
-        q_k, q_o = h[:n, :m], h[:n, m:]  # online on K (with gradient) and K' (for Double DQN)
-        qt_k, qt_k2 = h[n:, :m], h[n:, m:]  # target on K and K'
-        a = b.a[..., None]
-        if double_dqn:
-            nxt = qt_k2.gather(-1, masked_argmax(q_o, b.mask2)[..., None])[..., 0]
+        q_o = h[:n, m:]  # online networks on K' (for Double DQN)
+        qt_k, qt_k2 = h[n:, :m], h[n:, m:]  # target networks on K and K'
+        q_both_a = h[:, :m].gather(-1, b.a)[..., 0]  # Q(K, a) of the online networks, then of the target networks
+        q_a, qt_a = q_both_a[:n], q_both_a[n:]
+        if double_dqn:  # a' = masked argmax of the online network (ties to the lowest index, as qnet.masked_argmax)
+            nxt = qt_k2.gather(-1, (q_o + b.off2).argmax(dim=-1, keepdim=True))[..., 0]
         else:
-            nxt = masked_max(qt_k2, b.mask2)
+            nxt = (qt_k2 + b.off2).amax(dim=-1)
         y = b.r + b.discount * nxt  # targets.bellman_targets
         if advantage_learning > 0:  # minus α · targets.advantage_gap
-            y = y - advantage_learning * (masked_max(qt_k, b.mask) - qt_k.gather(-1, a)[..., 0])
-        q_a = q_k.gather(-1, a)[..., 0]
+            y = y - advantage_learning * ((qt_k + b.off).amax(dim=-1) - qt_a)
         per_agent = torch.nn.functional.huber_loss(q_a, y, reduction="none", delta=huber_delta).mean(dim=1)
-        # d(sum_i active_i · mean_m huber(q_a - y)) / d q_a = active_i / M · clamp(q_a - y, ±δ)
-        g = (q_a - y).clamp_(-huber_delta, huber_delta).mul_((active.to(torch.float32) / m)[:, None])
         if not all_active:
             per_agent = per_agent * active.to(per_agent.dtype)
-        delta = torch.zeros_like(q_k).scatter_(-1, a, g[..., None])  # gradient of the output layer (N, M, |Ḡ|)
+        # d(sum_i active_i · mean_m huber(q_a - y)) / d q_a = active_i / M · clamp(q_a - y, ±δ)
+        g = (q_a - y).clamp_(-huber_delta, huber_delta).mul_(b.weight)
+        delta = torch.zeros_like(h[:n, :m]).scatter_(-1, b.a[:n], g[..., None])  # output layer's gradient
         for li in range(last, -1, -1):
             below = acts[li][:n, :m]  # the layer's input on the rows with a gradient (online networks, K)
             self.grad_w[li].copy_(torch.bmm(below.transpose(1, 2), delta))
-            self.grad_b[li].copy_(delta.sum(dim=1))
+            torch.sum(delta, dim=1, out=self.grad_b[li])
             if li > 0:  # through the layer and the ReLU below it
                 delta = torch.ops.aten.threshold_backward(
                     torch.bmm(delta, self.weights[li][:n].transpose(1, 2)), below, 0.0
