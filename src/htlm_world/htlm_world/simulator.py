@@ -37,14 +37,14 @@ def sample_world_step(
     """
     sc = model.scenario
     b, n = actions.shape
+    p = sc.n_tasks
     caps = model.joint_capability(actions)
-    u_t = rng.random((b, sc.n_tasks))
+    u_t = rng.random((b, p))
     nxt = model.sample_transition(levels, caps, u_t)
     u_o = rng.random((b, n))
-    working = (actions >= 0) & (actions < sc.n_tasks)
-    task = np.where(working, actions, 0)
-    true = np.take_along_axis(nxt, task, axis=1)
-    z = model.sample_observation(true, np.broadcast_to(model.sensing, (b, n)), u_o)
+    working = (actions >= 0) & (actions < p)
+    task = np.where(working, actions, 0) + p * np.arange(b)[:, None]
+    z = model.sample_observation(nxt.reshape(-1)[task], model.sensing, u_o)
     return nxt, np.where(working, z, -1), caps
 
 
@@ -100,10 +100,10 @@ class BatchSim:
         """Advance every episode one step under the joint assignment `actions` (B, N)."""
         assert actions.shape == (self.batch, self.scenario.n_agents), actions.shape
         nxt, obs, caps = sample_world_step(self.model, self.levels, actions, self.rng)
-        msgs = np.stack(
-            [sample_channel(self.model, k, obs[:, k], self.channel_rngs[k]) for k in range(self.scenario.n_agents)],
-            axis=1,
-        )
+        # every agent's channel draws (B, 2) from its own generator, as `sample_channel` does
+        u = np.stack([g.random((self.batch, 2)) for g in self.channel_rngs], axis=1)  # (B, N, 2)
+        sent = self.model.apply_channel(obs, self.model.keep, u[..., 0], u[..., 1])
+        msgs = np.where(obs >= 0, sent, -1)
         self.levels = nxt
         self.t += 1
         return StepResult(levels=nxt.copy(), observations=obs, messages=msgs, caps=caps)

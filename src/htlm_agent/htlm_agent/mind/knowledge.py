@@ -9,13 +9,14 @@ fingerprint.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from htlm_world.scenario import Scenario
-from htlm_world.types import IntArray, Knowledge, Marginals
+from htlm_world.types import FloatArray, IntArray, Knowledge, Marginals
 
 AnyFloats = NDArray[np.floating[Any]]
 """Knowledge states as stored anywhere: float64 in the runtimes, float32 in the replay memories."""
@@ -23,9 +24,20 @@ AnyFloats = NDArray[np.floating[Any]]
 
 def build(marg: Marginals, prev: IntArray, n_actions: int) -> Knowledge:
     """K from marginals (..., p, L) and previous assignments (...,): (..., p·L + |Ḡ|)."""
-    flat = marg.reshape(marg.shape[:-2] + (-1,))
-    onehot = (prev[..., None] == np.arange(n_actions)).astype(np.float64)
-    return np.concatenate([flat, onehot], axis=-1)
+    lead, size = marg.shape[:-2], marg.shape[-2] * marg.shape[-1]
+    out: Knowledge = np.empty(lead + (size + n_actions,))
+    out[..., :size] = marg.reshape(lead + (size,))
+    if prev.size and int(prev.min()) >= -1 and int(prev.max()) < n_actions:
+        out[..., size:] = _one_hot(n_actions)[prev]  # row -1, the last, is all zeros
+    else:
+        out[..., size:] = prev[..., None] == np.arange(n_actions)
+    return out
+
+
+@functools.cache
+def _one_hot(n_actions: int) -> FloatArray:
+    """The one-hot rows of a_o = 0..|Ḡ|-1, then a row of zeros (a_o = -1)."""
+    return np.vstack([np.eye(n_actions), np.zeros((1, n_actions))])
 
 
 def marginals(k: AnyFloats, scenario: Scenario) -> AnyFloats:

@@ -86,18 +86,46 @@ class Team:
             [seeds.channel(seed, k, episode) for k in range(scenario.n_agents)],
             model=self.model,
         )
+        self.filter = bf.filter_tables(self.model)
+        # the site-major beliefs (L*L, S, N, B) live in (N, L*L, S, B) memory: long contiguous runs per agent, and
+        # the capability tables of a step (L*L, S, 1, B) broadcast over the outermost axis
+        self._work = (self._new_sites(), self._new_sites(), self._new_sites())
         self.impossible_count = 0
         self.reset()
+
+    def _new_sites(self) -> FloatArray:
+        sc = self.scenario
+        mem = np.empty((sc.n_agents, sc.levels * sc.levels, sc.n_sites, self.batch))
+        view: FloatArray = mem.transpose(1, 2, 0, 3)
+        return view
+
+    @property
+    def belief(self) -> FloatArray:
+        """Every agent's belief (B, N, S, L, L): a view of the site-major beliefs the filter keeps (`belief.to_sites`
+        of the (N, B) agent-major batch), so writing into it changes the team's beliefs."""
+        view: FloatArray = bf.from_sites(self.sites).swapaxes(0, 1)
+        return view
 
     def reset(self) -> FloatArray:
         """Start B new episodes; returns the knowledge states (B, N, K)."""
         sc = self.scenario
         self.sim.reset()
-        self.belief = bf.initial_belief(self.model, self.batch)
+        b0 = bf.initial_belief(self.model, self.batch)
+        self.sites = self._new_sites()
+        self.sites[...] = bf.to_sites(b0.swapaxes(0, 1))
         self.prev = np.full((self.batch, sc.n_agents), sc.start_assignment, dtype=np.int64)
-        self.marg = bf.marginals(self.belief)
+        self.marg = self._marginals()
         self.t = 0
         return self.knowledge()
+
+    def _marginals(self) -> FloatArray:
+        """Per-task marginals (B, N, p, L) of the beliefs (`belief.marginals`)."""
+        fire, rescue = bf.marginals_sites(self.sites)  # (L, S, N, B)
+        sc = self.scenario
+        out = np.empty((self.batch, sc.n_agents, sc.n_sites, 2, sc.levels))
+        out[..., 0, :] = fire.transpose(3, 2, 1, 0)
+        out[..., 1, :] = rescue.transpose(3, 2, 1, 0)
+        return out.reshape(self.batch, sc.n_agents, sc.n_tasks, sc.levels)
 
     def knowledge(self) -> FloatArray:
         """Current knowledge states (B, N, K)."""
@@ -127,11 +155,14 @@ class Team:
         """
         actions = self.force_inactive(np.asarray(actions, dtype=np.int64))
         res = self.sim.step(actions)
-        lik = bf.evidence(self.model, actions, res.observations, res.messages)
-        caps = np.broadcast_to(res.caps[:, None, :], (self.batch, self.scenario.n_agents, res.caps.shape[1]))
-        self.belief, bad = bf.update(self.model, self.belief, caps, lik)
+        fire_lik, rescue_lik = bf.evidence_sites(self.model, actions, res.observations, res.messages)  # (L, S, N, B)
+        caps = res.caps.T[:, None, :]  # (p, 1, B): every agent assumes the joint capabilities of the step
+        self.sites, bad_site = bf.update_sites(
+            self.filter, self.sites, caps[0::2], caps[1::2], fire_lik, rescue_lik, self._new_sites(), self._work
+        )
+        bad = np.asarray(bad_site.any(axis=0).T, dtype=np.bool_)  # (B, N)
         self.impossible_count += int(bad.sum())
-        self.marg = bf.marginals(self.belief)
+        self.marg = self._marginals()
         r, parts = reward(self.model, self.tables, self.prev, self.marg, actions)
         self.prev = np.where(actions >= 0, actions, self.prev)
         self.t += 1
