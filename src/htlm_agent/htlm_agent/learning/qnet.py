@@ -117,6 +117,9 @@ class StackedQ(torch.nn.Module):
                 p = torch.nn.Parameter(self.flat[:, o[j] : o[j + 1]].view(shape))
                 p.grad = self.grad[:, o[j] : o[j + 1]].view(shape)
                 dst.append(p)
+        # the layers as a plain list (ParameterList indexing is slow next to these small products); the parameters
+        # are never replaced, only written in place
+        self._layers = list(zip(self.weights, self.biases, strict=True))
 
     def zero_grad_(self) -> None:
         """Clear the flat gradient (gradients accumulate into it in place)."""
@@ -145,10 +148,11 @@ class StackedQ(torch.nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Q-values (N, M, |Ḡ|) of inputs (N, M, K): agent i's network on row i."""
-        n_layers = len(self.weights)
-        for li in range(n_layers):
-            x = torch.baddbmm(self.biases[li], x, self.weights[li])
-            if li < n_layers - 1:
+        layers = self._layers
+        last = len(layers) - 1
+        for li, (w, b) in enumerate(layers):
+            x = torch.baddbmm(b, x, w)
+            if li < last:
                 x = torch.relu(x)
         return x
 

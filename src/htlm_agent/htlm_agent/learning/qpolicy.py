@@ -15,10 +15,10 @@ from htlm_world.types import BoolArray, FloatArray, IntArray
 
 def greedy_actions(net: StackedQ, knowledge: FloatArray, mask: BoolArray) -> IntArray:
     """Every agent's masked argmax of its own network: knowledge (B, N, K) and masks (B, N, |Ḡ|) -> (B, N)."""
+    x = torch.from_numpy(np.ascontiguousarray(knowledge.transpose(1, 0, 2), dtype=np.float32))
+    m = torch.from_numpy(np.ascontiguousarray(mask.transpose(1, 0, 2)))
     with torch.no_grad():
-        x = torch.from_numpy(np.ascontiguousarray(knowledge.transpose(1, 0, 2), dtype=np.float32))
-        m = torch.from_numpy(np.ascontiguousarray(mask.transpose(1, 0, 2)))
-        a = masked_argmax(net(x), m)  # (N, B)
+        a = masked_argmax(net.forward(x), m)  # (N, B)
     return np.ascontiguousarray(a.numpy().T, dtype=np.int64)
 
 
