@@ -271,13 +271,26 @@ def from_dict(data: Any, src: str = "<dict>") -> Scenario:
     return sc
 
 
+SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
+"""The scenario files shipped with the package; `load` also takes their names (`load("first-calibration")`)."""
+
+
+def named_scenarios() -> list[str]:
+    """Names of the shipped scenario files (paper: the defaults written out; first-calibration: the model's first
+    numbers, kept for comparison)."""
+    return sorted(f.stem for f in SCENARIO_DIR.glob("*.yaml"))
+
+
 def load(path: str | Path) -> Scenario:
-    """Load a scenario YAML file (keys it omits keep the defaults of the scenario "paper")."""
+    """Load a scenario YAML file, or a shipped scenario by name (keys a file omits keep the defaults of "paper")."""
     p = Path(path)
+    if not p.exists() and p.suffix == "" and p.name in named_scenarios():
+        p = SCENARIO_DIR / f"{p.name}.yaml"
     try:
         text = p.read_text()
     except OSError as e:
-        raise ScenarioError(f"{p}: cannot read scenario file: {e.strerror}") from None
+        hint = f" (or name a shipped scenario: {', '.join(named_scenarios())})" if p.suffix == "" else ""
+        raise ScenarioError(f"{p}: cannot read scenario file: {e.strerror}{hint}") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
