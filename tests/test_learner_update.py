@@ -87,3 +87,12 @@ def test_hand_written_update_of_some_agents_only() -> None:
     assert torch.allclose(lr.net.grad, grad, rtol=1e-4, atol=1e-6)
     assert (lr.net.grad[[0, 1, 3, 4]] == 0).all()
     assert ((lr.net.flat != before).any(dim=1)).tolist() == [False, False, True, False, False]
+
+
+def test_several_updates_at_once_are_the_updates_one_by_one() -> None:
+    s = Settings(batch_size=32, learning_starts=1, target_sync=3)  # a target copy between the updates, too
+    one, many = _filled(s), _filled(s)
+    losses = [one.train_step() for _ in range(5)]
+    assert many.train_steps(5) == losses
+    assert torch.equal(one.net.flat, many.net.flat) and torch.equal(one.target.flat, many.target.flat)
+    assert torch.equal(one.opt.v, many.opt.v) and one.updates.tolist() == many.updates.tolist() == [5] * 5

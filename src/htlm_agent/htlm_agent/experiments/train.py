@@ -121,10 +121,7 @@ def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, flo
         k2, r, info = team.step(a)
         m2 = team.mask()
         learner.store_batch(k, a, r, k2, m2, t == sc.horizon - 1)
-        for _ in range(s.updates_per_step):
-            loss = learner.train_step()
-            if loss is not None:
-                losses.append(loss)
+        losses += learner.train_steps(s.updates_per_step)
         levels.append(info.levels)
         actions.append(a)
         rsum += float(r.mean())

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from numpy.typing import NDArray
 
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.optim import StackedAdam, clip_grad_per_agent
@@ -86,8 +87,7 @@ class Learner:
         self._mask_table = self.model.action_mask(
             np.arange(-1, scenario.knowledge_size - scenario.n_tasks * scenario.levels)
         )
-        ks, m = scenario.knowledge_size, settings.batch_size
-        self._x = np.zeros((2, n, 2 * m, ks), dtype=np.float32)  # the input of `TwinNets.update`, reused
+        self._x: dict[int, NDArray[np.float32]] = {}  # inputs of `TwinNets.update` by number of minibatches, reused
 
     @property
     def n_agents(self) -> int:
@@ -188,52 +188,74 @@ class Learner:
         """Â(a_o) (..., |Ḡ|) of knowledge states (..., K), from the previous assignment they hold."""
         return torch.from_numpy(self._mask_table[previous(k, self.scenario) + 1])
 
-    def update_batch(self, ready: BoolArray) -> UpdateBatch:
-        """A minibatch of every agent marked in `ready` (others: padding) from its own memory, as the tensors of
-        `TwinNets.update`."""
+    def update_batches(self, ready: BoolArray, count: int = 1) -> list[UpdateBatch]:
+        """`count` minibatches of every agent marked in `ready` (others: padding) from its own memory, drawn one
+        after the other as `count` calls of `Replay.sample_records` would, as the tensors of `TwinNets.update`."""
         s, sc = self.settings, self.scenario
-        n, m = sc.n_agents, s.batch_size
-        rec = self.replay.sample_records(m, ready)  # (N, M, D)
+        n, m, ks = sc.n_agents, s.batch_size, sc.knowledge_size
+        rec = self.replay.sample_records(m, ready, count)  # (N, count · M, D)
         c = self.replay.cols
-        x = self._x
-        x[0, :, :m] = rec[..., c["k"]]
-        x[0, :, m:] = rec[..., c["k2"]]
-        x[1] = x[0]
-        a = rec[..., c["a"]].astype(np.int64)  # (N, M, 1)
+
+        def split(a: NDArray[Any]) -> NDArray[Any]:  # (N, count · M, ...) -> (count, N, M, ...), C order
+            return np.ascontiguousarray(a.reshape(n, count, m, *a.shape[2:]).swapaxes(0, 1))
+
+        x = self._x.get(count)
+        if x is None:
+            x = self._x[count] = np.empty((count, 2, n, 2 * m, ks), dtype=np.float32)
+        x[:, 0, :, :m] = rec[..., c["k"]].reshape(n, count, m, ks).swapaxes(0, 1)
+        x[:, 0, :, m:] = rec[..., c["k2"]].reshape(n, count, m, ks).swapaxes(0, 1)
+        x[:, 1] = x[:, 0]
+        a = split(rec[..., c["a"]].astype(np.int64))  # (count, N, M, 1)
+        a = np.concatenate([a, a], axis=1)  # repeated for the target networks
+        r = split(rec[..., c["r"]][..., 0])
+        discount = split(rec[..., c["discount"]][..., 0])
         off2 = np.where(rec[..., c["mask2"]] > 0.5, np.float32(0.0), np.float32(-np.inf))
         if not ready.all():
             off2[~ready] = 0.0  # padding rows of idle learners: any action
-        off = np.where(self._mask_table[previous(rec[..., c["k"]], sc) + 1], np.float32(0.0), np.float32(-np.inf))
-        return UpdateBatch(
-            x=torch.from_numpy(x).view(2 * n, 2 * m, sc.knowledge_size),
-            a=torch.from_numpy(np.concatenate([a, a])),
-            r=torch.from_numpy(np.ascontiguousarray(rec[..., c["r"]][..., 0])),
-            discount=torch.from_numpy(np.ascontiguousarray(rec[..., c["discount"]][..., 0])),
-            off=torch.from_numpy(off),
-            off2=torch.from_numpy(off2),
-            weight=torch.from_numpy(np.where(ready, np.float32(1.0 / m), np.float32(0.0))[:, None]),
-        )
+        off2 = split(off2)
+        off = split(np.where(self._mask_table[previous(rec[..., c["k"]], sc) + 1], np.float32(0.0), -np.inf))
+        weight = torch.from_numpy(np.where(ready, np.float32(1.0 / m), np.float32(0.0))[:, None])
+        return [
+            UpdateBatch(
+                x=torch.from_numpy(x[j]).view(2 * n, 2 * m, ks),
+                a=torch.from_numpy(a[j]),
+                r=torch.from_numpy(r[j]),
+                discount=torch.from_numpy(discount[j]),
+                off=torch.from_numpy(off[j]),
+                off2=torch.from_numpy(off2[j]),
+                weight=weight,
+            )
+            for j in range(count)
+        ]
 
     def train_step(self) -> float | None:
         """One gradient update of every agent whose memory holds enough data (line 10 of Algorithm 1); returns the
         mean loss of those agents, or None when no agent is ready yet.
 
         The update is `TwinNets.update` (the gradient of `loss`, written without autograd)."""
+        losses = self.train_steps(1)
+        return losses[0] if losses else None
+
+    def train_steps(self, count: int) -> list[float]:
+        """`count` calls of `train_step` (the memories do not change in between, so the minibatches are drawn and
+        gathered together); returns the losses, none while no agent is ready."""
         ready = self.ready()
         if not ready.any():
-            return None
+            return []
         s = self.settings
         active = torch.from_numpy(ready)
         all_active = bool(ready.all())
-        batch = self.update_batch(ready)
-        per_agent = self.twins.update(batch, active, all_active, s.advantage_learning, s.huber_delta, s.double_dqn)
-        clip_grad_per_agent(self.net.grad, s.grad_clip)
-        self.opt.step(active)
-        self.updates += ready
-        sync = ready & (self.updates % self.settings.target_sync == 0)
-        if sync.any():
-            self.sync_target(sync)
-        return float(per_agent.mean() if all_active else per_agent[active].mean())
+        losses = []
+        for batch in self.update_batches(ready, count):
+            per_agent = self.twins.update(batch, active, all_active, s.advantage_learning, s.huber_delta, s.double_dqn)
+            clip_grad_per_agent(self.net.grad, s.grad_clip)
+            self.opt.step(active)
+            self.updates += ready
+            sync = ready & (self.updates % s.target_sync == 0)
+            if sync.any():
+                self.sync_target(sync)
+            losses.append(float(per_agent.mean() if all_active else per_agent[active].mean()))
+        return losses
 
     def sync_target(self, agents: BoolArray) -> None:
         """Copy the online networks of the marked agents into their target networks."""

@@ -100,19 +100,22 @@ class Replay:
         self.pos[:] = (self.pos + b) % self.capacity
         np.minimum(self.size + b, self.capacity, out=self.size)
 
-    def sample_indices(self, batch: int, agents: NDArray[np.bool_]) -> IntArray:
-        """(N, batch) indices drawn uniformly with replacement from each marked agent's own memory with its own
-        generator; unmarked agents get index 0 and draw nothing."""
-        idx = np.zeros((self.n_agents, batch), dtype=np.int64)
+    def sample_indices(self, batch: int, agents: NDArray[np.bool_], count: int = 1) -> IntArray:
+        """(N, count · batch) indices: `count` draws of `batch` indices, each uniform with replacement from each marked
+        agent's own memory with its own generator (one call of `integers` per draw); unmarked agents get index 0 and
+        draw nothing."""
+        idx = np.zeros((self.n_agents, count * batch), dtype=np.int64)
         for agent in range(self.n_agents):
             if agents[agent]:
-                idx[agent] = self.rngs[agent].integers(0, self.size[agent], batch)
+                g, size = self.rngs[agent], self.size[agent]
+                for j in range(count):
+                    idx[agent, j * batch : (j + 1) * batch] = g.integers(0, size, batch)
         return idx
 
-    def sample_records(self, batch: int, agents: NDArray[np.bool_]) -> NDArray[np.float32]:
-        """The records (N, batch, D) of a minibatch of every agent marked in `agents` (N,) bool from its own memory
-        (`sample_indices`; columns in `cols`); other agents' rows are padding the caller ignores."""
-        idx = self.sample_indices(batch, agents)
+    def sample_records(self, batch: int, agents: NDArray[np.bool_], count: int = 1) -> NDArray[np.float32]:
+        """The records (N, count · batch, D) of `count` minibatches of every agent marked in `agents` (N,) bool from
+        its own memory (`sample_indices`; columns in `cols`); other agents' rows are padding the caller ignores."""
+        idx = self.sample_indices(batch, agents, count)
         out: NDArray[np.float32] = self.data[self._agent_rows, idx]
         return out
 
