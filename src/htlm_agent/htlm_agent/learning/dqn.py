@@ -70,23 +70,24 @@ class Learner:
         self.net = self.twins.online
         self.target = self.twins.target
         self.opt = StackedAdam(self.net.flat, self.net.grad, settings.lr)
+        self.model = Model.build(scenario)
+        # Â(a_o) of every previous assignment a_o = -1 .. (one-hot length - 1), looked up by `knowledge_mask`
+        self._mask_table = self.model.action_mask(
+            np.arange(-1, scenario.knowledge_size - scenario.n_tasks * scenario.levels)
+        )
         self.replay = Replay(
             n,
             settings.memory,
             scenario.knowledge_size,
             scenario.n_actions,
             [seeds.replay(self.seed, i) for i in range(n)],
+            knowledge_mask=self._knowledge_mask,
         )
         self.updates = np.zeros(n, dtype=np.int64)
         self.episodes_done = 0
         self.gamma = scenario.gamma
-        self.model = Model.build(scenario)
         self._nstep = [NStep(settings.n_step, self.gamma, settings.reward_scale) for _ in range(n)]
         self._nstep_batch = NStep(settings.n_step, self.gamma, settings.reward_scale)
-        # Â(a_o) of every previous assignment a_o = -1 .. (one-hot length - 1), looked up by `knowledge_mask`
-        self._mask_table = self.model.action_mask(
-            np.arange(-1, scenario.knowledge_size - scenario.n_tasks * scenario.levels)
-        )
         self._x: dict[int, NDArray[np.float32]] = {}  # inputs of `TwinNets.update` by number of minibatches, reused
 
     @property
@@ -186,15 +187,22 @@ class Learner:
 
     def knowledge_mask(self, k: AnyFloats) -> torch.Tensor:
         """Â(a_o) (..., |Ḡ|) of knowledge states (..., K), from the previous assignment they hold."""
-        return torch.from_numpy(self._mask_table[previous(k, self.scenario) + 1])
+        return torch.from_numpy(self._knowledge_mask(k))
+
+    def _knowledge_mask(self, k: AnyFloats) -> BoolArray:
+        out: BoolArray = self._mask_table[previous(k, self.scenario) + 1]
+        return out
 
     def update_batches(self, ready: BoolArray, count: int = 1) -> list[UpdateBatch]:
         """`count` minibatches of every agent marked in `ready` (others: padding) from its own memory, drawn one
-        after the other as `count` calls of `Replay.sample_records` would, as the tensors of `TwinNets.update`."""
+        after the other as `count` calls of `Replay.sample_records` would, as the tensors of `TwinNets.update` (with
+        Â of K and K' from the memories' `offsets`)."""
         s, sc = self.settings, self.scenario
         n, m, ks = sc.n_agents, s.batch_size, sc.knowledge_size
-        rec = self.replay.sample_records(m, ready, count)  # (N, count · M, D)
-        c = self.replay.cols
+        replay = self.replay
+        idx = replay.sample_indices(m, ready, count)  # (N, count · M)
+        rec = replay.take(replay.data, idx)  # (N, count · M, D)
+        c = replay.cols
 
         def split(a: NDArray[Any]) -> NDArray[Any]:  # (N, count · M, ...) -> (count, N, M, ...), C order
             return np.ascontiguousarray(a.reshape(n, count, m, *a.shape[2:]).swapaxes(0, 1))
@@ -209,11 +217,11 @@ class Learner:
         a = np.concatenate([a, a], axis=1)  # repeated for the target networks
         r = split(rec[..., c["r"]][..., 0])
         discount = split(rec[..., c["discount"]][..., 0])
-        off2 = np.where(rec[..., c["mask2"]] > 0.5, np.float32(0.0), np.float32(-np.inf))
+        assert replay.offsets is not None
+        offsets = replay.take(replay.offsets, idx)  # (N, count · M, 2, |Ḡ|): Â(K), Â(K')
         if not ready.all():
-            off2[~ready] = 0.0  # padding rows of idle learners: any action
-        off2 = split(off2)
-        off = split(np.where(self._mask_table[previous(rec[..., c["k"]], sc) + 1], np.float32(0.0), -np.inf))
+            offsets[~ready, :, 1] = 0.0  # padding rows of idle learners: any action
+        offsets = np.ascontiguousarray(offsets.reshape(n, count, m, 2, -1).transpose(1, 3, 0, 2, 4))
         weight = torch.from_numpy(np.where(ready, np.float32(1.0 / m), np.float32(0.0))[:, None])
         return [
             UpdateBatch(
@@ -221,8 +229,8 @@ class Learner:
                 a=torch.from_numpy(a[j]),
                 r=torch.from_numpy(r[j]),
                 discount=torch.from_numpy(discount[j]),
-                off=torch.from_numpy(off[j]),
-                off2=torch.from_numpy(off2[j]),
+                off=torch.from_numpy(offsets[j, 0]),
+                off2=torch.from_numpy(offsets[j, 1]),
                 weight=weight,
             )
             for j in range(count)

@@ -9,6 +9,7 @@ return that continues, 0 where K' is terminal.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,7 +35,15 @@ class Replay:
     """Per-agent ring buffers of capacity C each, as one float32 array (N, C, D) of records
     [K (K), K' (K), a, r, Â(K') (|G|), discount] so that a minibatch of every agent is a single gather."""
 
-    def __init__(self, n_agents: int, capacity: int, knowledge_size: int, n_actions: int, seeds: list[int]) -> None:
+    def __init__(
+        self,
+        n_agents: int,
+        capacity: int,
+        knowledge_size: int,
+        n_actions: int,
+        seeds: list[int],
+        knowledge_mask: Callable[[NDArray[np.float32]], BoolArray] | None = None,
+    ) -> None:
         """Allocate the memories.
 
         Args:
@@ -43,6 +52,9 @@ class Replay:
             knowledge_size: K.
             n_actions: |Ḡ|.
             seeds: one sampling seed per agent.
+            knowledge_mask: Â(a_o) (..., |Ḡ|) of knowledge states (..., K); when given, the memories also keep, per
+                transition, Â of K and of K' as additive offsets (0 allowed, -inf not; see `offsets`), derived from
+                the records and never saved.
         """
         assert capacity >= 1 and len(seeds) == n_agents
         self.n_agents, self.capacity = n_agents, capacity
@@ -61,7 +73,21 @@ class Replay:
         self.size = np.zeros(n_agents, dtype=np.int64)
         self.pos = np.zeros(n_agents, dtype=np.int64)
         self.rngs = [np.random.default_rng(s) for s in seeds]
-        self._agent_rows = np.arange(n_agents)[:, None]
+        self.agent_rows = np.arange(n_agents)[:, None]
+        self.knowledge_mask = knowledge_mask
+        self.offsets: NDArray[np.float32] | None = None
+        """(N, C, 2, |Ḡ|): 0 on Â(K) (row 0) and on Â(K') (row 1) of every stored transition, -inf elsewhere (with
+        `knowledge_mask` only)."""
+        if knowledge_mask is not None:
+            self.offsets = np.zeros((n_agents, capacity, 2, n_actions), dtype=np.float32)
+
+    def _store_offsets(self, rows: Any, idx: Any, rec: NDArray[np.float32]) -> None:
+        """Derive the offsets of records `rec` (..., D) stored at data[rows, idx]."""
+        if self.offsets is None or self.knowledge_mask is None:
+            return
+        c = self.cols
+        allowed = np.stack([self.knowledge_mask(rec[..., c["k"]]), rec[..., c["mask2"]] > 0.5], axis=-2)
+        self.offsets[rows, idx] = np.where(allowed, np.float32(0.0), np.float32(-np.inf))
 
     def _records(
         self, k: FloatArray, a: Any, r: Any, k2: FloatArray, mask2: BoolArray, discount: Any
@@ -82,7 +108,9 @@ class Replay:
     ) -> None:
         """Store one transition of one agent."""
         i = int(self.pos[agent])
-        self.data[agent, i] = self._records(k, a, r, k2, mask2, discount)
+        rec = self._records(k, a, r, k2, mask2, discount)
+        self.data[agent, i] = rec
+        self._store_offsets(agent, i, rec)
         self.pos[agent] = (i + 1) % self.capacity
         self.size[agent] = min(self.size[agent] + 1, self.capacity)
 
@@ -96,7 +124,8 @@ class Replay:
         disc = np.broadcast_to(np.asarray(discount, dtype=np.float32), (b, self.n_agents))
         rec = self._records(k, a, r, k2, mask2, disc)  # (B, N, D)
         idx = (self.pos[:, None] + np.arange(b)) % self.capacity  # (N, B): each agent's own write positions
-        self.data[np.arange(self.n_agents)[:, None], idx] = rec.transpose(1, 0, 2)
+        self.data[self.agent_rows, idx] = rec.transpose(1, 0, 2)
+        self._store_offsets(self.agent_rows, idx, rec.transpose(1, 0, 2))
         self.pos[:] = (self.pos + b) % self.capacity
         np.minimum(self.size + b, self.capacity, out=self.size)
 
@@ -107,17 +136,23 @@ class Replay:
         idx = np.zeros((self.n_agents, count * batch), dtype=np.int64)
         for agent in range(self.n_agents):
             if agents[agent]:
-                g, size = self.rngs[agent], self.size[agent]
-                for j in range(count):
-                    idx[agent, j * batch : (j + 1) * batch] = g.integers(0, size, batch)
+                # one call: numpy's bounded integers draw each value afresh from the bit generator (no buffer kept
+                # between values outside it), so this is the same stream as `count` calls of `batch` values
+                idx[agent] = self.rngs[agent].integers(0, self.size[agent], count * batch)
         return idx
 
     def sample_records(self, batch: int, agents: NDArray[np.bool_], count: int = 1) -> NDArray[np.float32]:
         """The records (N, count · batch, D) of `count` minibatches of every agent marked in `agents` (N,) bool from
         its own memory (`sample_indices`; columns in `cols`); other agents' rows are padding the caller ignores."""
-        idx = self.sample_indices(batch, agents, count)
-        out: NDArray[np.float32] = self.data[self._agent_rows, idx]
-        return out
+        return self.take(self.data, self.sample_indices(batch, agents, count))
+
+    def take(self, per_slot: NDArray[Any], idx: IntArray) -> NDArray[Any]:
+        """per_slot[i, idx[i, j]] for an array (N, C, ...) of every agent's slots and indices (N, J): (N, J, ...).
+        (`numpy.take` on the flattened slots: much quicker than fancy indexing with two index arrays.)"""
+        flat = (self.agent_rows * self.capacity + idx).reshape(-1)
+        n, c = per_slot.shape[:2]
+        out = np.take(per_slot.reshape(n * c, *per_slot.shape[2:]), flat, axis=0)
+        return out.reshape(*idx.shape, *per_slot.shape[2:])
 
     def sample(self, batch: int, agents: NDArray[np.bool_]) -> Batch:
         """A minibatch of `batch` transitions of every agent marked in `agents` (N,) bool from its own memory
@@ -151,6 +186,7 @@ class Replay:
         if n > self.capacity or data.shape[0] != self.n_agents or data.shape[2] != self.width:
             raise ValueError(f"replay state of shape {data.shape} does not fit memories of {self.data.shape}")
         self.data[:, :n] = data
+        self._store_offsets(slice(None), slice(0, n), self.data[:, :n])  # (the same for the padding beyond size)
         self.size[:] = st["size"]
         self.pos[:] = st["pos"]
         for g, s in zip(self.rngs, st["rngs"], strict=True):
