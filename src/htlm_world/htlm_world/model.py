@@ -108,6 +108,7 @@ class Model:
     fire_cdf: FloatArray  # cumulative fire rows, for inverse-CDF sampling
     rescue_cdf: FloatArray
     obs_cdf: FloatArray
+    transition_cdf: FloatArray  # (rows, L): the fire rows (c, f), then the rescue rows (c, f, r), flat
     agent_caps: IntArray  # (N, |G|) capability each agent brings to each element of G-bar (0 for idle)
     task_caps: IntArray  # (N, |G|+1, p) capability agent i brings to every task under action a (row |G|: none)
     sensing: IntArray  # (N,)
@@ -137,6 +138,7 @@ class Model:
             fire_cdf=_cdf(fire),
             rescue_cdf=_cdf(rescue),
             obs_cdf=_cdf(obs),
+            transition_cdf=np.concatenate([_cdf(fire).reshape(-1, sc.levels), _cdf(rescue).reshape(-1, sc.levels)]),
             agent_caps=caps,
             task_caps=task_caps,
             sensing=np.array([a.sensing for a in sc.agents], dtype=np.int64),
@@ -193,12 +195,10 @@ class Model:
         """Next levels of T by inverse CDF from uniforms u of shape (..., p) (docs/model.md, Transition T)."""
         L = self.scenario.levels
         fire_lv = levels[..., 0::2]
-        nxt = np.empty_like(levels)
-        nxt[..., 0::2] = _inverse_cdf(self.fire_cdf, caps[..., 0::2] * L + fire_lv, u[..., 0::2])
-        nxt[..., 1::2] = _inverse_cdf(
-            self.rescue_cdf, (caps[..., 1::2] * L + fire_lv) * L + levels[..., 1::2], u[..., 1::2]
-        )
-        return nxt
+        rows = np.empty_like(levels)  # every task's row of transition_cdf
+        rows[..., 0::2] = caps[..., 0::2] * L + fire_lv
+        rows[..., 1::2] = (caps[..., 1::2] * L + fire_lv) * L + levels[..., 1::2] + self.fire_cdf.shape[0] * L
+        return _inverse_cdf(self.transition_cdf, rows, u)
 
     def sample_observation(self, true_level: IntArray, sensing: IntArray, u: FloatArray) -> IntArray:
         """Observed levels of O by inverse CDF: true levels, sensing and uniforms of one shape."""

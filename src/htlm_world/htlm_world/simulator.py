@@ -101,9 +101,12 @@ class BatchSim:
         assert actions.shape == (self.batch, self.scenario.n_agents), actions.shape
         nxt, obs, caps = sample_world_step(self.model, self.levels, actions, self.rng)
         # every agent's channel draws (B, 2) from its own generator, as `sample_channel` does
-        u = np.stack([g.random((self.batch, 2)) for g in self.channel_rngs], axis=1)  # (B, N, 2)
-        sent = self.model.apply_channel(obs, self.model.keep, u[..., 0], u[..., 1])
-        msgs = np.where(obs >= 0, sent, -1)
+        u = np.empty((self.scenario.n_agents, self.batch, 2))
+        for k, g in enumerate(self.channel_rngs):
+            g.random(out=u[k])
+        obs_t = obs.T
+        sent = self.model.apply_channel(obs_t, self.model.keep[:, None], u[..., 0], u[..., 1])
+        msgs = np.ascontiguousarray(np.where(obs_t >= 0, sent, -1).T)
         self.levels = nxt
         self.t += 1
         return StepResult(levels=nxt.copy(), observations=obs, messages=msgs, caps=caps)

@@ -32,28 +32,32 @@ EVIDENCE_TABLE_LIMIT = 1 << 21
 
 @dataclass(frozen=True)
 class Band:
-    """The terms of a prediction whose input is `offset` entries away from the output in a site's L·L block."""
+    """The terms of a prediction whose input is `offset` units away from the output in a site's L·L block."""
 
     offset: int
-    """Flat index of the input term minus flat index of the output entry (row-major (first level, second level))."""
+    """Unit of the input term minus unit of the output entry."""
     lo: int
-    """First output entry where the coefficient can be non-zero for some capability."""
+    """First output unit where the coefficient can be non-zero for some capability."""
     hi: int
-    """One past the last such output entry."""
+    """One past the last such output unit."""
     row: int
-    """Row of `Bands.coefficients` holding the coefficient of output entry lo (hi - lo rows)."""
+    """Row of `Bands.coefficients` holding the coefficient of output unit lo (hi - lo rows)."""
 
 
 @dataclass(frozen=True)
 class Bands:
-    """One factor of T (rescue or fire) as bands, in the order their terms are added."""
+    """One factor of T (rescue or fire) as bands, in the order their terms are added. The L·L entries of a site
+    (row-major (first level, second level)) are grouped in units of `width` consecutive entries that share their
+    coefficients: single entries for rescue, whole rows of one fire level for fire (its T ignores the rescue level)."""
 
+    width: int
+    """Entries per unit (1 or L)."""
     bands: tuple[Band, ...]
     """The bands whose coefficients can be non-zero, in the order their terms are added."""
     starts: bool
     """True: the first band has offset 0 and its terms start the sum; False: the sum starts at zero."""
     table: FloatArray
-    """(C+1, rows) the coefficients of every band's output entries, by joint capability."""
+    """(C+1, rows) the coefficients of every band's output units, by joint capability."""
 
     @staticmethod
     def build(coef: FloatArray, offsets: list[int], levels: int) -> Bands:
@@ -65,16 +69,25 @@ class Bands:
             levels: L.
         """
         n = levels * levels
-        found: list[tuple[int, int, int, FloatArray]] = []
+        tabs = []
         for off in offsets:
             tab = np.zeros((coef.shape[0], n))
             for out in range(n):
                 if 0 <= out + off < n:
                     tab[:, out] = coef[:, out, out + off]
-            nz = np.flatnonzero((tab != 0.0).any(axis=0))
+            tabs.append(tab)
+        rows_shared = all(off % levels == 0 for off in offsets) and all(
+            (t.reshape(t.shape[0], levels, levels) == t.reshape(t.shape[0], levels, levels)[..., :1]).all()
+            for t in tabs
+        )
+        width = levels if rows_shared else 1
+        found: list[tuple[int, int, int, FloatArray]] = []
+        for off, tab in zip(offsets, tabs, strict=True):
+            units = tab[:, ::width]
+            nz = np.flatnonzero((units != 0.0).any(axis=0))
             if nz.size:
                 lo, hi = int(nz[0]), int(nz[-1]) + 1
-                found.append((off, lo, hi, tab[:, lo:hi]))
+                found.append((off // width, lo, hi, units[:, lo:hi]))
         # addition is commutative: the sum may start with the offset-0 band when it is one of the first two terms
         starts = any(f[0] == 0 for f in found[:2])
         if starts:
@@ -84,31 +97,32 @@ class Bands:
             bands.append(Band(off, lo, hi, row))
             row += hi - lo
         table = np.concatenate([f[3] for f in found], axis=1) if found else np.zeros((coef.shape[0], 0))
-        return Bands(tuple(bands), starts, np.ascontiguousarray(table))
+        return Bands(width, tuple(bands), starts, np.ascontiguousarray(table))
 
     def coefficients(self, caps: IntArray) -> FloatArray:
-        """Every band's coefficients for capabilities caps (...): (rows, ...), row-major, for `apply`."""
+        """Every band's coefficients for capabilities caps (...): (rows, 1, ...), unit-major, for `apply`."""
         flat = np.ascontiguousarray(self.table[caps.reshape(-1)].T)
-        out: FloatArray = flat.reshape(self.table.shape[1:] + caps.shape)
+        out: FloatArray = flat.reshape((self.table.shape[1], 1) + caps.shape)
         return out
 
     def apply(self, x: FloatArray, coef: FloatArray, out: FloatArray, part: FloatArray) -> FloatArray:
         """sum over the input entries of coefficient x input for site-major x (L·L, ...), with `coefficients`
         broadcastable against x[0], written into `out` (shaped like x) with `part` (as large) as scratch."""
-        n = x.shape[0]
+        units = (x.shape[0] // self.width, self.width) + x.shape[1:]
+        xu, ou, pu = x.reshape(units), out.reshape(units), part.reshape(units)
         todo = self.bands
         if self.starts:
             b = todo[0]
-            np.multiply(x[b.lo : b.hi], coef[b.row : b.row + b.hi - b.lo], out=out[b.lo : b.hi])
-            out[: b.lo] = 0.0
-            out[b.hi : n] = 0.0
+            np.multiply(xu[b.lo : b.hi], coef[b.row : b.row + b.hi - b.lo], out=ou[b.lo : b.hi])
+            ou[: b.lo] = 0.0
+            ou[b.hi :] = 0.0
             todo = todo[1:]
         else:
             out[...] = 0.0
         for b in todo:
             k = b.hi - b.lo
-            np.multiply(x[b.lo + b.offset : b.hi + b.offset], coef[b.row : b.row + k], out=part[:k])
-            np.add(out[b.lo : b.hi], part[:k], out=out[b.lo : b.hi])
+            np.multiply(xu[b.lo + b.offset : b.hi + b.offset], coef[b.row : b.row + k], out=pu[:k])
+            np.add(ou[b.lo : b.hi], pu[:k], out=ou[b.lo : b.hi])
         return out
 
 
@@ -249,13 +263,17 @@ def predict_sites(
     return tables.fire.apply(tmp, tables.fire.coefficients(fire_caps), pred, part)
 
 
-def pairwise_sum(x: FloatArray, lo: int = 0, n: int | None = None) -> FloatArray:
+def pairwise_sum(x: FloatArray, lo: int = 0, n: int | None = None, out: FloatArray | None = None) -> FloatArray:
     """x[lo] + ... + x[lo + n - 1] in the order of numpy's pairwise summation (what `ndarray.sum` does along a
-    contiguous axis): one by one below 8 terms, 8 interleaved partial sums up to 128, halves beyond."""
+    contiguous axis): one by one below 8 terms, 8 interleaved partial sums up to 128, halves beyond. Written into
+    `out` when given."""
     n = x.shape[0] - lo if n is None else n
-    res: FloatArray
+    res: FloatArray = np.empty(x.shape[1:]) if out is None else out
     if n < 8:
-        res = x[lo].copy() if n < 2 else x[lo] + x[lo + 1]
+        if n < 2:
+            np.copyto(res, x[lo])
+        else:
+            np.add(x[lo], x[lo + 1], out=res)
         for i in range(lo + 2, lo + n):
             res += x[i]
         return res
@@ -266,13 +284,13 @@ def pairwise_sum(x: FloatArray, lo: int = 0, n: int | None = None) -> FloatArray
             r += x[lo + i : lo + i + 8]
             i += 8
         q = r[0::2] + r[1::2]
-        res = (q[0] + q[1]) + (q[2] + q[3])
+        np.add(q[0] + q[1], q[2] + q[3], out=res)
         for j in range(i, n):
             res += x[lo + j]
         return res
     half = n // 2
     half -= half % 8
-    return pairwise_sum(x, lo, half) + pairwise_sum(x, lo + half, n - half)
+    return np.add(pairwise_sum(x, lo, half), pairwise_sum(x, lo + half, n - half), out=res)
 
 
 def update_sites(
@@ -283,7 +301,7 @@ def update_sites(
     fire_lik: FloatArray,
     rescue_lik: FloatArray,
     out: FloatArray | None = None,
-    work: tuple[FloatArray, FloatArray, FloatArray] | None = None,
+    work: tuple[FloatArray, ...] | None = None,
 ) -> tuple[FloatArray, BoolArray]:
     """`update` on site-major beliefs x (L·L, S, ...).
 
@@ -291,35 +309,36 @@ def update_sites(
         fire_caps, rescue_caps: (S, ...) joint capabilities, broadcastable against x[0].
         fire_lik, rescue_lik: (L, S, ...) likelihood of every fire / rescue level, broadcastable against x[0].
         out: where to write the new beliefs (shaped like x, not overlapping it); a new array when None.
-        work: three scratch arrays shaped like x; new ones when None.
+        work: two scratch arrays shaped like x (a third one is not used); new ones when None.
 
     Returns:
         The new site-major beliefs and the (S, ...) mask of sites whose evidence had zero probability (they keep
         the prediction).
     """
     L = tables.levels
-    pred, tmp, part = work if work is not None else (np.empty_like(x), np.empty_like(x), np.empty_like(x))
-    predict_sites(tables, x, fire_caps, rescue_caps, pred, (tmp, part))
-    post = np.empty_like(x) if out is None else out
+    post, part = work[:2] if work is not None else (np.empty_like(x), np.empty_like(x))
+    pred = np.empty_like(x) if out is None else out  # the prediction, then the posterior
+    predict_sites(tables, x, fire_caps, rescue_caps, pred, (post, part))
     grid = (L, L) + x.shape[1:]
-    np.multiply(pred.reshape(grid), fire_lik[:, None], out=post.reshape(grid))
-    np.multiply(post.reshape(grid), rescue_lik[None], out=post.reshape(grid))
+    # (prediction x fire likelihood) x rescue likelihood in one pass: einsum multiplies its operands left to right
+    np.einsum("gs...,g...,s...->gs...", pred.reshape(grid), fire_lik, rescue_lik, out=post.reshape(grid))
     z = pairwise_sum(post)
     bad: BoolArray = z <= 0.0
-    if bad.any():
-        np.divide(post, np.where(bad, 1.0, z), out=post)
-        np.copyto(post, pred, where=np.broadcast_to(bad, post.shape))
+    if bad.any():  # those sites keep the prediction
+        np.divide(post, np.where(bad, 1.0, z), out=pred, where=np.broadcast_to(~bad, post.shape))
     else:
-        np.divide(post, z, out=post)
-    return post, bad
+        np.divide(post, z, out=pred)
+    return pred, bad
 
 
-def marginals_sites(x: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Fire and rescue marginals (L, S, ...) of site-major beliefs x (L·L, S, ...), summed as `marginals` does."""
+def marginals_sites(x: FloatArray, out: tuple[FloatArray, FloatArray] | None = None) -> tuple[FloatArray, FloatArray]:
+    """Fire and rescue marginals (L, S, ...) of site-major beliefs x (L·L, S, ...), summed as `marginals` does;
+    written into `out` (fire, rescue) when given."""
     L = math.isqrt(x.shape[0])
     grid = x.reshape((L, L) + x.shape[1:])
-    fire = pairwise_sum(grid.swapaxes(0, 1))  # numpy sums the contiguous last axis pairwise
-    rescue = grid[0].copy()  # and the other axis one level after the other
+    fire_out, rescue = out if out is not None else (None, np.empty(grid.shape[1:]))
+    fire = pairwise_sum(grid.swapaxes(0, 1), out=fire_out)  # numpy sums the contiguous last axis pairwise
+    np.copyto(rescue, grid[0])  # and the other axis one level after the other
     for f in range(1, L):
         rescue += grid[f]
     return fire, rescue
@@ -345,19 +364,16 @@ def evidence_codes(
     t = filter_tables(model)
     p, n = sc.n_tasks, sc.n_agents
     acts, obs, msgs = actions.T, observations.T, messages.T  # (N, B)
-    works = (acts >= 0) & (acts < p)
-    sent = works & (msgs >= 0)
-    own = works & (obs >= 0)
-    _check_levels(msgs, sent, sc.levels)
-    _check_levels(obs, own, sc.levels)
+    if obs.size and max(int(obs.max()), int(msgs.max())) >= sc.levels:
+        works = (acts >= 0) & (acts < p)
+        _check_levels(msgs, works & (msgs >= 0), sc.levels)
+        _check_levels(obs, works & (obs >= 0), sc.levels)
     powers = t.powers[:, None]
-    msg_digit = np.where(sent, (msgs + 1) * powers, 0)  # (N, B)
-    own_digit = np.where(own, (obs + 1) * powers, 0)
-    onehot = np.where(works, acts, p)[:, None, :] == np.arange(p)[:, None]  # (N, p, B)
-    shared = msg_digit[0] * onehot[0]  # (p, B): every report weighed as a teammate's
-    for k in range(1, n):
-        shared += msg_digit[k] * onehot[k]
-    codes: IntArray = (own_digit - msg_digit)[:, None, :] * onehot
+    msg_digit = np.where(msgs >= 0, msgs + 1, 0) * powers  # (N, B)
+    own_digit = np.where(obs >= 0, obs + 1, 0) * powers
+    onehot = acts[:, None, :] == np.arange(p)[:, None]  # (N, p, B): agent k works on task j
+    shared = np.einsum("kjb,kb->jb", onehot, msg_digit)  # (p, B): every report weighed as a teammate's (integers)
+    codes: IntArray = np.einsum("kjb,kb->kjb", onehot, own_digit - msg_digit)  # the receiver's own report
     codes += shared
     codes += (np.arange(n, dtype=np.int64) * t.base**n)[:, None, None]
     return codes

@@ -87,22 +87,20 @@ class Team:
             model=self.model,
         )
         self.filter = bf.filter_tables(self.model)
-        # the site-major beliefs (L*L, S, N, B) live in (N, L*L, S, B) memory: long contiguous runs per agent, and
-        # the capability tables of a step (L*L, S, 1, B) broadcast over the outermost axis
-        self._work = (self._new_sites(), self._new_sites(), self._new_sites())
+        self._work = (self._new_sites(), self._new_sites())  # scratch of the filter
         self.impossible_count = 0
         self.reset()
 
     def _new_sites(self) -> FloatArray:
+        """Site-major beliefs (L*L, S, N, B): the episodes innermost, so that every operation of the filter runs
+        over long contiguous rows and the capability coefficients of a step (L*L, S, 1, B) broadcast over agents."""
         sc = self.scenario
-        mem = np.empty((sc.n_agents, sc.levels * sc.levels, sc.n_sites, self.batch))
-        view: FloatArray = mem.transpose(1, 2, 0, 3)
-        return view
+        return np.empty((sc.levels * sc.levels, sc.n_sites, sc.n_agents, self.batch))
 
     @property
     def belief(self) -> FloatArray:
         """Every agent's belief (B, N, S, L, L): a view of the site-major beliefs the filter keeps (`belief.to_sites`
-        of the (N, B) agent-major batch), so writing into it changes the team's beliefs."""
+        of the (N, B) agent-major batch), so writing into it changes the team's beliefs until the next step."""
         view: FloatArray = bf.from_sites(self.sites).swapaxes(0, 1)
         return view
 
@@ -116,20 +114,19 @@ class Team:
         self.prev = np.full((self.batch, sc.n_agents), sc.start_assignment, dtype=np.int64)
         self.marg = self._marginals()
         self.t = 0
+        self._knowledge = knowledge.build(self.marg, self.prev, sc.n_actions)
         return self.knowledge()
 
     def _marginals(self) -> FloatArray:
         """Per-task marginals (B, N, p, L) of the beliefs (`belief.marginals`)."""
-        fire, rescue = bf.marginals_sites(self.sites)  # (L, S, N, B)
         sc = self.scenario
-        out = np.empty((self.batch, sc.n_agents, sc.n_sites, 2, sc.levels))
-        out[..., 0, :] = fire.transpose(3, 2, 1, 0)
-        out[..., 1, :] = rescue.transpose(3, 2, 1, 0)
-        return out.reshape(self.batch, sc.n_agents, sc.n_tasks, sc.levels)
+        out = np.empty((sc.n_agents, sc.n_sites, 2, sc.levels, self.batch))  # (N, S, 2, L, B)
+        bf.marginals_sites(self.sites, (out[:, :, 0].transpose(2, 1, 0, 3), out[:, :, 1].transpose(2, 1, 0, 3)))
+        return np.ascontiguousarray(out.transpose(4, 0, 1, 2, 3)).reshape(self.batch, sc.n_agents, sc.n_tasks, -1)
 
     def knowledge(self) -> FloatArray:
         """Current knowledge states (B, N, K)."""
-        return knowledge.build(self.marg, self.prev, self.scenario.n_actions)
+        return self._knowledge.copy()
 
     def mask(self) -> BoolArray:
         """Current A-hat(a_o) of every agent (B, N, |G|)."""
@@ -167,6 +164,7 @@ class Team:
         self.prev = np.where(actions >= 0, actions, self.prev)
         self.t += 1
         info = StepInfo(res.levels, res.observations, res.messages, parts, bad)
+        self._knowledge = knowledge.build(self.marg, self.prev, self.scenario.n_actions)
         return self.knowledge(), r, info
 
 
