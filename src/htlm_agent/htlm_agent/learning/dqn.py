@@ -71,10 +71,7 @@ class Learner:
         self.target = self.twins.target
         self.opt = StackedAdam(self.net.flat, self.net.grad, settings.lr)
         self.model = Model.build(scenario)
-        # Â(a_o) of every previous assignment a_o = -1 .. (one-hot length - 1), looked up by `knowledge_mask`
-        self._mask_table = self.model.action_mask(
-            np.arange(-1, scenario.knowledge_size - scenario.n_tasks * scenario.levels)
-        )
+        self._mask_by_bits = self._masks_by_bits()
         self.replay = Replay(
             n,
             settings.memory,
@@ -190,7 +187,29 @@ class Learner:
         return torch.from_numpy(self._knowledge_mask(k))
 
     def _knowledge_mask(self, k: AnyFloats) -> BoolArray:
-        out: BoolArray = self._mask_table[previous(k, self.scenario) + 1]
+        """Â(previous(k)) as arrays, by a table of the one-hot part's bits (what `previous` reads: the first entry
+        above 0.5, none: -1) when it has at most 16 entries."""
+        sc = self.scenario
+        if self._mask_by_bits is None:
+            out: BoolArray = self.model.action_mask(previous(k, sc))
+            return out
+        bits = np.packbits(np.asarray(k)[..., sc.n_tasks * sc.levels :] > 0.5, axis=-1, bitorder="little")
+        code = bits[..., 0].astype(np.int64)
+        if bits.shape[-1] > 1:
+            code |= bits[..., 1].astype(np.int64) << 8
+        out = self._mask_by_bits[code]
+        return out
+
+    def _masks_by_bits(self) -> BoolArray | None:
+        """Â(a_o) for every pattern of the one-hot part of K taken as bits (bit j: entry j > 0.5), a_o the lowest set
+        bit (-1 for none), as `previous` decodes it; None when the part has more than 16 entries."""
+        sc = self.scenario
+        width = sc.knowledge_size - sc.n_tasks * sc.levels
+        if width > 16:
+            return None
+        codes = np.arange(2**width)
+        lowest = np.array([(c & -c).bit_length() - 1 for c in codes.tolist()], dtype=np.int64)  # -1 for 0
+        out: BoolArray = self.model.action_mask(lowest)
         return out
 
     def update_batches(self, ready: BoolArray, count: int = 1) -> list[UpdateBatch]:

@@ -81,13 +81,13 @@ class Replay:
         if knowledge_mask is not None:
             self.offsets = np.zeros((n_agents, capacity, 2, n_actions), dtype=np.float32)
 
-    def _store_offsets(self, rows: Any, idx: Any, rec: NDArray[np.float32]) -> None:
-        """Derive the offsets of records `rec` (..., D) stored at data[rows, idx]."""
+    def _store_offsets(self, flat: Any, rec: NDArray[np.float32]) -> None:
+        """Derive the offsets of records `rec` (J, D) stored in the slots `flat` (J,) of the flattened memories."""
         if self.offsets is None or self.knowledge_mask is None:
             return
         c = self.cols
         allowed = np.stack([self.knowledge_mask(rec[..., c["k"]]), rec[..., c["mask2"]] > 0.5], axis=-2)
-        self.offsets[rows, idx] = np.where(allowed, np.float32(0.0), np.float32(-np.inf))
+        self.offsets.reshape(-1, 2, self.na)[flat] = np.where(allowed, np.float32(0.0), np.float32(-np.inf))
 
     def _records(
         self, k: FloatArray, a: Any, r: Any, k2: FloatArray, mask2: BoolArray, discount: Any
@@ -110,7 +110,7 @@ class Replay:
         i = int(self.pos[agent])
         rec = self._records(k, a, r, k2, mask2, discount)
         self.data[agent, i] = rec
-        self._store_offsets(agent, i, rec)
+        self._store_offsets(agent * self.capacity + i, rec)
         self.pos[agent] = (i + 1) % self.capacity
         self.size[agent] = min(self.size[agent] + 1, self.capacity)
 
@@ -124,8 +124,10 @@ class Replay:
         disc = np.broadcast_to(np.asarray(discount, dtype=np.float32), (b, self.n_agents))
         rec = self._records(k, a, r, k2, mask2, disc)  # (B, N, D)
         idx = (self.pos[:, None] + np.arange(b)) % self.capacity  # (N, B): each agent's own write positions
-        self.data[self.agent_rows, idx] = rec.transpose(1, 0, 2)
-        self._store_offsets(self.agent_rows, idx, rec.transpose(1, 0, 2))
+        flat = (self.agent_rows * self.capacity + idx).T.reshape(-1)  # (B · N), in the order of rec's rows
+        rec = rec.reshape(b * self.n_agents, self.width)
+        self.data.reshape(-1, self.width)[flat] = rec
+        self._store_offsets(flat, rec)
         self.pos[:] = (self.pos + b) % self.capacity
         np.minimum(self.size + b, self.capacity, out=self.size)
 
@@ -186,7 +188,8 @@ class Replay:
         if n > self.capacity or data.shape[0] != self.n_agents or data.shape[2] != self.width:
             raise ValueError(f"replay state of shape {data.shape} does not fit memories of {self.data.shape}")
         self.data[:, :n] = data
-        self._store_offsets(slice(None), slice(0, n), self.data[:, :n])  # (the same for the padding beyond size)
+        slots = (self.agent_rows * self.capacity + np.arange(n)).reshape(-1)
+        self._store_offsets(slots, self.data[:, :n].reshape(-1, self.width))
         self.size[:] = st["size"]
         self.pos[:] = st["pos"]
         for g, s in zip(self.rngs, st["rngs"], strict=True):
