@@ -3,6 +3,7 @@ clipping (each agent's row of the stacked parameters is its own network)."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -82,8 +83,10 @@ def clip_grad_per_agent(g: torch.Tensor, max_norm: float) -> torch.Tensor:
     the norms (N,) before clipping."""
     norm = g.norm(dim=1)
     if max_norm > 0:
-        scale = (max_norm / (norm + 1e-6)).clamp(max=1.0)
-        if bool((scale < 1.0).any()):  # (scaling by 1 changes nothing: skip the pass over the gradient)
-            g.mul_(scale[:, None])
+        # min(1, max_norm / (norm + 1e-6)) for the N agents in numpy, cheaper than torch on a few numbers; float32
+        # operations as torch does them (its `number / tensor` is `tensor.reciprocal() * number`)
+        scale = np.minimum(np.float32(1.0) / (norm.numpy() + np.float32(1e-6)) * np.float32(max_norm), np.float32(1.0))
+        if (scale < 1.0).any():  # (scaling by 1 changes nothing: skip the pass over the gradient)
+            g.mul_(torch.from_numpy(scale)[:, None])
     out: torch.Tensor = norm
     return out
