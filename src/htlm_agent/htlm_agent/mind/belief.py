@@ -56,6 +56,8 @@ class Bands:
     """The bands whose coefficients can be non-zero, in the order their terms are added."""
     starts: bool
     """True: the first band has offset 0 and its terms start the sum; False: the sum starts at zero."""
+    ones: int
+    """From this unit on, the first band's coefficient is 1.0 for every capability: its terms are copies."""
     table: FloatArray
     """(C+1, rows) the coefficients of every band's output units, by joint capability."""
 
@@ -92,12 +94,19 @@ class Bands:
         starts = any(f[0] == 0 for f in found[:2])
         if starts:
             found.sort(key=lambda f: f[0] != 0)  # stable: the others keep their order
+        ones = n // width
+        if starts:  # x * 1.0 is x: the first band's trailing units of coefficient 1.0 need no table
+            off, lo, hi, tab = found[0]
+            while ones > lo and ones == hi and (tab[:, ones - 1 - lo] == 1.0).all():
+                ones -= 1
+                hi -= 1
+            found[0] = (off, lo, hi, tab[:, : hi - lo])
         bands, row = [], 0
         for off, lo, hi, _ in found:
             bands.append(Band(off, lo, hi, row))
             row += hi - lo
         table = np.concatenate([f[3] for f in found], axis=1) if found else np.zeros((coef.shape[0], 0))
-        return Bands(width, tuple(bands), starts, np.ascontiguousarray(table))
+        return Bands(width, tuple(bands), starts, ones, np.ascontiguousarray(table))
 
     def coefficients(self, caps: IntArray) -> FloatArray:
         """Every band's coefficients for capabilities caps (...): (rows, 1, ...), unit-major, for `apply`."""
@@ -115,7 +124,8 @@ class Bands:
             b = todo[0]
             np.multiply(xu[b.lo : b.hi], coef[b.row : b.row + b.hi - b.lo], out=ou[b.lo : b.hi])
             ou[: b.lo] = 0.0
-            ou[b.hi :] = 0.0
+            ou[b.hi : self.ones] = 0.0
+            np.copyto(ou[self.ones :], xu[self.ones :])
             todo = todo[1:]
         else:
             out[...] = 0.0
