@@ -13,6 +13,7 @@ the final evaluation from those of the seed itself.
 from __future__ import annotations
 
 import csv
+import ctypes
 import json
 import math
 import sys
@@ -82,6 +83,26 @@ RESUMABLE_CHANGES = (
     "threads",
 )
 """Settings that may differ when a run is resumed; every other field must match the checkpoint's."""
+
+
+def keep_freed_memory() -> None:
+    """Have glibc's allocator keep freed memory for reuse instead of handing it back to the system at once.
+
+    Every gradient update allocates activations of several hundred kB; with glibc's defaults such blocks are mapped
+    afresh (or the heap top trimmed) again and again, and every first touch of a new page is a page fault: about 80
+    faults per environment step, a tenth of the learner's time. Other C libraries: nothing to do.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return
+    m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3  # glibc's <malloc.h>
+    mallopt(m_mmap_threshold, 64 << 20)  # blocks below 64 MB come from the heap ...
+    mallopt(m_trim_threshold, 256 << 20)  # ... which is trimmed only when 256 MB are free at its top
+    mallopt(m_top_pad, 16 << 20)
 
 
 def deterministic_torch() -> None:
@@ -375,6 +396,7 @@ def train(
     out = Path(out_dir)
     torch.set_num_threads(settings.threads)
     deterministic_torch()
+    keep_freed_memory()
     ckpt_dir = out / "checkpoint"
     learner, info = start_learner(scenario, settings, ckpt_dir, resume)
     scenario, s = learner.scenario, settings
