@@ -72,9 +72,13 @@ def ref_rescue(c: int, f: int, r: int) -> list[float]:
     return out
 
 
-def ref_obs(s: int, level: int) -> list[float]:
-    """O(z | l) for sensing s: acc = min(1, 0.5 + 0.1 s) on the truth, the rest split over existing neighbours."""
-    acc = min(1.0, 0.5 + 0.1 * s)
+SENSING_BASE, CHANNEL_BASE = 0.65, 0.2
+"""docs/model.md's defaults: accuracy 0.95 at sensing 3, tau 0.8 at comm 3 (the first calibration: 0.5 and 0)."""
+
+
+def ref_obs(s: int, level: int, base: float = SENSING_BASE) -> list[float]:
+    """O(z | l) for sensing s: acc = min(1, base + 0.1 s) on the truth, the rest split over existing neighbours."""
+    acc = min(1.0, base + 0.1 * s)
     out = [0.0] * L
     out[level] = acc
     nbrs = [n for n in (level - 1, level + 1) if 0 <= n < L]
@@ -83,10 +87,12 @@ def ref_obs(s: int, level: int) -> list[float]:
     return out
 
 
-def ref_info(s: int, comm: int, level: int, channel: bool = True) -> list[float]:
-    """I(m | l) = tau O(m | l) + (1 - tau) / L with tau = comm / 5 (1 when the channel is not simulated)."""
-    tau = comm / 5 if channel else 1.0
-    return [tau * o + (1.0 - tau) / L for o in ref_obs(s, level)]
+def ref_info(
+    s: int, comm: int, level: int, channel: bool = True, base: float = SENSING_BASE, channel_base: float = CHANNEL_BASE
+) -> list[float]:
+    """I(m | l) = tau O(m | l) + (1 - tau) / L with tau = min(1, channel_base + comm / 5) (1 without the channel)."""
+    tau = min(1.0, channel_base + comm / 5) if channel else 1.0
+    return [tau * o + (1.0 - tau) / L for o in ref_obs(s, level, base)]
 
 
 # ----- tables ------------------------------------------------------------------------------------------------------
@@ -133,10 +139,24 @@ def test_tables_equal_model_md(model: Model) -> None:
             np.testing.assert_allclose(model.obs[s, lv], ref_obs(s, lv), atol=1e-12)
             for comm in range(CMAX + 1):
                 np.testing.assert_allclose(model.info[s, comm, lv], ref_info(s, comm, lv), atol=1e-12)
-    assert model.obs[3, 2, 2] == pytest.approx(0.8)
-    assert model.obs[3, 0, 1] == pytest.approx(0.2)  # all of the rest to the one neighbour at level 0
-    assert model.obs[3, 2, 1] == pytest.approx(0.1)
-    np.testing.assert_allclose(model.keep, 0.6)
+    assert model.obs[3, 2, 2] == pytest.approx(0.95)
+    assert model.obs[3, 0, 1] == pytest.approx(0.05)  # all of the rest to the one neighbour at level 0
+    assert model.obs[3, 2, 1] == pytest.approx(0.025)
+    np.testing.assert_allclose(model.keep, 0.8)
+
+
+def test_first_calibration_tables() -> None:
+    """The shipped scenario first-calibration keeps the model's first numbers: accuracy 0.8 at sensing 3, tau 0.6."""
+    from htlm_world.scenario import load
+
+    m = Model.build(load("first-calibration"))
+    for s in range(CMAX + 1):
+        for lv in range(L):
+            np.testing.assert_allclose(m.obs[s, lv], ref_obs(s, lv, 0.5), atol=1e-12)
+            for comm in range(CMAX + 1):
+                np.testing.assert_allclose(m.info[s, comm, lv], ref_info(s, comm, lv, True, 0.5, 0.0), atol=1e-12)
+    assert m.obs[3, 2, 2] == pytest.approx(0.8)
+    np.testing.assert_allclose(m.keep, 0.6)
 
 
 def test_information_without_channel_is_observation() -> None:
@@ -311,11 +331,11 @@ def test_batch_sim_step_matches_t_and_o(
                 continue
             assert_frequencies(res.observations[sel, k], ref_obs(3, int(lv)), f"agent {k} observes level {lv}")
         z = res.observations[:, k]
-        for zv in np.unique(z):  # the channel: keep with tau = 0.6, else a uniform level
+        for zv in np.unique(z):  # the channel: keep with tau = 0.8, else a uniform level
             sel = z == zv
             if sel.sum() < 1000:
                 continue
-            want = [0.6 * (m == zv) + 0.4 / L for m in range(L)]
+            want = [0.8 * (m == zv) + 0.2 / L for m in range(L)]
             assert_frequencies(res.messages[sel, k], want, f"agent {k} channel on {zv}")
 
 

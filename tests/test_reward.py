@@ -14,6 +14,11 @@ IDLE1, IDLE2 = 4, 5  # idle@site1, idle@site2
 FIRE1, RESCUE1, FIRE2, RESCUE2 = 0, 1, 2, 3
 
 
+def rules(*args: object, **kwargs: object) -> Scenario:
+    """The built-in scenario with b_th = 0.8 and a constant idle bonus: the numbers the rule tests below state."""
+    return builtin(*args, **kwargs).with_reward(belief_threshold=0.8, idle_belief="constant")  # type: ignore[arg-type]
+
+
 def certain(levels: tuple[int, ...], n: int = 5) -> np.ndarray:
     """(1, n, p, L) marginals certain of the given task levels, the same for every agent."""
     m = np.zeros((1, n, len(levels), L))
@@ -51,16 +56,16 @@ def test_r_comp_worked_example() -> None:
     task_level_0 = [0.85, 0.15, 0.0, 0.0, 0.0]
     marg = np.array([task_level_2, [0, 0, 1.0, 0, 0], task_level_0, [1.0, 0, 0, 0, 0]])
     marg = np.broadcast_to(marg, (1, 5, 4, L)).copy()
-    _, parts = run(builtin(), [IDLE1] * 5, marg, [IDLE1] * 5)
+    _, parts = run(rules(), [IDLE1] * 5, marg, [IDLE1] * 5)
     np.testing.assert_allclose(parts["comp"], 6.0)
 
 
 def test_r_comp_extremes() -> None:
-    _, parts = run(builtin(), [IDLE1] * 5, certain((4, 4, 4, 4)), [IDLE1] * 5)
+    _, parts = run(rules(), [IDLE1] * 5, certain((4, 4, 4, 4)), [IDLE1] * 5)
     np.testing.assert_allclose(parts["comp"], 0.0)
-    _, parts = run(builtin(), [IDLE1] * 5, certain((0, 0, 0, 0)), [IDLE1] * 5)
+    _, parts = run(rules(), [IDLE1] * 5, certain((0, 0, 0, 0)), [IDLE1] * 5)
     np.testing.assert_allclose(parts["comp"], 10.0)
-    _, parts = run(builtin(), [IDLE1] * 5, certain((1, 3, 0, 2)), [IDLE1] * 5)
+    _, parts = run(rules(), [IDLE1] * 5, certain((1, 3, 0, 2)), [IDLE1] * 5)
     np.testing.assert_allclose(parts["comp"], (5 + 1 + 10 + 2) / 4)
 
 
@@ -77,7 +82,7 @@ R_II_CASES = [
 @pytest.mark.parametrize(("actions", "expected"), R_II_CASES)
 @pytest.mark.parametrize("incentive", [1.0, 0.5, 0.0])
 def test_r_ii_idle_bonus_and_excess_penalty(actions: list[int], expected: list[float], incentive: float) -> None:
-    sc = builtin(idle_incentive=incentive)
+    sc = rules(idle_incentive=incentive)
     r, parts = run(sc, [IDLE1] * 5, certain(LEVELS), actions)
     np.testing.assert_allclose(parts["idle"], incentive * np.array(expected))
     np.testing.assert_allclose(parts["reassign"], 0.0)
@@ -86,17 +91,15 @@ def test_r_ii_idle_bonus_and_excess_penalty(actions: list[int], expected: list[f
 
 def test_r_ii_excess_on_far_site_tasks() -> None:
     # fire@site2 and rescue@site2 at levels 4 and 3: no capability exceeds them by 2
-    _, parts = run(builtin(reassign="none"), [IDLE2] * 5, certain(LEVELS), [FIRE2, RESCUE2, FIRE2, RESCUE2, FIRE2])
+    _, parts = run(rules(reassign="none"), [IDLE2] * 5, certain(LEVELS), [FIRE2, RESCUE2, FIRE2, RESCUE2, FIRE2])
     np.testing.assert_allclose(parts["idle"], 0.0)
-    _, parts = run(
-        builtin(reassign="none"), [IDLE2] * 5, certain((0, 0, 1, 0)), [FIRE2, RESCUE2, FIRE2, RESCUE2, IDLE2]
-    )
+    _, parts = run(rules(reassign="none"), [IDLE2] * 5, certain((0, 0, 1, 0)), [FIRE2, RESCUE2, FIRE2, RESCUE2, IDLE2])
     np.testing.assert_allclose(parts["idle"], [-1.0, -1.0, 0.0, 0.0, 1.0])  # 3 >= 3; 2 >= 2; 2 < 3; 1 < 2
 
 
 @pytest.mark.parametrize(("level", "tc"), [("none", 0.0), ("medium", -1.0), ("high", -4.0)])
 def test_t_rp_by_level(level: str, tc: float) -> None:
-    sc = builtin(reassign=level)
+    sc = rules(reassign=level)
     prev = [IDLE1, IDLE1, FIRE1, FIRE2, IDLE2]
     actions = [FIRE2, FIRE1, RESCUE2, IDLE2, RESCUE1]  # moves: site1->2, stays, 1->2, stays, 2->1
     _, parts = run(sc, prev, certain((4, 4, 4, 4)), actions)
@@ -104,15 +107,15 @@ def test_t_rp_by_level(level: str, tc: float) -> None:
 
 
 def test_no_reassignment_penalty_without_a_previous_assignment() -> None:
-    _, parts = run(builtin(reassign="high"), [-1] * 5, certain((4, 4, 4, 4)), [FIRE2, RESCUE2, FIRE1, RESCUE1, IDLE1])
+    _, parts = run(rules(reassign="high"), [-1] * 5, certain((4, 4, 4, 4)), [FIRE2, RESCUE2, FIRE1, RESCUE1, IDLE1])
     np.testing.assert_allclose(parts["reassign"], 0.0)
 
 
 def test_agents_with_their_own_reward_parameters() -> None:
     own = RewardParams(level_rewards=(20.0, 10.0, 4.0, 2.0, 0.0), idle_incentive=2.0, reassign_cost=-4.0)
-    agents = list(builtin().agents)
+    agents = list(rules().agents)
     agents[0] = AgentSpec(name="agent1", fire=3, rescue=1, reward=own)
-    sc = builtin().replace(agents=tuple(agents))
+    sc = rules().replace(agents=tuple(agents))
     assert sc.agent_reward(0) is own
     assert sc.agent_reward(1) == sc.reward
     tables = RewardTables.build(sc)
@@ -128,7 +131,7 @@ def test_agents_with_their_own_reward_parameters() -> None:
 
 
 def test_ht_mode_has_no_idle_actions_and_no_load_management_reward() -> None:
-    sc = builtin(mode="ht", reassign="high")
+    sc = rules(mode="ht", reassign="high")
     assert sc.n_actions == 4 and sc.n_idle == 0 and sc.start_assignment == -1
     assert sc.action_names == ("fire@site1", "rescue@site1", "fire@site2", "rescue@site2")
     mask = Model.build(sc).action_mask(np.array([-1, 0, 1, 2, 3], dtype=np.int64))
@@ -146,15 +149,15 @@ def test_ht_mode_has_no_idle_actions_and_no_load_management_reward() -> None:
     [(IDLE1, IDLE1), (FIRE1, IDLE1), (RESCUE1, IDLE1), (FIRE2, IDLE2), (RESCUE2, IDLE2), (IDLE2, IDLE2), (-1, IDLE1)],
 )
 def test_action_mask_is_tasks_and_idle_at_site_of_previous_assignment(prev: int, idle: int) -> None:
-    mask = Model.build(builtin()).action_mask(np.array([prev], dtype=np.int64))[0]
+    mask = Model.build(rules()).action_mask(np.array([prev], dtype=np.int64))[0]
     expected = [True, True, True, True, idle == IDLE1, idle == IDLE2]
     assert mask.tolist() == expected
-    assert mask.sum() == builtin().n_tasks + 1
+    assert mask.sum() == rules().n_tasks + 1
 
 
 def test_action_mask_broadcasts_over_batch_and_agents() -> None:
     prev = np.array([[IDLE1, FIRE2], [RESCUE2, IDLE1]], dtype=np.int64)
-    mask = Model.build(builtin()).action_mask(prev)
+    mask = Model.build(rules()).action_mask(prev)
     assert mask.shape == (2, 2, 6)
     assert mask[..., 4].tolist() == [[True, False], [False, True]]
     assert mask[..., 5].tolist() == [[False, True], [True, False]]
@@ -162,9 +165,9 @@ def test_action_mask_broadcasts_over_batch_and_agents() -> None:
 
 def test_idle_action_is_the_idle_location_at_the_site_of_the_previous_assignment() -> None:
     prev = np.array([-1, FIRE1, RESCUE1, FIRE2, RESCUE2, IDLE1, IDLE2], dtype=np.int64)
-    assert Model.build(builtin()).idle_action(prev).tolist() == [IDLE1, IDLE1, IDLE1, IDLE2, IDLE2, IDLE1, IDLE2]
-    assert Model.build(builtin()).idle_action(prev[None, :2]).shape == (1, 2)
-    assert Model.build(builtin(mode="ht")).idle_action(prev[:5]).tolist() == [-1] * 5  # HT mode: no idle location
+    assert Model.build(rules()).idle_action(prev).tolist() == [IDLE1, IDLE1, IDLE1, IDLE2, IDLE2, IDLE1, IDLE2]
+    assert Model.build(rules()).idle_action(prev[None, :2]).shape == (1, 2)
+    assert Model.build(rules(mode="ht")).idle_action(prev[:5]).tolist() == [-1] * 5  # HT mode: no idle location
 
 
 def _uncertain_done(p_done: tuple[float, ...], n: int = 5) -> np.ndarray:

@@ -7,7 +7,17 @@ from pathlib import Path
 
 import pytest
 
-from htlm_world.scenario import REASSIGN_COSTS, TEAMS, RewardParams, Scenario, ScenarioError, builtin, from_dict, load
+from htlm_world.scenario import (
+    REASSIGN_COSTS,
+    TEAMS,
+    RewardParams,
+    Scenario,
+    ScenarioError,
+    builtin,
+    from_dict,
+    load,
+    named_scenarios,
+)
 
 PAPER_YAML = Path(__file__).resolve().parent.parent / "src" / "htlm_world" / "htlm_world" / "scenarios" / "paper.yaml"
 
@@ -31,7 +41,9 @@ def test_builtin_teams(team: str) -> None:
     assert sc.start_assignment == 4  # idle@site1
     assert sc.initial_levels == (4, 4, 4, 4) and sc.levels == 5 and sc.horizon == 30
     assert sc.p_drop == (0.90, 0.60, 0.35, 0.15, 0.05) and sc.fire_growth == 0.10
-    assert sc.reward.level_rewards == (10.0, 5.0, 2.0, 1.0, 0.0) and sc.reward.belief_threshold == 0.8
+    assert sc.reward.level_rewards == (10.0, 5.0, 2.0, 1.0, 0.0) and sc.reward.belief_threshold == 0.97
+    assert sc.reward.idle_bonus == 1.0 and sc.reward.idle_belief == "site"
+    assert sc.sensing_base == 0.65 and sc.sensing_slope == 0.1 and sc.channel_base == 0.2  # accuracy 0.95, tau 0.8
     assert sc.reward.idle_incentive == 1.0 and sc.reward.reassign_cost == -1.0 and sc.gamma == 0.95
     assert sc.knowledge_size == 26
     assert set(TEAMS) == set(MODEL_MD_TEAMS)
@@ -47,6 +59,19 @@ def test_builtin_settings() -> None:
         builtin("alien")
     with pytest.raises(ScenarioError, match="'extreme'"):
         builtin(reassign="extreme")
+
+
+def test_first_calibration_is_shipped_by_name() -> None:
+    """The model's first numbers stay available as the named scenario first-calibration; only the recalibrated
+    open numbers differ from the defaults."""
+    first, paper = load("first-calibration"), builtin()
+    assert (first.sensing_base, first.channel_base) == (0.5, 0.0)
+    assert (first.reward.belief_threshold, first.reward.idle_belief) == (0.8, "constant")
+    same = first.replace(name="paper", sensing_base=0.65, channel_base=0.2).with_reward(
+        belief_threshold=0.97, idle_belief="site"
+    )
+    assert same == paper
+    assert "first-calibration" in named_scenarios()
 
 
 def test_shipped_paper_yaml_equals_builtin() -> None:

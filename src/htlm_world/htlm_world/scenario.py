@@ -41,13 +41,13 @@ class RewardParams:
 
     level_rewards: tuple[float, ...] = (10.0, 5.0, 2.0, 1.0, 0.0)
     """R_l, the completion reward of a task confidently at level l (one per level)."""
-    belief_threshold: float = 0.8
+    belief_threshold: float = 0.97
     """b_th: a task's confident level is the smallest l with P(level <= l) >= b_th."""
     idle_incentive: float = 1.0
     """Scale of the idle incentive R_II; 0 turns it off."""
     idle_bonus: float = 1.0
     """R_II when the action is an idle location (before scaling), times the belief weight of `idle_belief`."""
-    idle_belief: Literal["constant", "site", "mission"] = "constant"
+    idle_belief: Literal["constant", "site", "mission"] = "site"
     """How R_II(b) depends on the belief: constant (the full bonus whenever idle), site (bonus times the believed
     probability that every task at the idle location's site is done), mission (times that every task is done)."""
     excess_penalty: float = -1.0
@@ -106,13 +106,13 @@ class Scenario:
     """Rescue can drop two levels only from at least this level."""
     rescue_double_share: float = 0.5
     """Share of the drop probability that is a two-level drop when a double drop is possible."""
-    sensing_base: float = 0.5
+    sensing_base: float = 0.65
     """Observation accuracy at sensing 0."""
     sensing_slope: float = 0.1
     """Observation accuracy gained per sensing level."""
     channel: bool = True
     """Simulate the communication channel (random replacement of broadcast levels); off for real robots."""
-    channel_base: float = 0.0
+    channel_base: float = 0.2
     """Channel reliability added to comm / capability_max: tau = min(1, channel_base + comm / capability_max)."""
     agents: tuple[AgentSpec, ...] = tuple(
         AgentSpec(name=f"agent{i + 1}", fire=f, rescue=r) for i, (f, r) in enumerate(TEAMS["heterogeneous"])
