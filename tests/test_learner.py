@@ -419,3 +419,33 @@ def test_layout_and_agent_count_mismatches_are_rejected(saved: Path, tmp_path: P
     (tmp_path / "e" / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(CheckpointError, match=r"agents\.pt: wrong agent count: 4 networks"):
         load_checkpoint(tmp_path / "e")
+
+
+def test_dropout_sits_one_teammate_out_of_a_share_of_training_episodes() -> None:
+    """Training for resilience: in a share of the episodes one drawn agent idles at its site for the whole episode,
+    and its stored transitions are those of idling; with dropout 0 the training draws are untouched."""
+    from htlm_agent.experiments.train import dropouts
+    from htlm_world import seeds
+
+    mask = dropouts(0.5, 4000, 5, seeds.train_dropout(0, 0))
+    assert mask is not None and mask.shape == (4000, 5)
+    assert mask.sum(axis=1).max() == 1  # at most one agent per episode
+    assert abs(mask.any(axis=1).mean() - 0.5) < 0.05
+    assert np.allclose(mask.sum(axis=0) / mask.sum(), 0.2, atol=0.03)  # each agent about equally often
+    assert dropouts(0.0, 8, 5, seeds.train_dropout(0, 0)) is None
+
+    sc = builtin()
+    s = Settings(envs=16, learning_starts=10_000, dropout=1.0)  # every episode loses one agent
+    learner = Learner(sc, s, seed=3)
+    team = Team(sc, 16, seed=3)
+    train_batch(learner, team, 0)
+    dropped = team.dropped
+    assert dropped is not None and (dropped.sum(axis=1) == 1).all()
+    # the dropped agent's stored decisions are all idling (actions >= p) in its episodes
+    for i in range(sc.n_agents):
+        rows = np.flatnonzero(dropped[:, i])
+        if rows.size == 0:
+            continue
+        rp = learner.replay
+        stored = rp.data[i, : 16 * sc.horizon, rp.cols["a"]].reshape(sc.horizon, 16)  # slots in (step, episode) order
+        assert (stored[:, rows] >= sc.n_tasks).all()

@@ -34,6 +34,7 @@ def run_streams(seed: int, n_agents: int, episodes: int, batches: int, chunks: i
                 out[f"validation_channel/{i}/{e}"] = _state(seeds.channel(val, i, e))
     for b in range(batches):
         out[f"train_world/{b}"] = _state(seeds.train_world(seed, b))
+        out[f"train_dropout/{b}"] = _state(seeds.train_dropout(seed, b))
         for i in range(n_agents):
             out[f"train_channel/{i}/{b}"] = _state(seeds.train_channel(seed, i, b))
             out[f"train_explore/{i}/{b}"] = _state(seeds.train_explore(seed, i, b))
@@ -48,7 +49,7 @@ def run_streams(seed: int, n_agents: int, episodes: int, batches: int, chunks: i
 @pytest.mark.parametrize("seed", [0, 1, 7, 2**32 + 1, 2**63 - 1])
 def test_no_two_streams_of_a_run_coincide(seed: int) -> None:
     streams = run_streams(seed, n_agents=5, episodes=12, batches=12, chunks=3)
-    assert len(streams) == 12 + 3 + 5 * (12 + 12 + 3) + 12 + 5 * 2 * 12 + 5 * 3 + 1
+    assert len(streams) == 12 + 3 + 5 * (12 + 12 + 3) + 12 + 12 + 5 * 2 * 12 + 5 * 3 + 1  # train_dropout: 12
     by_state: dict[tuple[int, ...], str] = {}
     for name, state in streams.items():
         assert state not in by_state, f"streams {by_state[state]} and {name} draw the same numbers (seed {seed})"

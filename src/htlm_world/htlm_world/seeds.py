@@ -43,6 +43,9 @@ class Stream(IntEnum):
     """The world of one batch of in-process training episodes: keys (batch, 0)."""
     TRAIN_CHANNEL = 11
     """One agent's channel in one batch of in-process training episodes: keys (agent, batch)."""
+    TRAIN_DROPOUT = 12
+    """Which teammate drops out of which episode of one batch of training episodes (`Settings.dropout`): keys
+    (batch, 0)."""
 
 
 def sequence(seed: int, stream: Stream, first: int = 0, second: int = 0) -> np.random.SeedSequence:
@@ -109,6 +112,11 @@ def train_channel(seed: int, agent: int, batch: int) -> np.random.Generator:
 def train_explore(seed: int, agent: int, batch: int) -> np.random.Generator:
     """Agent `agent`'s ε-greedy exploration in in-process training batch `batch`."""
     return generator(seed, Stream.TRAIN_EXPLORE, agent, batch)
+
+
+def train_dropout(seed: int, batch: int) -> np.random.Generator:
+    """Which episodes of in-process training batch `batch` lose a teammate, and which one."""
+    return generator(seed, Stream.TRAIN_DROPOUT, batch)
 
 
 def random_policy(seed: int, agent: int) -> np.random.Generator:

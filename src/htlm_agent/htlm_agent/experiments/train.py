@@ -36,7 +36,7 @@ from htlm_agent.runtime.team import Team
 from htlm_world import seeds
 from htlm_world.metrics import episode_metrics
 from htlm_world.scenario import Scenario
-from htlm_world.types import FloatArray
+from htlm_world.types import BoolArray, FloatArray
 
 
 @dataclass
@@ -123,6 +123,18 @@ def episode_epsilons(settings: Settings, episodes_done: int, batch: int) -> tupl
     return eps, eps
 
 
+def dropouts(share: float, batch: int, n_agents: int, rng: np.random.Generator) -> BoolArray | None:
+    """(B, N) mask of the teammates that sit out each of B training episodes: in a `share` of the episodes one agent,
+    drawn uniformly, sits out (Settings.dropout); None when share is 0 (no draw, so other streams are untouched)."""
+    if share <= 0.0:
+        return None
+    u = rng.random(batch)
+    who = rng.integers(0, n_agents, size=batch)
+    mask = np.zeros((batch, n_agents), dtype=bool)
+    mask[np.flatnonzero(u < share), who[u < share]] = True
+    return mask
+
+
 def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, float]:
     """Algorithm 1, lines 3-10, for B episodes at once: run one batch of episodes ε-greedily, storing every agent's
     transitions in its own memory and training every agent `updates_per_step` times per step. Returns the batch's
@@ -132,13 +144,14 @@ def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, flo
     team.sim.channel_rngs = [seeds.train_channel(seed, i, batch_index) for i in range(sc.n_agents)]
     rngs = [seeds.train_explore(seed, i, batch_index) for i in range(sc.n_agents)]
     eps, eps_env = episode_epsilons(s, learner.episodes_done, team.batch)
+    team.dropped = dropouts(s.dropout, team.batch, sc.n_agents, seeds.train_dropout(seed, batch_index))
     k = team.reset()
     m = team.mask()
     levels, actions = [team.sim.levels.copy()], []
     rsum = 0.0
     losses: list[float] = []
     for t in range(sc.horizon):
-        a = learner.act(k, m, eps_env, rngs)
+        a = team.force_inactive(learner.act(k, m, eps_env, rngs))  # a dropped agent's stored action is its idling
         k2, r, info = team.step(a)
         m2 = team.mask()
         learner.store_batch(k, a, r, k2, m2, t == sc.horizon - 1)

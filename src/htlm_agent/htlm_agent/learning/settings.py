@@ -62,6 +62,9 @@ class Settings:
     """Spread ε over the B parallel episodes, linearly from 0 to 2ε (mean ε), so some run the greedy team."""
     episodes: int = 32_768
     """Training episodes in total."""
+    dropout: float = 0.0
+    """Training for resilience: the share of training episodes in which one teammate, drawn uniformly, sits out
+    the whole episode (idles at its site, as a robot that drops out); 0 trains every episode with the full team."""
     envs: int = 128
     """B, episodes simulated in parallel; one batch of B episodes runs the whole horizon together."""
     updates_per_step: int = 2
@@ -112,7 +115,7 @@ class Settings:
         ):
             if getattr(self, name) < 0:
                 raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be >= 0")
-        for name in ("eps_start", "eps_end", "eps_fraction", "advantage_learning"):
+        for name in ("eps_start", "eps_end", "eps_fraction", "advantage_learning", "dropout"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be in [0, 1]")
         if not self.hidden or any(int(h) < 1 for h in self.hidden):

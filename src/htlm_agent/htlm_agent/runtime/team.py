@@ -76,6 +76,8 @@ class Team:
         self.tables = RewardTables.build(scenario)
         self.batch = batch
         self.inactive = tuple(inactive)
+        self.dropped: BoolArray | None = None
+        """(B, N) agents that sit out single episodes (training for resilience); None: nobody."""
         for k in self.inactive:
             if not 0 <= k < scenario.n_agents:
                 raise ValueError(f"inactive agent index {k!r} is out of range 0..{scenario.n_agents - 1}")
@@ -137,12 +139,16 @@ class Team:
         return Context(self.knowledge(), self.mask(), self.marg, self.prev.copy(), self.t, self.sim.levels.copy())
 
     def force_inactive(self, actions: IntArray) -> IntArray:
-        """Replace the actions of inactivated agents by idling at their current site (HT mode: no action)."""
-        if not self.inactive:
+        """Replace the actions of inactivated agents by idling at their current site (HT mode: no action): the
+        agents of `inactive` in every episode, and those `dropped` (B, N) marks in single episodes."""
+        if not self.inactive and self.dropped is None:
             return actions
         actions = actions.copy()
         for k in self.inactive:
             actions[:, k] = self.model.idle_action(self.prev[:, k])
+        if self.dropped is not None:
+            idle = self.model.idle_action(self.prev)
+            actions = np.where(self.dropped, idle, actions)
         return actions
 
     def step(self, actions: IntArray) -> tuple[FloatArray, FloatArray, StepInfo]:
