@@ -177,9 +177,13 @@ class Model:
         flat = actions.reshape(-1, n)
         if flat.size and int(flat.max()) >= na:
             raise IndexError(f"action {int(flat.max())} is out of range -1..{na - 1}")
-        caps = np.zeros((flat.shape[0], sc.n_tasks), dtype=np.int64)
-        for i in range(n):
-            caps += self.task_caps[i].take(np.where(flat[:, i] >= 0, flat[:, i], na), axis=0)  # negative: nothing
+        rows = np.where(flat >= 0, flat, na)  # a negative action brings nothing (row |G|)
+        if flat.shape[0] < 64:  # few rows: one gather
+            caps = self.task_caps.reshape(-1, sc.n_tasks)[rows + (na + 1) * np.arange(n)].sum(axis=1)
+        else:  # many rows: one long gather per agent
+            caps = self.task_caps[0].take(rows[:, 0], axis=0)
+            for i in range(1, n):
+                caps += self.task_caps[i].take(rows[:, i], axis=0)
         out: IntArray = np.minimum(caps, sc.capability_max).reshape(actions.shape[:-1] + (sc.n_tasks,))
         return out
 

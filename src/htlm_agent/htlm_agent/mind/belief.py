@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from htlm_world.model import Model
+from htlm_world.scenario import Scenario
 from htlm_world.types import Belief, BoolArray, FloatArray, IntArray, Marginals
 
 EVIDENCE_TABLE_LIMIT = 1 << 21
@@ -201,27 +202,53 @@ def _report_tables(model: Model, receiver: int) -> list[FloatArray]:
 def _evidence_table(model: Model, base: int) -> FloatArray:
     n, L = model.scenario.n_agents, model.scenario.levels
     codes = np.arange(base**n, dtype=np.int64)
-    out = np.ones((n, codes.size, L))
+    ones = np.ones((L, 1))
+    # every agent's report row of every code, as a teammate's message (I) and as the receiver's own observation
+    # (O); digit 0 (no report) gives a row of ones, and x * 1.0 is x
+    heard, own = [], []
+    for k in range(n):
+        digit = (codes // base**k) % base
+        heard.append(np.hstack([ones, model.info[model.sensing[k], model.comm[k]]])[:, digit].T)
+        own.append(np.hstack([ones, model.obs[model.sensing[k]]])[:, digit].T)
+    out = np.empty((n, codes.size, L))
     for i in range(n):
-        for k, table in enumerate(_report_tables(model, i)):
-            digit = (codes // base**k) % base
-            has = digit > 0
-            out[i, has] *= table[:, digit[has] - 1].T
+        lik = np.ones((codes.size, L))
+        for k in range(n):
+            lik *= own[k] if k == i else heard[k]
+        out[i] = lik
     return out.reshape(n * codes.size, L)
 
 
-_CACHE: dict[int, tuple[weakref.ref[Model], FilterTables]] = {}
+_BY_MODEL: dict[int, tuple[weakref.ref[Model], FilterTables]] = {}
+_BY_SCENARIO: dict[Scenario, tuple[Model, FilterTables]] = {}
+_SCENARIOS_KEPT = 16
 
 
 def filter_tables(model: Model) -> FilterTables:
-    """The `FilterTables` of `model`, computed on first use and kept while the model lives."""
+    """The `FilterTables` of `model`, computed once per scenario (models of one scenario share them) and kept while
+    the model lives."""
     key = id(model)
-    hit = _CACHE.get(key)
+    hit = _BY_MODEL.get(key)
     if hit is not None and hit[0]() is model:
         return hit[1]
-    tables = FilterTables.build(model)
-    _CACHE[key] = (weakref.ref(model, lambda _ref: _CACHE.pop(key, None)), tables)
+    known = _BY_SCENARIO.get(model.scenario)
+    if known is not None and _same_tables(known[0], model):
+        tables = known[1]
+    else:
+        tables = FilterTables.build(model)
+        _BY_SCENARIO[model.scenario] = (model, tables)
+        while len(_BY_SCENARIO) > _SCENARIOS_KEPT:
+            del _BY_SCENARIO[next(iter(_BY_SCENARIO))]
+    _BY_MODEL[key] = (weakref.ref(model, lambda _ref: _BY_MODEL.pop(key, None)), tables)
     return tables
+
+
+def _same_tables(a: Model, b: Model) -> bool:
+    """Whether two models hold the tables the filter is computed from."""
+    return all(
+        np.array_equal(getattr(a, name), getattr(b, name))
+        for name in ("fire", "rescue", "obs", "info", "sensing", "comm")
+    )
 
 
 # ----- layouts --------------------------------------------------------------------------------------------------
@@ -229,19 +256,21 @@ def filter_tables(model: Model) -> FilterTables:
 
 def to_sites(belief: Belief) -> FloatArray:
     """The site-major view (L·L, S, ...) of beliefs (..., S, L, L) (a view when the layout allows)."""
-    lead = belief.ndim - 3
+    k = belief.ndim - 3
     flat = belief.reshape(belief.shape[:-2] + (-1,))
-    return np.moveaxis(flat, (lead + 1, lead), (0, 1))
+    return flat.transpose(k + 1, k, *range(k))
 
 
 def from_sites(x: FloatArray) -> Belief:
     """The inverse of `to_sites`: beliefs (..., S, L, L) of site-major x (L·L, S, ...), a view of x."""
-    L = math.isqrt(x.shape[0])
-    return np.moveaxis(x.reshape((L, L) + x.shape[1:]), (0, 1, 2), (-2, -1, -3))
+    L, k = math.isqrt(x.shape[0]), x.ndim - 2
+    return x.reshape((L, L) + x.shape[1:]).transpose(*range(3, 3 + k), 2, 0, 1)
 
 
 def initial_belief(model: Model, batch: int) -> Belief:
-    """b0: certain of the initial levels, for every agent of every episode."""
+    """b0: certain of the initial levels, for every agent of every episode. (Also computes the model's
+    `filter_tables` if not yet done, so that the first step of an episode does not wait for them.)"""
+    filter_tables(model)
     sc = model.scenario
     L = sc.levels
     b = np.zeros((batch, sc.n_agents, sc.n_sites, L, L))
@@ -401,18 +430,19 @@ def agent_codes(
     sc = model.scenario
     t = filter_tables(model)
     p = sc.n_tasks
-    works = (actions >= 0) & (actions < p)
     levels = messages.copy()
     levels[:, agent] = own_observation
-    ok = works & (levels >= 0)
+    ok = levels >= 0
     if heard is not None:
         mine = np.zeros(ok.shape[1], dtype=bool)
         mine[agent] = True
         ok &= heard | mine
-    _check_levels(levels, ok, sc.levels)
-    digit = np.where(ok, (levels + 1) * t.powers, 0)
-    onehot = np.where(works, actions, p)[..., None] == np.arange(p)
-    codes: IntArray = (digit[..., None] * onehot).sum(axis=1) + agent * t.base**sc.n_agents
+    onehot = actions[..., None] == np.arange(p)  # (B, N, p): agent k works on task j
+    if levels.size and int(levels.max()) >= sc.levels:
+        _check_levels(levels, ok & onehot.any(axis=-1), sc.levels)
+    digit = np.where(ok, levels + 1, 0) * t.powers
+    codes: IntArray = np.einsum("bkj,bk->bj", onehot, digit)
+    codes += agent * t.base**sc.n_agents
     return codes
 
 
@@ -502,7 +532,8 @@ def evidence(model: Model, actions: IntArray, observations: IntArray, messages: 
 
 def _site_caps(caps: IntArray) -> tuple[IntArray, IntArray]:
     """Fire and rescue capabilities (S, ...) of (..., p) capabilities."""
-    return np.moveaxis(caps[..., 0::2], -1, 0), np.moveaxis(caps[..., 1::2], -1, 0)
+    k = caps.ndim - 1
+    return caps[..., 0::2].transpose(k, *range(k)), caps[..., 1::2].transpose(k, *range(k))
 
 
 def predict(model: Model, belief: Belief, caps: IntArray) -> Belief:
@@ -530,16 +561,17 @@ def update(model: Model, belief: Belief, caps: IntArray, likelihood: FloatArray)
         (docs/model.md), and the caller counts the event.
     """
     fire_caps, rescue_caps = _site_caps(caps)
-    lik = np.moveaxis(likelihood, -1, 0)  # (L, ..., p)
+    k = likelihood.ndim - 2
+    to_levels = (k + 1, k, *range(k))  # (..., S, L) -> (L, S, ...)
     post, bad = update_sites(
         filter_tables(model),
         to_sites(belief),
         fire_caps,
         rescue_caps,
-        np.moveaxis(lik[..., 0::2], -1, 1),
-        np.moveaxis(lik[..., 1::2], -1, 1),
+        likelihood[..., 0::2, :].transpose(to_levels),
+        likelihood[..., 1::2, :].transpose(to_levels),
     )
-    return np.ascontiguousarray(from_sites(post)), np.asarray(np.moveaxis(bad, 0, -1).any(axis=-1), dtype=np.bool_)
+    return np.ascontiguousarray(from_sites(post)), np.asarray(bad.any(axis=0), dtype=np.bool_)
 
 
 def marginals(belief: Belief) -> Marginals:
@@ -547,4 +579,5 @@ def marginals(belief: Belief) -> Marginals:
     fire, rescue = marginals_sites(to_sites(belief))  # (L, S, ...)
     out = np.stack([fire, rescue], axis=2)  # (L, S, 2, ...)
     lead = belief.shape[:-3]
-    return np.ascontiguousarray(np.moveaxis(out, (0, 1, 2), (-1, -3, -2)).reshape(lead + (-1, belief.shape[-1])))
+    k = len(lead)
+    return np.ascontiguousarray(out.transpose(*range(3, 3 + k), 1, 2, 0)).reshape(lead + (-1, belief.shape[-1]))
