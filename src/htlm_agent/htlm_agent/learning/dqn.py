@@ -3,7 +3,9 @@
 Every agent has its own Q-network, target network, optimizer state and replay memory; agents never share
 parameters, gradients or memories. For speed the N networks are stacked (`qnet.StackedQ`) and trained as one batched
 computation: the loss is the sum of the agents' own losses, so every agent's gradient is that of its own loss, and the
-optimizer (`optim.StackedAdam`) keeps a step count per agent, exactly as N separate Adam optimizers would.
+optimizer (`optim.StackedAdam`) keeps a step count per agent, exactly as N separate Adam optimizers would. The online
+and target networks share one tensor and a gradient update is written by hand (`update.TwinNets`: one forward pass of
+both networks, the backward pass of `loss` without autograd), which is what makes the small networks quick to train.
 
 Two ways to feed the learner:
 - in process: `htlm_agent.experiments.train.train()` runs B episodes at once in `team.Team` (line 3-10 of
