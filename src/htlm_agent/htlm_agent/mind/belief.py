@@ -340,7 +340,7 @@ def update_sites(
     fire_lik: FloatArray,
     rescue_lik: FloatArray,
     out: FloatArray | None = None,
-    work: tuple[FloatArray, ...] | None = None,
+    work: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, BoolArray]:
     """`update` on site-major beliefs x (L·L, S, ...).
 
@@ -348,14 +348,14 @@ def update_sites(
         fire_caps, rescue_caps: (S, ...) joint capabilities, broadcastable against x[0].
         fire_lik, rescue_lik: (L, S, ...) likelihood of every fire / rescue level, broadcastable against x[0].
         out: where to write the new beliefs (shaped like x, not overlapping it); a new array when None.
-        work: two scratch arrays shaped like x (a third one is not used); new ones when None.
+        work: two scratch arrays shaped like x; new ones when None.
 
     Returns:
         The new site-major beliefs and the (S, ...) mask of sites whose evidence had zero probability (they keep
         the prediction).
     """
     L = tables.levels
-    post, part = work[:2] if work is not None else (np.empty_like(x), np.empty_like(x))
+    post, part = work if work is not None else (np.empty_like(x), np.empty_like(x))
     pred = np.empty_like(x) if out is None else out  # the prediction, then the posterior
     predict_sites(tables, x, fire_caps, rescue_caps, pred, (post, part))
     grid = (L, L) + x.shape[1:]
