@@ -34,7 +34,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from numpy.typing import NDArray
 
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.optim import StackedAdam, clip_grad_per_agent
@@ -43,7 +42,7 @@ from htlm_agent.learning.qpolicy import QPolicy, greedy_actions
 from htlm_agent.learning.replay import Batch, Replay
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
-from htlm_agent.learning.update import TwinNets, UpdateBatch
+from htlm_agent.learning.update import Minibatches, TwinNets, UpdateBatch, flush_denormals
 from htlm_agent.mind.knowledge import AnyFloats, previous
 from htlm_agent.mind.policies import epsilon_greedy
 from htlm_world import seeds
@@ -87,7 +86,7 @@ class Learner:
         self.gamma = scenario.gamma
         self._nstep = [NStep(settings.n_step, self.gamma, settings.reward_scale) for _ in range(n)]
         self._nstep_batch = NStep(settings.n_step, self.gamma, settings.reward_scale)
-        self._x: dict[int, NDArray[np.float32]] = {}  # inputs of `TwinNets.update` by number of minibatches, reused
+        self._minibatches: dict[int, Minibatches] = {}  # storage of `update_batches`, by number of minibatches
 
     @property
     def n_agents(self) -> int:
@@ -111,7 +110,8 @@ class Learner:
     ) -> IntArray:
         """ε-greedy actions (B, N) over Â from knowledge (B, N, K) and masks (B, N, |Ḡ|); ε a number or one per
         episode (B,); agent i explores with rngs[i] (`policies.epsilon_greedy`, as the agents' processes do)."""
-        greedy = greedy_actions(self.net, knowledge, mask)
+        with flush_denormals():
+            greedy = greedy_actions(self.net, knowledge, mask)
         cols = [epsilon_greedy(greedy[:, i], mask[:, i], epsilon, g) for i, g in enumerate(rngs)]
         return np.stack(cols, axis=1)
 
@@ -221,41 +221,26 @@ class Learner:
         s, sc = self.settings, self.scenario
         n, m, ks = sc.n_agents, s.batch_size, sc.knowledge_size
         replay = self.replay
-        idx = replay.sample_indices(m, ready, count)  # (N, count · M)
-        rec = replay.take(replay.data, idx)  # (N, count · M, D)
+        mb = self._minibatches.get(count)
+        if mb is None:
+            mb = self._minibatches[count] = Minibatches(count, n, m, ks, sc.n_actions, replay.width)
+        slots = replay.slots(replay.sample_indices(m, ready, count)).reshape(-1)  # agent-major, then draw
+        rec = np.take(replay.data.reshape(-1, replay.width), slots, axis=0, out=mb.records)
+        rec4 = rec.reshape(n, count, m, replay.width).swapaxes(0, 1)  # (count, N, M, D)
         c = replay.cols
-
-        def split(a: NDArray[Any]) -> NDArray[Any]:  # (N, count · M, ...) -> (count, N, M, ...), C order
-            return np.ascontiguousarray(a.reshape(n, count, m, *a.shape[2:]).swapaxes(0, 1))
-
-        x = self._x.get(count)
-        if x is None:
-            x = self._x[count] = np.empty((count, 2, n, 2 * m, ks), dtype=np.float32)
-        x[:, 0, :, :m] = rec[..., c["k"]].reshape(n, count, m, ks).swapaxes(0, 1)
-        x[:, 0, :, m:] = rec[..., c["k2"]].reshape(n, count, m, ks).swapaxes(0, 1)
-        x[:, 1] = x[:, 0]
-        a = split(rec[..., c["a"]].astype(np.int64))  # (count, N, M, 1)
-        a = np.concatenate([a, a], axis=1)  # repeated for the target networks
-        r = split(rec[..., c["r"]][..., 0])
-        discount = split(rec[..., c["discount"]][..., 0])
+        mb.x[:, 0, :, :m] = rec4[..., c["k"]]
+        mb.x[:, 0, :, m:] = rec4[..., c["k2"]]
+        mb.x[:, 1] = mb.x[:, 0]
+        mb.a[:, 0] = rec4[..., c["a"]]
+        mb.a[:, 1] = mb.a[:, 0]
+        mb.r[...] = rec4[..., c["r"]]
+        mb.discount[...] = rec4[..., c["discount"]]
         assert replay.offsets is not None
-        offsets = replay.take(replay.offsets, idx)  # (N, count · M, 2, |Ḡ|): Â(K), Â(K')
-        if not ready.all():
-            offsets[~ready, :, 1] = 0.0  # padding rows of idle learners: any action
-        offsets = np.ascontiguousarray(offsets.reshape(n, count, m, 2, -1).transpose(1, 3, 0, 2, 4))
-        weight = torch.from_numpy(np.where(ready, np.float32(1.0 / m), np.float32(0.0))[:, None])
-        return [
-            UpdateBatch(
-                x=torch.from_numpy(x[j]).view(2 * n, 2 * m, ks),
-                a=torch.from_numpy(a[j]),
-                r=torch.from_numpy(r[j]),
-                discount=torch.from_numpy(discount[j]),
-                off=torch.from_numpy(offsets[j, 0]),
-                off2=torch.from_numpy(offsets[j, 1]),
-                weight=weight,
-            )
-            for j in range(count)
-        ]
+        np.take(replay.offsets.reshape(-1, 2, sc.n_actions), slots, axis=0, out=mb.offsets)
+        if not ready.all():  # padding rows of idle learners: any action
+            mb.offsets.reshape(n, count * m, 2, -1)[~ready, :, 1] = 0.0
+        mb.weight[:, 0, 0] = np.where(ready, np.float32(1.0 / m), np.float32(0.0))
+        return mb.batches
 
     def train_step(self) -> float | None:
         """One gradient update of every agent whose memory holds enough data (line 10 of Algorithm 1); returns the
@@ -271,6 +256,10 @@ class Learner:
         ready = self.ready()
         if not ready.any():
             return []
+        with flush_denormals():
+            return self._train(ready, count)
+
+    def _train(self, ready: BoolArray, count: int) -> list[float]:
         s = self.settings
         active = torch.from_numpy(ready)
         all_active = bool(ready.all())

@@ -148,12 +148,16 @@ class Replay:
         its own memory (`sample_indices`; columns in `cols`); other agents' rows are padding the caller ignores."""
         return self.take(self.data, self.sample_indices(batch, agents, count))
 
+    def slots(self, idx: IntArray) -> IntArray:
+        """Indices (N, J) into every agent's own memory as indices into the flattened memories (N · C)."""
+        out: IntArray = self.agent_rows * self.capacity + idx
+        return out
+
     def take(self, per_slot: NDArray[Any], idx: IntArray) -> NDArray[Any]:
         """per_slot[i, idx[i, j]] for an array (N, C, ...) of every agent's slots and indices (N, J): (N, J, ...).
         (`numpy.take` on the flattened slots: much quicker than fancy indexing with two index arrays.)"""
-        flat = (self.agent_rows * self.capacity + idx).reshape(-1)
         n, c = per_slot.shape[:2]
-        out = np.take(per_slot.reshape(n * c, *per_slot.shape[2:]), flat, axis=0)
+        out = np.take(per_slot.reshape(n * c, *per_slot.shape[2:]), self.slots(idx).reshape(-1), axis=0)
         return out.reshape(*idx.shape, *per_slot.shape[2:])
 
     def sample(self, batch: int, agents: NDArray[np.bool_]) -> Batch:
