@@ -113,7 +113,7 @@ def learner_rate(seconds: float) -> float:
     """Gradient updates/s of the default learner (each update trains every agent's network once)."""
     import torch
 
-    from htlm_agent.experiments.train import train_batch
+    from htlm_agent.experiments.train import keep_freed_memory, train_batch
     from htlm_agent.learning.dqn import Learner
     from htlm_agent.learning.settings import Settings
     from htlm_agent.runtime.team import Team
@@ -121,6 +121,7 @@ def learner_rate(seconds: float) -> float:
 
     s = Settings()
     torch.set_num_threads(s.threads)
+    keep_freed_memory()  # as train() does
     sc = builtin()
     lr = Learner(sc, s.replace(learning_starts=1, updates_per_step=1))
     team = Team(sc, s.envs, 0)
