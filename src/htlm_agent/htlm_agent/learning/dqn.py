@@ -228,9 +228,8 @@ class Learner:
         rec = np.take(replay.data.reshape(-1, replay.width), slots, axis=0, out=mb.records)
         rec4 = rec.reshape(n, count, m, replay.width).swapaxes(0, 1)  # (count, N, M, D)
         c = replay.cols
-        mb.x[:, 0, :, :m] = rec4[..., c["k"]]
-        mb.x[:, 0, :, m:] = rec4[..., c["k2"]]
-        mb.x[:, 1] = mb.x[:, 0]
+        mb.x[:, :, :m] = rec4[..., c["k"]]
+        mb.x[:, :, m:] = rec4[..., c["k2"]]
         mb.a[:, 0] = rec4[..., c["a"]]
         mb.a[:, 1] = mb.a[:, 0]
         mb.r[...] = rec4[..., c["r"]]

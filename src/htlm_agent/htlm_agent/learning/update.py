@@ -56,8 +56,8 @@ class UpdateBatch:
         """Wrap the tensors (shapes below) and make the views of them that the update needs."""
         n, m = r.shape[0], r.shape[1]
         self.x = x
-        """(2N, 2M, K) float32: rows 0..M-1 of agent i's block hold its K, rows M..2M-1 its K'; the block is
-        repeated for the target networks (blocks N..2N-1)."""
+        """(N, 2M, K) float32: rows 0..M-1 of agent i's block hold its K, rows M..2M-1 its K' (the input of both
+        its online and its target network)."""
         self.a = a
         """(2N, M, 1) int64 actions (repeated for the target networks, like x)."""
         self.r = r
@@ -83,8 +83,8 @@ class Minibatches:
     def __init__(self, count: int, n: int, m: int, knowledge_size: int, n_actions: int, width: int) -> None:
         """Allocate the storage; `width` is the size of a replay record."""
         self.count, self.n, self.m = count, n, m
-        self.x = np.zeros((count, 2, n, 2 * m, knowledge_size), dtype=np.float32)
-        """Inputs of every minibatch j: x[j, 0] the online networks' (agent i: K then K'), x[j, 1] the same again."""
+        self.x = np.zeros((count, n, 2 * m, knowledge_size), dtype=np.float32)
+        """Inputs of every minibatch j (agent i: K then K')."""
         self.a = np.zeros((count, 2, n, m, 1), dtype=np.int64)
         self.r = np.zeros((count, n, m, 1), dtype=np.float32)
         self.discount = np.zeros((count, n, m, 1), dtype=np.float32)
@@ -99,7 +99,7 @@ class Minibatches:
         w = torch.from_numpy(self.weight)
         self.batches = [
             UpdateBatch(
-                x=x[j].view(2 * n, 2 * m, knowledge_size),
+                x=x[j],
                 a=a[j].view(2 * n, m, 1),
                 r=r[j],
                 discount=d[j],
@@ -193,12 +193,13 @@ class TwinNets:
         ws = self._workspaces.get(m)
         if ws is None:
             ws = self._workspaces[m] = _Workspace(n, m, self.online.sizes)
-        h = b.x
         last = len(self.weights) - 1
-        for li, (w, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
-            h = torch.baddbmm(bias, h, w, out=ws.h[li])
-            if li < last:
-                h.relu_()
+        h = ws.h[0]  # the first layer reads the same input for both networks: two products, no copy of the input
+        torch.baddbmm(self.biases[0][:n], b.x, self.weights[0][:n], out=h[:n])
+        torch.baddbmm(self.biases[0][n:], b.x, self.weights[0][n:], out=h[n:])
+        for li in range(1, last + 1):
+            h.relu_()
+            h = torch.baddbmm(self.biases[li], h, self.weights[li], out=ws.h[li])
         torch.gather(ws.q_k_both, -1, b.a, out=ws.qa)  # Q(K, a): online ws.q_a, target ws.qt_a
         if double_dqn:  # a' = masked argmax of the online network (ties to the lowest index, as qnet.masked_argmax)
             torch.argmax(torch.add(ws.q_o, b.off2, out=ws.shifted), dim=-1, keepdim=True, out=ws.a2)
