@@ -4,11 +4,12 @@ flat gradient.
 
 The networks are small (two hidden layers of 64 for 5 agents and minibatches of 128), so an update through autograd
 spends most of its time in per-operation overhead rather than arithmetic. Here the online networks (N, P) and the
-target networks (N, P) are the two halves of one (2, N, P) tensor, so that every layer of both is a single
-`torch.baddbmm` over 2N stacked matrices, applied to the minibatch's K and K' at once; the backward pass runs only
-over the rows that carry a gradient (the online networks on K). The result is the gradient autograd computes for
-`Learner.loss` (the same operations, up to the summation order inside the matrix products);
-tests/test_learner_update.py checks this.
+target networks (N, P) are the two halves of one (2, N, P) tensor, so that every layer of both is one `torch.baddbmm`
+over 2N stacked matrices (the first layer two, on the same input), applied to the minibatch's K and K' at once; the
+backward pass runs only over the rows that carry a gradient (the online networks on K). Activations, targets and
+gradients go into buffers made once, and the views the update reads of them are made once too. The result is the
+gradient autograd computes for `Learner.loss` (the same operations, up to rounding: summation order inside the matrix
+products, a fused multiply-add); tests/test_learner_update.py checks this.
 """
 
 from __future__ import annotations
@@ -152,7 +153,7 @@ class TwinNets:
         self.weights: list[torch.Tensor] = []  # (2N, in, out): online rows then target rows
         self.biases: list[torch.Tensor] = []  # (2N, 1, out)
         self.grad_w: list[torch.Tensor] = []  # (N, in, out) views of the online gradient
-        self.grad_b: list[torch.Tensor] = []  # (N, out)
+        self.grad_b: list[torch.Tensor] = []  # (N, 1, out)
         sz = self.online.sizes
         for li in range(len(sz) - 1):
             fin, fout = sz[li], sz[li + 1]
