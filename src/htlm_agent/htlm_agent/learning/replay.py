@@ -89,11 +89,27 @@ class Replay:
         allowed = np.stack([self.knowledge_mask(rec[..., c["k"]]), rec[..., c["mask2"]] > 0.5], axis=-2)
         self.offsets.reshape(-1, 2, self.na)[flat] = np.where(allowed, np.float32(0.0), np.float32(-np.inf))
 
+    def _offsets_into(self, out: NDArray[np.float32], rec: NDArray[np.float32]) -> None:
+        """Write the offsets (..., 2, |Ḡ|) of records `rec` (..., D) into `out`."""
+        if self.knowledge_mask is None:
+            return
+        c = self.cols
+        np.copyto(out[..., 0, :], np.float32(-np.inf))
+        out[..., 0, :][self.knowledge_mask(rec[..., c["k"]])] = 0.0
+        np.copyto(out[..., 1, :], np.where(rec[..., c["mask2"]] > 0.5, np.float32(0.0), np.float32(-np.inf)))
+
     def _records(
-        self, k: FloatArray, a: Any, r: Any, k2: FloatArray, mask2: BoolArray, discount: Any
+        self,
+        k: FloatArray,
+        a: Any,
+        r: Any,
+        k2: FloatArray,
+        mask2: BoolArray,
+        discount: Any,
+        out: NDArray[np.float32] | None = None,
     ) -> NDArray[np.float32]:
         lead = np.shape(a)
-        rec = np.empty((*lead, self.width), dtype=np.float32)
+        rec = np.empty((*lead, self.width), dtype=np.float32) if out is None else out
         c = self.cols
         rec[..., c["k"]] = k
         rec[..., c["k2"]] = k2
@@ -122,6 +138,15 @@ class Replay:
         b = a.shape[0]
         assert b <= self.capacity
         disc = np.broadcast_to(np.asarray(discount, dtype=np.float32), (b, self.n_agents))
+        p = int(self.pos[0])
+        if p + b <= self.capacity and (self.pos == p).all():  # the same run of slots p .. p+B-1 in every memory
+            block = self.data[:, p : p + b]  # (N, B, D): the records go straight into place
+            self._records(k.swapaxes(0, 1), a.T, r.T, k2.swapaxes(0, 1), mask2.swapaxes(0, 1), disc.T, out=block)
+            if self.offsets is not None:
+                self._offsets_into(self.offsets[:, p : p + b], block)
+            self.pos[:] = (p + b) % self.capacity
+            np.minimum(self.size + b, self.capacity, out=self.size)
+            return
         rec = self._records(k, a, r, k2, mask2, disc)  # (B, N, D)
         idx = (self.pos[:, None] + np.arange(b)) % self.capacity  # (N, B): each agent's own write positions
         flat = (self.agent_rows * self.capacity + idx).T.reshape(-1)  # (B · N), in the order of rec's rows
