@@ -8,6 +8,7 @@ import torch
 
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.optim import clip_grad_per_agent
+from htlm_agent.learning.qpolicy import greedy_actions
 from htlm_agent.learning.settings import Settings
 from htlm_world.scenario import builtin
 
@@ -96,3 +97,17 @@ def test_several_updates_at_once_are_the_updates_one_by_one() -> None:
     assert many.train_steps(5) == losses
     assert torch.equal(one.net.flat, many.net.flat) and torch.equal(one.target.flat, many.target.flat)
     assert torch.equal(one.opt.v, many.opt.v) and one.updates.tolist() == many.updates.tolist() == [5] * 5
+
+
+def test_acting_greedily_is_the_policy_of_the_networks() -> None:
+    lr = _filled(Settings(batch_size=32, learning_starts=1))
+    rng = np.random.default_rng(7)
+    sc = lr.scenario
+    for b in (1, 16, 16, 40):
+        k = rng.random((b, sc.n_agents, sc.knowledge_size))
+        mask = rng.random((b, sc.n_agents, sc.n_actions)) > 0.5
+        mask[..., 0] = True
+        if b == 40:  # equal Q-values: ties go to the lowest index
+            k[:] = 0.0
+        acts = lr.act(k, mask, 0.0, [np.random.default_rng(i) for i in range(sc.n_agents)])
+        assert np.array_equal(acts, greedy_actions(lr.net, k, mask))

@@ -38,7 +38,7 @@ import torch
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.optim import StackedAdam, clip_grad_per_agent
 from htlm_agent.learning.qnet import StackedQ, layer_sizes, pack_weights
-from htlm_agent.learning.qpolicy import QPolicy, greedy_actions
+from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.replay import Batch, Replay
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
@@ -87,6 +87,7 @@ class Learner:
         self._nstep = [NStep(settings.n_step, self.gamma, settings.reward_scale) for _ in range(n)]
         self._nstep_batch = NStep(settings.n_step, self.gamma, settings.reward_scale)
         self._minibatches: dict[int, Minibatches] = {}  # storage of `update_batches`, by number of minibatches
+        self._act_buffers: dict[int, tuple[torch.Tensor, torch.Tensor, list[torch.Tensor], torch.Tensor]] = {}
 
     @property
     def n_agents(self) -> int:
@@ -111,9 +112,30 @@ class Learner:
         """ε-greedy actions (B, N) over Â from knowledge (B, N, K) and masks (B, N, |Ḡ|); ε a number or one per
         episode (B,); agent i explores with rngs[i] (`policies.epsilon_greedy`, as the agents' processes do)."""
         with flush_denormals():
-            greedy = greedy_actions(self.net, knowledge, mask)
+            greedy = self._greedy(knowledge, mask)
         cols = [epsilon_greedy(greedy[:, i], mask[:, i], epsilon, g) for i, g in enumerate(rngs)]
         return np.stack(cols, axis=1)
+
+    def _greedy(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
+        """`qpolicy.greedy_actions` of the online networks (the same numbers) in buffers made once per batch size."""
+        b = knowledge.shape[0]
+        bufs = self._act_buffers.get(b)
+        if bufs is None:
+            n, sizes = self.n_agents, self.net.sizes
+            bufs = self._act_buffers[b] = (
+                torch.zeros(n, b, sizes[0]),
+                torch.zeros(n, b, sizes[-1], dtype=torch.bool),
+                [torch.zeros(n, b, f) for f in sizes[1:]],
+                torch.zeros(n, b, dtype=torch.int64),
+            )
+        x, blocked, outs, a = bufs
+        np.copyto(x.numpy(), knowledge.transpose(1, 0, 2), casting="same_kind")
+        np.logical_not(mask.transpose(1, 0, 2), out=blocked.numpy())
+        with torch.no_grad():
+            q = self.net.forward_into(x, outs).masked_fill_(blocked, -math.inf)
+            torch.argmax(q, dim=-1, out=a)  # the first of equal maxima, as qnet.masked_argmax
+        out: IntArray = a.numpy().T
+        return out
 
     # ----- storing ---------------------------------------------------------------------------------------------
     def store(self, agent: int, k: FloatArray, a: int, r: float, k2: FloatArray, mask2: BoolArray, done: bool) -> None:

@@ -156,6 +156,16 @@ class StackedQ(torch.nn.Module):
                 x = torch.relu(x)
         return x
 
+    def forward_into(self, x: torch.Tensor, outs: Sequence[torch.Tensor]) -> torch.Tensor:
+        """`forward` with every layer's output written into `outs` (one tensor per layer, (N, M, size)); returns the
+        last (the same numbers as `forward`, without allocating)."""
+        last = len(self._layers) - 1
+        for li, (w, b) in enumerate(self._layers):
+            x = torch.baddbmm(b, x, w, out=outs[li])
+            if li < last:
+                x.relu_()
+        return x
+
     def agent_params(self, agent: int) -> list[NDArray[np.float32]]:
         """Copies of one agent's parameters in `param_shapes` order, as float32 arrays."""
         row = self.flat[agent].detach().numpy()
