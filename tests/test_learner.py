@@ -20,10 +20,11 @@ from htlm_agent.learning.optim import StackedAdam
 from htlm_agent.learning.qnet import AgentQ, StackedQ, layer_sizes, masked_argmax, pack_weights, unpack_weights
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.replay import Replay
-from htlm_agent.learning.settings import Settings, field_docs
+from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
 from htlm_agent.mind.policies import epsilon_greedy
 from htlm_agent.runtime.team import Team
+from htlm_msgs_py.params import field_docs
 from htlm_world.scenario import builtin
 
 TINY = Settings(

@@ -10,9 +10,14 @@ without ROS, so the unit tests and the node refuse exactly the same values.
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import inspect
+import itertools
 import math
+import textwrap
 from dataclasses import dataclass
+from functools import cache
 from typing import Any
 
 SECONDS = (0.001, 3600.0)
@@ -91,3 +96,26 @@ def problems(settings: Any) -> list[str]:
             elif (c.lo is not None and v < c.lo) or (c.hi is not None and v > c.hi):
                 bad.append(f"{f.name}: {v!r} must be {c.describe()}")
     return bad
+
+
+@cache
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring under each field of a dataclass (the attribute docstring convention), on one line: the help of
+    `htlm train`'s options and the descriptions of node parameters."""
+    try:
+        src = textwrap.dedent(inspect.getsource(cls))
+    except (OSError, TypeError):
+        return {}
+    body = ast.parse(src).body[0]
+    assert isinstance(body, ast.ClassDef)
+    docs: dict[str, str] = {}
+    for a, b in itertools.pairwise(body.body):
+        if (
+            isinstance(a, ast.AnnAssign)
+            and isinstance(a.target, ast.Name)
+            and isinstance(b, ast.Expr)
+            and isinstance(b.value, ast.Constant)
+            and isinstance(b.value.value, str)
+        ):
+            docs[a.target.id] = " ".join(b.value.value.split())
+    return docs

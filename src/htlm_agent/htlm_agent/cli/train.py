@@ -26,7 +26,8 @@ def _flag(name: str) -> str:
 
 def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     """One option per field of `learner.Settings` (default None: keep the Settings default)."""
-    from htlm_agent.learning.settings import Settings, field_docs
+    from htlm_agent.learning.settings import Settings
+    from htlm_msgs_py.params import field_docs
 
     docs = field_docs(Settings)
     g = p.add_argument_group("learner settings (defaults: htlm_agent.learning.settings.Settings)")

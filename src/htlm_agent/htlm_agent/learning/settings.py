@@ -6,13 +6,8 @@ generated from or checked against `Settings`.
 
 from __future__ import annotations
 
-import ast
 import dataclasses
-import inspect
-import itertools
-import textwrap
 from dataclasses import dataclass
-from functools import cache
 from typing import Any
 
 from htlm_msgs_py.validation import ConversionError, convert_value
@@ -158,21 +153,3 @@ class Settings:
         except ValueError as e:  # __post_init__
             raise ValueError(f"{src}: {e}") from None
         return out
-
-
-@cache
-def field_docs(cls: type) -> dict[str, str]:
-    """The one-line docstring under every field of a dataclass (for --help and reports)."""
-    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
-    body = tree.body[0].body  # type: ignore[attr-defined]
-    out: dict[str, str] = {}
-    for prev, node in itertools.pairwise(body):
-        if (
-            isinstance(prev, ast.AnnAssign)
-            and isinstance(prev.target, ast.Name)
-            and isinstance(node, ast.Expr)
-            and isinstance(node.value, ast.Constant)
-            and isinstance(node.value.value, str)
-        ):
-            out[prev.target.id] = " ".join(node.value.value.split())
-    return out

@@ -7,7 +7,6 @@ rest of the package (and the whole model core) imports without them.
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import os
 import sys
 import time
@@ -33,7 +32,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import String
 
 from .. import qos as _qos
-from ..params import INT64_MAX, Constraint, constraints
+from ..params import INT64_MAX, Constraint, constraints, field_docs
 from ..schema import Schema, WireError, decode, encode
 from ..signing import Signer
 from ..validation import ConversionError, convert, convert_value
@@ -194,32 +193,6 @@ def encode_msg(schema: Schema, fields: dict[str, Any], signer: Signer | None) ->
 
 class SettingsError(ValueError):
     """A node parameter with a bad value (names the parameter and the value)."""
-
-
-def field_docs(cls: type) -> dict[str, str]:
-    """The docstring under each field of a dataclass (the attribute docstring convention), on one line."""
-    import ast
-    import inspect
-    import textwrap
-
-    try:
-        src = textwrap.dedent(inspect.getsource(cls))
-    except (OSError, TypeError):
-        return {}
-    body = ast.parse(src).body[0]
-    assert isinstance(body, ast.ClassDef)
-    docs: dict[str, str] = {}
-    stmts = body.body
-    for a, b in itertools.pairwise(stmts):
-        if (
-            isinstance(a, ast.AnnAssign)
-            and isinstance(a.target, ast.Name)
-            and isinstance(b, ast.Expr)
-            and isinstance(b.value, ast.Constant)
-            and isinstance(b.value.value, str)
-        ):
-            docs[a.target.id] = " ".join(b.value.value.split())
-    return docs
 
 
 _PARAMETER_TYPES = {
