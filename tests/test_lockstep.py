@@ -44,6 +44,62 @@ def test_loopback_equals_team_rollout(team: str, name: str) -> None:
             assert np.array_equal(getattr(tr, f)[:, 0], lb[f]), (f, seed, episode)
 
 
+@pytest.mark.parametrize("name", ["greedy", "random"])
+@pytest.mark.parametrize("batch", [16, 5])
+def test_a_batch_through_the_protocol_equals_team_of_that_batch(name: str, batch: int) -> None:
+    """B episodes at once: every agent keeps B beliefs and acts for all of them in one call; the result equals the
+    in-process Team(scenario, B, seed, b) of batch b bit for bit."""
+    sc = builtin()
+    pols, eps = _policies(sc, name)
+    for seed, b in [(0, 0), (7, 3)]:
+        dp = DecentralizedPolicy(pols, seed, eps)
+        dp.begin(b)
+        tr = rollout(Team(sc, batch, seed, episode=b), dp)
+        lb = loopback_episode(sc, seed, b * batch, pols, epsilon=eps, batch=batch)
+        for f in FIELDS:
+            assert np.array_equal(getattr(tr, f), lb[f]), (f, seed, b)
+
+
+def test_train_mode_streams_are_those_of_htlm_train() -> None:
+    """In train mode the world and the agents draw from the training streams of batch b (seeds.train_*)."""
+    from htlm_world import seeds
+
+    sc = builtin()
+    pols, eps = _policies(sc, "random")
+    team = Team(sc, 8, 3)
+    team.sim.rng = seeds.train_world(3, 2)
+    team.sim.channel_rngs = [seeds.train_channel(3, i, 2) for i in range(sc.n_agents)]
+    dp = DecentralizedPolicy(pols, 3, eps)
+    dp.rngs = [seeds.train_explore(3, i, 2) for i in range(sc.n_agents)]
+    team.reset()
+    levels, acts = [team.sim.levels.copy()], []
+    for _ in range(sc.horizon):
+        a = dp.act(team.context())
+        _, _, info = team.step(a)
+        levels.append(info.levels)
+        acts.append(a)
+    lb = loopback_episode(sc, 3, 16, pols, epsilon=eps, batch=8, mode="train")
+    assert np.array_equal(np.stack(levels), lb["levels"]) and np.array_equal(np.stack(acts), lb["actions"])
+
+
+def test_mind_rejects_arrays_of_another_length_and_waits_for_its_gate() -> None:
+    sc = builtin()
+    pol, _ = builtin_policy(sc, "greedy", 0)
+    ready: dict[int, bool] = {1: False}
+    m = AgentMind(sc, 0, 0, pol, batch=4, gate=lambda e, t: pol if ready.get(t, True) else None)
+    eff = m.begin(0, size=4)
+    assert eff.action is None and m.deferred == 1  # no policy for step 1 yet
+    assert m.act_now().action is None
+    ready[1] = True
+    eff = m.act_now()
+    assert eff.action is not None and eff.action[0] == 1 and eff.action[1].shape == (4,) and m.deferred is None
+    assert m.observe(0, 1, [3, 3, 3], [0]).drop == "length"
+    assert m.hear(1, 0, 1, [0, 0, 0, 0], [1, 1]).drop == "length"
+    out = m.observe(0, 1, [3, 3, 2, 4], [0])
+    assert out.transition is not None and out.transition.k.shape == (4, sc.knowledge_size)
+    assert out.transition.r.shape == (4,) and out.action is not None and out.action[1].shape == (4,)
+
+
 def test_row_policy_is_the_team_greedy_policy() -> None:
     sc = builtin()
     pols, _ = _policies(sc, "greedy")
@@ -80,8 +136,8 @@ def test_an_absent_agent_is_idle_like_an_inactive_one() -> None:
         assert np.array_equal(getattr(tr, f)[:, 0], lb[f]), f
     world = WorldEpisode(sc, Model.build(sc), 4, 3)
     for _ in range(3):
-        world.step({0: 0, 1: 1})
-    m = world.metrics()
+        world.step({0: np.array([0]), 1: np.array([1])})
+    (m,) = world.metrics()
     assert m["absent"] == [0, 0, 3, 3, 3]
 
 
@@ -93,45 +149,46 @@ def _mind(seed: int = 0) -> AgentMind:
 
 def test_mind_drops_past_future_and_duplicates() -> None:
     m = _mind()
-    assert m.observe(0, 1, 3, [0]).drop == "no_episode"
+    assert m.observe(0, 1, [3], [0]).drop == "no_episode"
     eff = m.begin(5)
     assert eff.action is not None and eff.action[0] == 1
     again = m.begin(5)  # the world asks again: same answer, nothing changes
-    assert again.action == eff.action and again.drop is None
+    assert again.action is not None and again.action[0] == 1 and again.drop is None
+    assert np.array_equal(again.action[1], eff.action[1])
     assert m.begin(4).drop == "past"
     assert m.begin(6).drop == "future"  # the episode is not over
-    assert m.observe(4, 1, 3, [0]).drop == "past"
-    assert m.observe(6, 1, 3, [0]).drop == "future"
-    assert m.observe(5, 3, 3, [0]).drop == "future"
-    assert m.hear(1, 5, 9, 2, 3).drop == "future"
-    assert m.hear(0, 5, 1, 2, 3).drop == "self"
+    assert m.observe(4, 1, [3], [0]).drop == "past"
+    assert m.observe(6, 1, [3], [0]).drop == "future"
+    assert m.observe(5, 3, [3], [0]).drop == "future"
+    assert m.hear(1, 5, 9, [2], [3]).drop == "future"
+    assert m.hear(0, 5, 1, [2], [3]).drop == "self"
     state = (m.t, m.current, m.belief.copy(), m.prev)
-    out = m.observe(5, 1, 3, [0, 1])  # agent 1 acted: wait for its broadcast
+    out = m.observe(5, 1, [3], [0, 1])  # agent 1 acted: wait for its broadcast
     assert out.broadcast is not None and out.transition is None
-    assert m.observe(5, 1, 3, [0, 1]).drop == "duplicate"
+    assert m.observe(5, 1, [3], [0, 1]).drop == "duplicate"
     assert state[0] == m.t and np.array_equal(state[2], m.belief)
-    done = m.hear(1, 5, 1, 2, 3)
+    done = m.hear(1, 5, 1, [2], [3])
     assert done.transition is not None and done.action is not None and done.action[0] == 2
-    assert m.hear(1, 5, 1, 2, 3).drop == "past"
+    assert m.hear(1, 5, 1, [2], [3]).drop == "past"
 
 
 def test_mind_buffers_a_broadcast_ahead_of_its_observation() -> None:
     m = _mind()
     m.begin(0)
-    assert m.hear(1, 0, 1, 0, 4).drop is None  # before our own observation of step 1
-    out = m.observe(0, 1, 3, [0, 1])
+    assert m.hear(1, 0, 1, [0], [4]).drop is None  # before our own observation of step 1
+    out = m.observe(0, 1, [3], [0, 1])
     assert out.transition is not None  # nothing left to wait for
 
 
 def test_mind_times_out_on_a_missing_broadcast_and_catches_up() -> None:
     m = _mind()
     m.begin(0)
-    m.observe(0, 1, 3, [0, 1], now=10.0)
+    m.observe(0, 1, [3], [0, 1], now=10.0)
     assert m.tick(10.5, 1.0).transition is None
     out = m.tick(11.5, 1.0)
     assert out.transition is not None and out.action is not None and m.timeouts == 1
     # the world went on without our action of step 3: the mind closes step 2 and idles in step 3
-    out = m.observe(0, 3, -1, [1])
+    out = m.observe(0, 3, [-1], [1])
     assert out.transition is not None and out.transition.step == 2 and m.current == 3
     assert m.missed_steps == 1
 
@@ -142,7 +199,8 @@ def test_mind_random_policy_uses_the_exploration_generator() -> None:
     assert eps == 1.0
     a = [AgentMind(sc, 1, 9, pol).begin(e, eps).action for e in range(5)]
     b = [AgentMind(sc, 1, 9, pol).begin(e, eps).action for e in range(5)]
-    assert a == b and len({x[1] for x in a if x}) > 1
+    assert all(x is not None and y is not None and np.array_equal(x[1], y[1]) for x, y in zip(a, b, strict=True))
+    assert len({int(x[1][0]) for x in a if x}) > 1
 
 
 def _rec(agent: int, session: str, seq: int) -> dict[str, object]:

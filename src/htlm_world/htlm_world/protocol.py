@@ -1,12 +1,14 @@
 """The world's side of the lockstep protocol, without ROS: one episode's state (`WorldEpisode`) and the protocol
-that sequences episodes and steps (`WorldProtocol`).
+that sequences batches of episodes and their steps (`WorldProtocol`).
 
 The world node (htlm_world.ros.world_node) only decodes messages, feeds them and the time to `WorldProtocol` and
 publishes the records it returns; everything the world decides (phases, deadlines, which agents are present, late
 and duplicate answers, the free-running clock, the start and end of episodes and of the run) is decided here, so the
-unit tests drive it in one process. One episode of batch 1 draws from seeds.world(seed, episode) exactly as the
-in-process Team(scenario, 1, seed, episode) does, so with the same actions both runtimes produce the same levels and
-observations.
+unit tests drive it in one process. The world runs B episodes at once (`LockstepSettings.batch`): batch b holds
+episodes b*B .. b*B + B - 1 (the run's last batch may be smaller) and draws from seeds.world(seed, b) exactly as the
+in-process Team(scenario, B, seed, b) does (seeds.train_world(seed, b) in train mode, as `htlm train` does), so with
+the same actions both runtimes produce the same levels and observations. Every per-step record carries the values of
+the batch's episodes as arrays; with B = 1 a batch is one episode.
 """
 
 from __future__ import annotations
@@ -62,89 +64,132 @@ class LockstepSettings:
     """Seconds between the end of the last episode and the end of the run."""
     run_id: str = "run"
     """Run identifier announced on /htlm/scenario."""
+    batch: int = 1
+    """B, episodes run at once; every per-step record carries B values (first_episode must be a multiple of B)."""
+    pace: bool = False
+    """Wait for the trainer (train mode): step g is applied only once the trainer has finished the gradient updates
+    of every step before g - trainer_lag (its /htlm/trainer/progress records)."""
+    trainer_lag: int = 1
+    """k of the rate limiter: how many steps the trainer's updates may lag behind the world."""
+    trainer_deadline: float = 30.0
+    """Longest wait for the trainer's progress, seconds; then the world goes on without it until it is heard."""
+
+
+def batch_index(episode: int, batch: int) -> int:
+    """The index b of the batch whose first episode is `episode` (its random streams are keyed by b)."""
+    return episode // batch
+
+
+def global_step(episode: int, batch: int, t: int, horizon: int) -> int:
+    """The run-wide index g of step t (1..h) of the batch whose first episode is `episode`: b * h + t - 1. The
+    trainer counts its rounds of updates in it (round g: the updates for the transitions of step g)."""
+    return batch_index(episode, batch) * horizon + t - 1
+
+
+def world_stream(seed: int, b: int, mode: str) -> np.random.Generator:
+    """The world generator of batch b: `htlm train`'s training stream in train mode, else the evaluation one."""
+    return seeds.train_world(seed, b) if mode == "train" else seeds.world(seed, b)
 
 
 @dataclass
 class StepOutcome:
-    """What the world produced in one step."""
+    """What the world produced in one step of a batch of B episodes."""
 
-    actions: IntArray  # (N,) joint assignment applied (absent agents idle at their site; -1 in HT mode)
-    acted: list[int]  # agents whose own action was applied
-    levels: IntArray  # (p,) true levels after the transition
-    observations: IntArray  # (N,) observed level of each agent's task, -1 when idle or absent
+    actions: IntArray  # (B, N) joint assignment applied (absent agents idle at their site; -1 in HT mode)
+    acted: list[int]  # agents whose own actions were applied
+    levels: IntArray  # (B, p) true levels after the transition
+    observations: IntArray  # (B, N) observed level of each agent's task, -1 when idle or absent
 
 
 class WorldEpisode:
-    """One episode of the operation as the world process runs it: batch 1, its own world generator."""
+    """One batch of B episodes of the operation as the world process runs it, with its own world generator."""
 
-    def __init__(self, scenario: Scenario, model: Model, seed: int, episode: int, started: float | None = None) -> None:
-        """Start episode `episode` of the run with master seed `seed` at the initial levels (at monotonic time
-        `started`, now when None)."""
+    def __init__(
+        self,
+        scenario: Scenario,
+        model: Model,
+        seed: int,
+        episode: int,
+        started: float | None = None,
+        size: int = 1,
+        b: int | None = None,
+        mode: str = "evaluate",
+    ) -> None:
+        """Start the `size` episodes from `episode` on, batch index `b` (`episode` when None: batch 1), of the run
+        with master seed `seed` at the initial levels (at monotonic time `started`, now when None)."""
         self.scenario = scenario
         self.model = model
         self.episode = episode
-        self.rng = seeds.world(seed, episode)
+        self.size = size
+        self.b = episode if b is None else b
+        self.rng = world_stream(seed, self.b, mode)
         n = scenario.n_agents
-        self.levels: IntArray = np.array([scenario.initial_levels], dtype=np.int64)  # (1, p)
-        self.prev: IntArray = np.full(n, scenario.start_assignment, dtype=np.int64)
+        self.levels: IntArray = np.tile(np.array(scenario.initial_levels, dtype=np.int64), (size, 1))  # (B, p)
+        self.prev: IntArray = np.full((size, n), scenario.start_assignment, dtype=np.int64)
         self.t = 0
         self.absent = np.zeros(n, dtype=np.int64)
-        self.level_log: list[IntArray] = [self.levels[0].copy()]
+        self.level_log: list[IntArray] = [self.levels.copy()]
         self.action_log: list[IntArray] = []
         self.obs_log: list[IntArray] = []
         self.started = time.monotonic() if started is None else started
 
-    def idle_action(self, agent: int) -> int:
-        """What an absent agent does: idle at the site of its previous assignment (HT mode: nothing, -1)."""
-        return int(self.model.idle_action(self.prev[agent]))
+    def idle_actions(self, agent: int) -> IntArray:
+        """What an absent agent does in each episode: idle at the site of its previous assignment (HT mode: -1)."""
+        return np.asarray(self.model.idle_action(self.prev[:, agent]), dtype=np.int64)
 
-    def step(self, chosen: dict[int, int]) -> StepOutcome:
-        """Apply T to the joint assignment: `chosen` maps agent -> action; every other agent is absent (idle)."""
+    def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
+        """Apply T to the joint assignment: `chosen` maps agent -> its actions (B,); every other agent is absent
+        (idle in every episode)."""
         n = self.scenario.n_agents
-        actions = np.empty(n, dtype=np.int64)
+        actions = np.empty((self.size, n), dtype=np.int64)
         acted = []
         for k in range(n):
             a = chosen.get(k)
             if a is None:
-                actions[k] = self.idle_action(k)
+                actions[:, k] = self.idle_actions(k)
                 self.absent[k] += 1
             else:
-                actions[k] = a
+                actions[:, k] = a
                 acted.append(k)
-        nxt, obs, _caps = sample_world_step(self.model, self.levels, actions[None, :], self.rng)
+        nxt, obs, _caps = sample_world_step(self.model, self.levels, actions, self.rng)
         self.levels = nxt
         self.prev = np.where(actions >= 0, actions, self.prev)
         self.t += 1
-        self.level_log.append(nxt[0].copy())
+        self.level_log.append(nxt.copy())
         self.action_log.append(actions)
-        self.obs_log.append(obs[0].copy())
-        return StepOutcome(actions=actions, acted=acted, levels=nxt[0], observations=obs[0])
+        self.obs_log.append(obs.copy())
+        return StepOutcome(actions=actions, acted=acted, levels=nxt, observations=obs)
 
-    def metrics(self, now: float | None = None) -> dict[str, Any]:
-        """The episode_metrics record of the finished episode (docs/model.md metrics plus absences), finished at
-        monotonic time `now` (now when None)."""
+    def metrics(self, now: float | None = None) -> list[dict[str, Any]]:
+        """The episode_metrics records of the finished episodes (docs/model.md metrics plus absences), one per
+        episode of the batch, finished at monotonic time `now` (now when None)."""
         sc = self.scenario
-        levels = np.stack(self.level_log)[:, None, :]  # (t+1, 1, p)
-        actions = np.stack(self.action_log)[:, None, :]  # (t, 1, N)
+        levels = np.stack(self.level_log)  # (t+1, B, p)
+        actions = np.stack(self.action_log)  # (t, B, N)
         m = episode_metrics(sc, levels, actions)
-        return {
-            "episode": self.episode,
-            "completion": int(m.completion[0]),
-            "failed": bool(m.failed[0]),
-            "unused_capability": float(m.unused_capability[0]),
-            "unused_fraction": float(m.unused_fraction[0]),
-            "idle_before": int(m.idle_before[0]),
-            "reassign_before": int(m.reassign_before[0]),
-            "absent": [int(x) for x in self.absent],
-            "seconds": round((time.monotonic() if now is None else now) - self.started, 6),
-        }
+        seconds = round((time.monotonic() if now is None else now) - self.started, 6)
+        absent = [int(x) for x in self.absent]
+        return [
+            {
+                "episode": self.episode + i,
+                "completion": int(m.completion[i]),
+                "failed": bool(m.failed[i]),
+                "unused_capability": float(m.unused_capability[i]),
+                "unused_fraction": float(m.unused_fraction[i]),
+                "idle_before": int(m.idle_before[i]),
+                "reassign_before": int(m.reassign_before[i]),
+                "absent": absent,
+                "seconds": seconds,
+            }
+            for i in range(self.size)
+        ]
 
-    def trajectory(self) -> dict[str, Any]:
-        """Levels (t+1, p), applied actions (t, N) and observations (t, N) as lists, for the run log."""
+    def trajectory(self, i: int = 0) -> dict[str, Any]:
+        """Episode i of the batch: levels (t+1, p), applied actions (t, N) and observations (t, N) as lists."""
         return {
-            "levels": np.stack(self.level_log).tolist(),
-            "actions": np.stack(self.action_log).tolist() if self.action_log else [],
-            "observations": np.stack(self.obs_log).tolist() if self.obs_log else [],
+            "levels": np.stack(self.level_log)[:, i].tolist(),
+            "actions": np.stack(self.action_log)[:, i].tolist() if self.action_log else [],
+            "observations": np.stack(self.obs_log)[:, i].tolist() if self.obs_log else [],
         }
 
 
@@ -175,14 +220,17 @@ class WorldEffects:
 class WorldProtocol:
     """The world's side of the lockstep protocol (docs/ros.md), fed with decoded messages and the time.
 
-    Per episode: announce `begin` (again every NUDGE seconds) until every agent answered with its action for step 1
-    and listens to its observations, or the begin deadline (`join_timeout` for the first episode); per step t: wait
-    for the actions of the live agents until `act_deadline` (a silent agent idles at its site for the step, is
-    counted absent, and is no longer waited for until it is heard again), apply T, send every agent its observation
-    and the ground truth; each agent's next action, sent after its belief update, is also its "ready"; after the
-    last step wait for the agents' ready (`update_deadline`), then publish `end` and the episode metrics. With the
-    free-running clock, a step is applied every `period` seconds whoever answered. A record of a past or future step
-    is dropped and counted, a repeated one too; an agent heard one step late is waited for again from then on.
+    Per batch of B episodes: announce `begin` (again every NUDGE seconds) until every agent answered with its
+    actions for step 1 and listens to its observations, or the begin deadline (`join_timeout` for the first batch);
+    per step t: wait for the actions of the live agents until `act_deadline` (a silent agent idles at its site in
+    every episode of the step, is counted absent, and is no longer waited for until it is heard again), apply T,
+    send every agent its observations, announce the step (with the agents whose actions were applied) and the
+    ground truth; each agent's next actions, sent after its belief update, are also its "ready"; after the last
+    step wait for the agents' ready (`update_deadline`), then publish `end` and the metrics of every episode. With
+    the free-running clock, a step is applied every `period` seconds whoever answered. A record of a past or future
+    step is dropped and counted, a repeated one too; an agent heard one step late is waited for again from then on.
+    With `pace` (training), step g waits until the trainer reports its updates of the steps before g - trainer_lag
+    done (`on_trainer`); the deadlines of the agents start once the trainer has caught up.
 
     Every method takes `now` (monotonic seconds) and returns the `WorldEffects` to carry out; `next_wakeup` says
     when the protocol next needs a `tick` even if no message arrives.
@@ -211,8 +259,8 @@ class WorldProtocol:
         self.episode = -1
         self.t = 0
         self.ep: WorldEpisode | None = None
-        self.answers: dict[int, int] = {}
-        """What each agent answered in the current phase: its action, or 0 for a ready."""
+        self.answers: dict[int, Any] = {}
+        """What each agent answered in the current phase: its actions (B,), or 0 for a ready."""
         self.present: set[int] = set()
         """The agents heard lately: the live agents a lockstep step waits for."""
         self.waiting: set[int] = set()
@@ -223,6 +271,14 @@ class WorldProtocol:
         self.linger_until = math.inf
         self.first = True
         self.done = False
+        self.size = 1
+        """Episodes in the current batch (B, or fewer in the run's last batch)."""
+        self.trained = -1
+        """The trainer's progress: every step with a global index below it has had its updates (-1: not heard)."""
+        self.trainer_live = True
+        """Whether the world waits for the trainer (it is heard, or has not yet been given up on)."""
+        self.gate_since: float | None = None
+        """Since when the current step waits for the trainer (None: it does not)."""
         self.episodes_done = 0
         self.absent_total = 0
         self._absent_warned = -math.inf
@@ -252,15 +308,21 @@ class WorldProtocol:
         s = self.settings
         return s.episodes == 0 or episode < s.first_episode + s.episodes
 
+    def batch_size(self, episode: int) -> int:
+        """Episodes of the batch starting at `episode`: B, fewer when the run ends before."""
+        s = self.settings
+        return s.batch if s.episodes == 0 else max(0, min(s.batch, s.first_episode + s.episodes - episode))
+
     def next_wakeup(self) -> float:
         """The monotonic time of the next deadline, announcement or clock tick (inf: none)."""
         if self.done:
             return math.inf
         if self.phase == "stopped":
             return self.linger_until
+        gate = math.inf if self.gate_since is None else self.gate_since + self.settings.trainer_deadline
         if self.joining:
-            return min(self.deadline, self.nudge_at)
-        return self.deadline
+            return min(self.deadline, self.nudge_at, gate)
+        return min(self.deadline, gate)
 
     def tick(self, now: float) -> WorldEffects:
         """Look at the clock (and, while an episode begins, at who listens): apply what is due."""
@@ -274,15 +336,25 @@ class WorldProtocol:
         out = WorldEffects()
         if not self._accept("action", rec, "act", out):
             return out
-        k, a = rec["agent"], rec["action"]
+        k, a = rec["agent"], rec["actions"]
         if k in self.answers:
             out.drops.append(("action", "duplicate"))
             return out
         assert self.ep is not None
-        if not self.model.action_mask(self.ep.prev[k])[a]:  # an idle location away from the site of a_o
-            out.rejects.append(("action", "range", f"agent {k} action {a} is not in Â(a_o) of a_o {self.ep.prev[k]}"))
+        if len(a) != self.size:
+            out.rejects.append(("action", "length", f"agent {k}: {len(a)} actions for a batch of {self.size}"))
             return out
-        self.answers[k] = a
+        arr = np.asarray(a, dtype=np.int64)
+        prev = self.ep.prev[:, k]
+        ok = self.model.action_mask(prev)[np.arange(self.size), arr]
+        if not ok.all():  # an idle location away from the site of a_o
+            i = int(np.flatnonzero(~ok)[0])
+            out.rejects.append(
+                ("action", "range", f"agent {k} action {int(arr[i])} of episode {self.episode + i} is not in Â(a_o) "
+                 f"of a_o {int(prev[i])}")
+            )
+            return out
+        self.answers[k] = arr
         self.present.add(k)
         self._progress(now, out)
         return out
@@ -300,6 +372,49 @@ class WorldProtocol:
         self.present.add(k)
         self._progress(now, out)
         return out
+
+    def on_trainer(self, rec: dict[str, Any], now: float) -> WorldEffects:
+        """A decoded trainer progress record {run, trained, updates}: the trainer's updates so far."""
+        out = WorldEffects()
+        if rec["run"] != self.settings.run_id:
+            out.drops.append(("trainer_progress", "other_run"))
+            return out
+        self.trained = max(self.trained, int(rec["trained"]))
+        if not self.trainer_live:
+            self.trainer_live = True
+            out.log.append(("info", f"the trainer is back (trained up to step {self.trained})"))
+        self._progress(now, out)
+        return out
+
+    def _gate_closed(self, now: float, out: WorldEffects) -> bool:
+        """Whether the next step must wait for the trainer (pace): the steps before g - trainer_lag are not all
+        trained. Gives up on a silent trainer after trainer_deadline; once the gate opens, the agents' deadline of
+        the phase starts."""
+        s = self.settings
+        if not s.pace or s.clock != "lockstep" or not self.trainer_live:
+            return False
+        g = global_step(self.episode, s.batch, self.t, self.scenario.horizon)
+        if self.trained >= g - s.trainer_lag:
+            if self.gate_since is not None:
+                self.gate_since = None
+                self.deadline = max(self.deadline, now + (self._begin_wait() if self.joining else s.act_deadline))
+            return False
+        if self.gate_since is None:
+            self.gate_since = now
+        if now >= self.gate_since + s.trainer_deadline:
+            self.trainer_live = False
+            self.gate_since = None
+            out.counters["trainer_timeouts"] += 1
+            out.log.append(
+                ("warning", f"no progress from the trainer for {s.trainer_deadline:g} s (trained up to step "
+                 f"{self.trained}, step {g} waits for {g - s.trainer_lag}); going on without it")
+            )
+            self.deadline = max(self.deadline, now + (self._begin_wait() if self.joining else s.act_deadline))
+            return False
+        return True
+
+    def _begin_wait(self) -> float:
+        return self.settings.join_timeout if self.first else self.settings.begin_deadline
 
     def _accept(self, topic: str, rec: dict[str, Any], phase: str, out: WorldEffects) -> bool:
         e, t = rec["episode"], rec["step"]
@@ -328,6 +443,10 @@ class WorldProtocol:
             return False
         if self.joining:
             everyone = set(range(self.scenario.n_agents))
+            if self._gate_closed(now, out):  # agents wait for the trainer's weights too: no deadline meanwhile
+                if now >= self.nudge_at:
+                    self._announce_begin(now, out)
+                return False
             if (everyone <= self.answers.keys() and all(self.listening(k) for k in self.answers)) or (
                 now >= self.deadline
             ):
@@ -341,7 +460,7 @@ class WorldProtocol:
                 if now < self.deadline:
                     return False
                 self.clock_at = self.deadline
-            elif not (self.waiting <= self.answers.keys() or now >= self.deadline):
+            elif self._gate_closed(now, out) or not (self.waiting <= self.answers.keys() or now >= self.deadline):
                 return False
             self._apply_step(now, out)
             return True
@@ -352,22 +471,29 @@ class WorldProtocol:
 
     def _next_episode(self, e: int, now: float, out: WorldEffects) -> None:
         s = self.settings
-        if not self.in_run(e):
+        if not self.in_run(e) or self.batch_size(e) < 1:
             self.phase = "stopped"
             out.publish.append(("scenario", self.scenario_record("stopped")))
             out.status_changed = True
             self.linger_until = now + s.linger
             return
-        self.ep = WorldEpisode(self.scenario, self.model, s.seed, e, started=now)
+        self.size = self.batch_size(e)
+        self.ep = WorldEpisode(
+            self.scenario, self.model, s.seed, e, started=now, size=self.size, b=batch_index(e, s.batch), mode=s.mode
+        )
         self.episode, self.t, self.phase = e, 1, "act"
         self.answers = {}
         self.joining = True
-        self.deadline = now + (s.join_timeout if self.first else s.begin_deadline)
+        self.gate_since = None
+        self.deadline = now + self._begin_wait()
         self._announce_begin(now, out)
 
     def _announce_begin(self, now: float, out: WorldEffects) -> None:
-        out.publish.append(("step", {"episode": self.episode, "step": 0, "phase": "begin"}))
+        out.publish.append(self._step_record(0, "begin", []))
         self.nudge_at = min(self.deadline, now + NUDGE)
+
+    def _step_record(self, t: int, phase: str, acted: list[int]) -> tuple[str, dict[str, Any]]:
+        return ("step", {"episode": self.episode, "size": self.size, "step": t, "phase": phase, "acted": acted})
 
     def _start_steps(self, now: float, out: WorldEffects) -> None:
         """The begin is over: those who answered are the live agents; step 1 goes at once."""
@@ -401,21 +527,16 @@ class WorldProtocol:
         self.present = set(chosen)
         res = self.ep.step(chosen)
         self.answers = {}  # from here on, the agents' answers are their actions of step t + 1 (ready after step h)
+        tasks = np.where((res.actions >= 0) & (res.actions < sc.n_tasks), res.actions, -1).T.tolist()
+        levels = res.observations.T.tolist()
         for k in range(sc.n_agents):
-            a = int(res.actions[k])
             out.publish.append(
                 (
                     "observation",
-                    {
-                        "agent": k,
-                        "episode": e,
-                        "step": t,
-                        "task": a if 0 <= a < sc.n_tasks else -1,
-                        "level": int(res.observations[k]),
-                        "acted": res.acted,
-                    },
+                    {"agent": k, "episode": e, "step": t, "tasks": tasks[k], "levels": levels[k], "acted": res.acted},
                 )
             )
+        out.publish.append(self._step_record(t, "step", res.acted))
         out.publish.append(
             ("ground_truth", {"episode": e, "step": t, "levels": res.levels.tolist(), "actions": res.actions.tolist()})
         )
@@ -436,20 +557,33 @@ class WorldProtocol:
         late = self.waiting - self.answers.keys()
         if late:
             out.counters["late_ready"] += len(late)
-        out.publish.append(("step", {"episode": self.episode, "step": self.scenario.horizon, "phase": "end"}))
-        m = self.ep.metrics(now)
-        out.publish.append(("episode_metrics", m))
-        self.episodes_done += 1
-        out.log.append(
-            (
-                "info",
-                f"episode {m['episode']}: completion {m['completion']}{' (failed)' if m['failed'] else ''}, "
-                f"idle {m['idle_before']}, reassign {m['reassign_before']}, absent {m['absent']}, "
-                f"{m['seconds']:.2f} s",
+        out.publish.append(self._step_record(self.scenario.horizon, "end", []))
+        ms = self.ep.metrics(now)
+        out.publish.extend(("episode_metrics", m) for m in ms)
+        self.episodes_done += len(ms)
+        m = ms[0]
+        if len(ms) == 1:
+            out.log.append(
+                (
+                    "info",
+                    f"episode {m['episode']}: completion {m['completion']}{' (failed)' if m['failed'] else ''}, "
+                    f"idle {m['idle_before']}, reassign {m['reassign_before']}, absent {m['absent']}, "
+                    f"{m['seconds']:.2f} s",
+                )
             )
-        )
-        out.episode_log.append({"run": self.settings.run_id, "metrics": m, **self.ep.trajectory()})
-        self._next_episode(self.episode + 1, now, out)
+        else:
+            comp = np.array([x["completion"] for x in ms], dtype=np.float64)
+            fails = sum(x["failed"] for x in ms)
+            out.log.append(
+                (
+                    "info",
+                    f"episodes {m['episode']}..{ms[-1]['episode']}: completion {comp.mean():.2f} (mean), "
+                    f"{fails} failed, absent {m['absent']}, {m['seconds']:.2f} s",
+                )
+            )
+        for i, mi in enumerate(ms):
+            out.episode_log.append({"run": self.settings.run_id, "metrics": mi, **self.ep.trajectory(i)})
+        self._next_episode(self.episode + self.size, now, out)
 
     # ----- records and status -------------------------------------------------------------------------------------
     def scenario_record(self, state: str) -> dict[str, Any]:
@@ -462,6 +596,7 @@ class WorldProtocol:
             "clock": s.clock,
             "first_episode": s.first_episode,
             "episodes": s.episodes,
+            "batch": s.batch,
             "state": state,
             "layout": self.layout,
             "scenario": self.scenario_dict,
@@ -476,6 +611,8 @@ class WorldProtocol:
                 True,
                 f"episode {self.episode}: waiting for agents {sorted(set(range(n)) - self.answers.keys())} to begin",
             )
+        if self.gate_since is not None:
+            return True, f"{text}: waiting for the trainer (trained up to step {self.trained})"
         if self.phase in ("act", "end") and len(self.present) < n:
             return False, f"{text}: agents {sorted(set(range(n)) - self.present)} absent"
         return True, text
@@ -489,4 +626,6 @@ class WorldProtocol:
             "present": ",".join(str(k) for k in sorted(self.present)),
             "episodes_done": str(self.episodes_done),
             "absent_agent_steps": str(self.absent_total),
+            "batch": str(self.size),
+            "trainer_trained": str(self.trained),
         }

@@ -2,14 +2,17 @@
 and the order in which it accepts the world's and its teammates' messages.
 
 The agent node (agent_node.py) only decodes messages, calls `AgentMind` and publishes what it returns. The mind
-computes exactly what the in-process `Team` computes for that agent's row (same functions of belief.py and
-reward.py on batch 1, same generators from `htlm_world.seeds`), so an evaluation over ROS reproduces `team.rollout`
-step for step; `policies.DecentralizedPolicy` runs the same per-agent policies inside `team.rollout`, and
-`loopback_episode` runs the protocol in one process (the reference for the ROS equivalence test).
+keeps the agent's B beliefs of a batch of B episodes and acts for all of them with one batched call of its policy;
+it computes exactly what the in-process `Team(scenario, B, seed, b)` computes for that agent's column (same
+functions of belief.py and reward.py, same generators from `htlm_world.seeds`), so an evaluation over ROS
+reproduces `team.rollout` step for step; `policies.DecentralizedPolicy` runs the same per-agent policies inside
+`team.rollout`, and `loopback_episode` runs the protocol in one process (the reference for the ROS equivalence
+test). In train mode the streams are those of `htlm train` (`seeds.train_channel`, `seeds.train_explore`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,60 +27,69 @@ from htlm_world.model import Model
 from htlm_world.protocol import WorldEpisode
 from htlm_world.scenario import Scenario
 from htlm_world.simulator import sample_channel
-from htlm_world.types import BoolArray, FloatArray
+from htlm_world.types import BoolArray, FloatArray, IntArray
 
 # ----- the agent's mind -------------------------------------------------------------------------------------------
 
 
 @dataclass
 class Transition:
-    """One transition of one agent (what it sends to the trainer)."""
+    """One agent's transitions of one step in the B episodes of a batch (what it sends to the trainer)."""
 
-    episode: int
+    episode: int  # first episode of the batch
     step: int
-    k: FloatArray  # (K,) knowledge before acting
-    a: int
-    r: float
-    k2: FloatArray  # (K,) knowledge after the update
-    mask2: BoolArray  # (|G|,) Â of the next step
+    k: FloatArray  # (B, K) knowledge before acting
+    a: IntArray  # (B,)
+    r: FloatArray  # (B,)
+    k2: FloatArray  # (B, K) knowledge after the update
+    mask2: BoolArray  # (B, |G|) Â of the next step
     done: bool
-    parts: dict[str, float]
+    parts: dict[str, FloatArray]
 
 
 @dataclass
 class Effects:
     """What the node must publish after feeding the mind one message, in this order."""
 
-    broadcast: tuple[int, int, int] | None = None  # (step, action, level after the channel)
+    broadcast: tuple[int, IntArray, IntArray] | None = None  # (step, actions (B,), levels after the channel (B,))
     transition: Transition | None = None  # a step finished: send the transition
-    ready: int | None = None  # publish ready(step): the last step of the episode is finished
-    action: tuple[int, int] | None = None  # (step, action): our action for that step
-    drop: str | None = None  # the message was dropped by the protocol (counted): past, future, duplicate, ...
+    ready: int | None = None  # publish ready(step): the last step of the batch is finished
+    action: tuple[int, IntArray] | None = None  # (step, actions (B,)): our actions for that step
+    drop: str | None = None  # the message was dropped by the protocol (counted): past, future, duplicate, length, ...
+
+
+PolicyGate = Callable[[int, int], "AgentPolicy | None"]
+"""(first episode of the batch, step t) -> the policy to act with for step t, or None while it is not there yet
+(training: the trainer's weights for that step have not arrived)."""
 
 
 @dataclass
 class _Pending:
     t: int
-    k: FloatArray
-    action: int
+    k: FloatArray  # (B, K)
+    action: IntArray  # (B,)
     acted: bool | None  # None until the world's observation says whether our action was applied
-    obs: int = -1
+    obs: IntArray | None = None  # (B,)
     observed_at: float | None = None
     acted_set: frozenset[int] | None = None
-    heard: dict[int, tuple[int, int]] = field(default_factory=dict)
+    heard: dict[int, tuple[IntArray, IntArray]] = field(default_factory=dict)
     drawn: bool = False
-    sent: int = -1
+    sent: IntArray | None = None  # (B,)
 
 
 class AgentMind:
     """Belief, previous assignment, policy and simulated channel of one agent, and the protocol's order.
 
-    The lockstep protocol as the agent sees it (docs/architecture.md, data flow of one step): the world's begin of an
-    episode resets the mind, which answers with its action for step 1. The world's observation of step t (which
-    lists the agents whose action it applied) makes the mind draw its channel and broadcast; once it has heard the
-    broadcast of every other agent that acted (or `tick` finds it waited too long), it updates its belief (Eq. 2),
-    computes its reward, emits the transition and answers with its action for step t + 1, or with ready after the
-    last step. A message of a past or future step is dropped and reported, never applied.
+    The lockstep protocol as the agent sees it (docs/architecture.md, data flow of one step): the world's begin of a
+    batch of B episodes resets the mind, which answers with its actions for step 1. The world's observations of
+    step t (which list the agents whose actions it applied) make the mind draw its channel and broadcast; once it
+    has heard the broadcast of every other agent that acted (or `tick` finds it waited too long), it updates its B
+    beliefs (Eq. 2), computes its rewards, emits the transitions and answers with its actions for step t + 1, or
+    with ready after the last step. A message of a past or future step is dropped and reported, never applied; one
+    whose arrays do not have the batch's length is dropped as "length".
+
+    With a `gate`, the mind asks it for the policy of each step before acting; while it answers None, the actions
+    wait (`deferred`) until the node calls `act_now` (the trainer's weights arrived, or waiting is over).
     """
 
     def __init__(
@@ -87,8 +99,12 @@ class AgentMind:
         seed: int,
         policy: AgentPolicy,
         model: Model | None = None,
+        batch: int = 1,
+        mode: str = "evaluate",
+        gate: PolicyGate | None = None,
     ) -> None:
-        """The mind of agent index `agent` in a run with master seed `seed`."""
+        """The mind of agent index `agent` in a run with master seed `seed`, B = `batch` episodes per batch (the
+        stream keys: batch index = first episode // B), in `mode` (train: the training streams)."""
         self.scenario = scenario
         self.model = model if model is not None else Model.build(scenario)
         self.tables = RewardTables.build(scenario)
@@ -97,11 +113,17 @@ class AgentMind:
         self.policy = policy
         self.n = scenario.n_agents
         self.h = scenario.horizon
+        self.batch = batch
+        self.mode = mode
+        self.gate = gate
+        self.size = 1
+        self.deferred: int | None = None
+        """The step whose actions wait for the gate's policy (None: none)."""
         self.episode: int | None = None
-        self.epsilon = 0.0
+        self.epsilon: float | FloatArray = 0.0
         self.t = 0
         self.pending: _Pending | None = None
-        self.early: dict[int, tuple[int, int, int]] = {}
+        self.early: dict[int, tuple[int, IntArray, IntArray]] = {}
         self.impossible = 0
         self.missed_steps = 0
         self.timeouts = 0
@@ -119,16 +141,16 @@ class AgentMind:
         return self.episode is None or (self.pending is None and self.t >= self.h)
 
     def knowledge(self) -> FloatArray:
-        """Knowledge state K = {b, a_o} (1, K)."""
-        return knowledge.build(self.marg, np.array([self.prev], dtype=np.int64), self.scenario.n_actions)
+        """Knowledge states K = {b, a_o} (B, K)."""
+        return knowledge.build(self.marg, self.prev, self.scenario.n_actions)
 
     def mask(self) -> BoolArray:
-        """Â(a_o) (1, |G|)."""
-        return self.model.action_mask(np.array([self.prev], dtype=np.int64))
+        """Â(a_o) (B, |G|)."""
+        return self.model.action_mask(self.prev)
 
-    def idle_action(self) -> int:
-        """Idle at the site of the previous assignment: what the world applies when our action is missing."""
-        return int(self.model.idle_action(np.asarray(self.prev, dtype=np.int64)))
+    def idle_action(self) -> IntArray:
+        """Idle at the site of the previous assignment (B,): what the world applies when our actions are missing."""
+        return np.asarray(self.model.idle_action(self.prev), dtype=np.int64)
 
     def _where(self, episode: int) -> str | None:
         if self.episode is None:
@@ -143,11 +165,12 @@ class AgentMind:
         return "past" if t <= self.current else "future"
 
     # ----- messages -------------------------------------------------------------------------------------------
-    def begin(self, episode: int, epsilon: float = 0.0, force: bool = False) -> Effects:
-        """The world's begin of `episode`: reset and answer with the action of step 1.
+    def begin(self, episode: int, epsilon: float | FloatArray = 0.0, force: bool = False, size: int = 1) -> Effects:
+        """The world's begin of the batch of `size` episodes from `episode` on: reset and answer with the actions of
+        step 1 (ε one number, or one per episode).
 
-        Accepted when fresh, once the previous episode's last step is reached, or with `force` (the node's resync
-        after a long silence). A repeated begin of the current episode gets the same answer again.
+        Accepted when fresh, once the previous batch's last step is reached, or with `force` (the node's resync
+        after a long silence). A repeated begin of the current batch gets the same answer again.
         """
         out = Effects()
         if self.episode is not None and not force:
@@ -155,50 +178,88 @@ class AgentMind:
                 p = self.pending
                 if self.t == 0 and p is not None and p.t == 1 and p.observed_at is None:
                     out.action = (1, p.action)
-                else:
+                elif not (self.t == 0 and self.deferred == 1):
                     out.drop = "duplicate"
                 return out
             if episode < self.episode:
                 out.drop = "past"
                 return out
-            if self.current < self.h or episode != self.episode + 1:  # the world never skips an episode
+            if self.current < self.h or episode != self.episode + self.size:  # the world never skips a batch
                 out.drop = "future"
                 return out
         if self.pending is not None and self.episode is not None and episode != self.episode:
             out.transition = self._finish()  # the world moved on before our last step was complete
         sc = self.scenario
         self.episode = episode
-        self.epsilon = float(epsilon)
+        self.size = size
+        self.epsilon = epsilon
         self.t = 0
         self.pending = None
+        self.deferred = None
         self.early = {}
-        self.belief = bf.initial_belief(self.model, 1)[:, self.me]  # (1, S, L, L)
-        self.marg = bf.marginals(self.belief)  # (1, p, L)
-        self.prev = sc.start_assignment
-        self.known = np.full(self.n, sc.start_assignment, dtype=np.int64)
-        self.chan = seeds.channel(self.seed, self.me, episode)
-        self.explore = seeds.explore(self.seed, self.me, episode)
+        self.belief = bf.initial_belief(self.model, size)[:, self.me]  # (B, S, L, L)
+        self.marg = bf.marginals(self.belief)  # (B, p, L)
+        self.prev = np.full(size, sc.start_assignment, dtype=np.int64)
+        self.known = np.full((size, self.n), sc.start_assignment, dtype=np.int64)
+        b = episode // self.batch
+        if self.mode == "train":
+            self.chan = seeds.train_channel(self.seed, self.me, b)
+            self.explore = seeds.train_explore(self.seed, self.me, b)
+        else:
+            self.chan = seeds.channel(self.seed, self.me, b)
+            self.explore = seeds.explore(self.seed, self.me, b)
         self.log = {"actions": [], "messages": [], "rewards": [], "acted": []}
-        out.action = (1, self._act(1))
+        self._act(1, out)
         return out
 
-    def _act(self, t: int) -> int:
+    def _act(self, t: int, out: Effects) -> None:
+        """Choose the actions of step t into `out`, or defer them while the gate has no policy for the step."""
+        policy = self.policy
+        if self.gate is not None:
+            assert self.episode is not None
+            gated = self.gate(self.episode, t)
+            if gated is None:
+                self.deferred = t
+                return
+            policy = gated
+        self.deferred = None
         k = self.knowledge()
-        a = int(choose(self.policy, k, self.mask(), self.epsilon, self.explore)[0])
+        a = choose(policy, k, self.mask(), self.epsilon, self.explore)
         self._open(t, k, a, acted=None)
-        return a
+        out.action = (t, a)
 
-    def _open(self, t: int, k: FloatArray, a: int, acted: bool | None) -> None:
+    def act_now(self, force: bool = False) -> Effects:
+        """The deferred actions, if the gate now has the policy of their step (or with `force`: act with the
+        mind's own `policy`, the newest it has)."""
+        out = Effects()
+        t = self.deferred
+        if t is None:
+            return out
+        if force:
+            gate, self.gate = self.gate, None
+            try:
+                self._act(t, out)
+            finally:
+                self.gate = gate
+        else:
+            self._act(t, out)
+        return out
+
+    def _open(self, t: int, k: FloatArray, a: IntArray, acted: bool | None) -> None:
         self.pending = _Pending(t=t, k=k, action=a, acted=acted)
         for j, (tt, aj, lj) in self.early.items():
             if tt == t:
                 self.pending.heard[j] = (aj, lj)
         self.early = {}
 
-    def observe(self, episode: int, t: int, level: int, acted: list[int], now: float = 0.0) -> Effects:
-        """The world's observation of step t: draw our channel and broadcast if our action was applied."""
+    def observe(
+        self, episode: int, t: int, levels: IntArray | list[int], acted: list[int], now: float = 0.0
+    ) -> Effects:
+        """The world's observations of step t (B,): draw our channel and broadcast if our actions were applied."""
         out = Effects()
         bad = self._where(episode)
+        if bad is None and len(levels) != self.size:
+            bad = "length"
         p = self.pending
         if bad is None:
             if p is not None and t == p.t:
@@ -209,6 +270,7 @@ class AgentMind:
                 if p is not None:
                     out.transition = self._finish()
                 self.missed_steps += 1
+                self.deferred = None
                 self._open(t, self.knowledge(), self.idle_action(), acted=False)
                 p = self.pending
             else:
@@ -221,13 +283,13 @@ class AgentMind:
         p.acted_set = frozenset(acted)
         if self.me in p.acted_set:
             p.acted = True
-            p.obs = level
+            p.obs = np.asarray(levels, dtype=np.int64)
         else:
             if p.acted is None:
                 self.missed_steps += 1  # our action came too late
             p.acted = False
             p.action = self.idle_action()
-            p.obs = -1
+            p.obs = np.full(self.size, -1, dtype=np.int64)
         sent = self._draw(p.obs)
         if p.acted:
             out.broadcast = (t, p.action, sent)
@@ -235,17 +297,23 @@ class AgentMind:
             self._step_done(out)
         return out
 
-    def _draw(self, level: int) -> int:
+    def _draw(self, levels: IntArray) -> IntArray:
         assert self.pending is not None and not self.pending.drawn
         self.pending.drawn = True
-        self.pending.sent = int(sample_channel(self.model, self.me, np.array([level], dtype=np.int64), self.chan)[0])
+        self.pending.sent = sample_channel(self.model, self.me, levels, self.chan)
         return self.pending.sent
 
-    def hear(self, sender: int, episode: int, t: int, action: int, level: int) -> Effects:
-        """A teammate's broadcast of step t."""
+    def hear(
+        self, sender: int, episode: int, t: int, actions: IntArray | list[int], levels: IntArray | list[int]
+    ) -> Effects:
+        """A teammate's broadcast of step t: its actions and levels (B,) in every episode of the batch."""
         out = Effects()
         bad = self._where(episode)
+        if bad is None and (len(actions) != self.size or len(levels) != self.size):
+            bad = "length"
         p = self.pending
+        action = np.asarray(actions, dtype=np.int64)
+        level = np.asarray(levels, dtype=np.int64)
         if bad is None:
             if sender == self.me:
                 bad = "self"
@@ -296,7 +364,7 @@ class AgentMind:
         tr = self._finish()
         out.transition = tr
         if tr.step < self.h:
-            out.action = (tr.step + 1, self._act(tr.step + 1))
+            self._act(tr.step + 1, out)
         else:
             out.ready = tr.step
 
@@ -304,55 +372,65 @@ class AgentMind:
     def _finish(self) -> Transition:
         p = self.pending
         assert p is not None and self.episode is not None
+        size = self.size
         if not p.drawn:
-            self._draw(p.obs if p.acted else -1)
+            self._draw(p.obs if p.acted and p.obs is not None else np.full(size, -1, dtype=np.int64))
         n, me = self.n, self.me
         action = p.action
-        joint = self.known.copy()
-        messages = np.full(n, -1, dtype=np.int64)
-        heard = np.zeros(n, dtype=bool)
+        obs = p.obs if p.obs is not None else np.full(size, -1, dtype=np.int64)
+        joint = self.known.copy()  # (B, N)
+        messages = np.full((size, n), -1, dtype=np.int64)
+        heard = np.zeros((size, n), dtype=bool)
         for j, (aj, lj) in p.heard.items():
             if p.acted_set is not None and j not in p.acted_set:
                 continue
-            joint[j] = aj
-            messages[j] = lj
-            heard[j] = True
-        joint[me] = action
-        lik = bf.agent_evidence(
-            self.model, me, joint[None, :], np.array([p.obs], dtype=np.int64), messages[None, :], heard[None, :]
-        )
-        caps = self.model.joint_capability(joint[None, :])
+            joint[:, j] = aj
+            messages[:, j] = lj
+            heard[:, j] = True
+        joint[:, me] = action
+        lik = bf.agent_evidence(self.model, me, joint, obs, messages, heard)
+        caps = self.model.joint_capability(joint)
         self.belief, bad = bf.update(self.model, self.belief, caps, lik)
         self.impossible += int(bad.sum())
         self.marg = bf.marginals(self.belief)
-        prev = np.full((1, n), self.prev, dtype=np.int64)
-        marg = np.broadcast_to(self.marg[:, None], (1, n, *self.marg.shape[1:]))
-        r, parts = reward(self.model, self.tables, prev, marg, joint[None, :])
-        if action >= 0:
-            self.prev = action
+        prev = np.broadcast_to(self.prev[:, None], (size, n))
+        marg = np.broadcast_to(self.marg[:, None], (size, n, *self.marg.shape[1:]))
+        r, parts = reward(self.model, self.tables, prev, marg, joint)
+        self.prev = np.where(action >= 0, action, self.prev)
         self.known = np.where(joint >= 0, joint, self.known)
         self.t = p.t
         self.pending = None
+        sent = p.sent if p.sent is not None else np.full(size, -1, dtype=np.int64)
         self.log["actions"].append(action)
-        self.log["messages"].append(p.sent)
-        self.log["rewards"].append(float(r[0, me]))
+        self.log["messages"].append(sent)
+        self.log["rewards"].append(r[:, me].copy())
         self.log["acted"].append(bool(p.acted))
         return Transition(
             episode=self.episode,
             step=p.t,
-            k=p.k[0],
+            k=p.k,
             a=action,
-            r=float(r[0, me]),
-            k2=self.knowledge()[0],
-            mask2=self.mask()[0],
+            r=r[:, me].copy(),
+            k2=self.knowledge(),
+            mask2=self.mask(),
             done=p.t >= self.h,
-            parts={key: float(v[0, me]) for key, v in parts.items()},
+            parts={key: v[:, me].copy() for key, v in parts.items()},
         )
 
-    def belief_summary(self) -> tuple[list[float], list[int]]:
-        """Per-task marginals (p*L, row-major) and confident levels (p) of the current belief."""
-        conf = confident_levels(self.marg[:, None], self.tables.threshold[self.me : self.me + 1])
-        return self.marg[0].ravel().tolist(), [int(x) for x in conf[0, 0]]
+    def episode_log(self, i: int) -> dict[str, Any]:
+        """Episode i of the batch as the agent lived it: actions, messages, rewards per step and whether acted."""
+        return {
+            "actions": [int(a[i]) for a in self.log["actions"]],
+            "messages": [int(m[i]) for m in self.log["messages"]],
+            "rewards": [float(r[i]) for r in self.log["rewards"]],
+            "acted": list(self.log["acted"]),
+        }
+
+    def belief_summary(self, i: int = 0) -> tuple[list[float], list[int]]:
+        """Per-task marginals (p*L, row-major) and confident levels (p) of the current belief in episode i."""
+        i = min(max(i, 0), self.size - 1)
+        conf = confident_levels(self.marg[i : i + 1, None], self.tables.threshold[self.me : self.me + 1])
+        return self.marg[i].ravel().tolist(), [int(x) for x in conf[0, 0]]
 
 
 # ----- the protocol in one process --------------------------------------------------------------------------------
@@ -366,33 +444,38 @@ def loopback_episode(
     epsilon: float = 0.0,
     absent: dict[int, set[int]] | None = None,
     model: Model | None = None,
+    batch: int = 1,
+    mode: str = "evaluate",
 ) -> dict[str, Any]:
-    """Run one episode of the lockstep protocol in one process: a WorldEpisode and one AgentMind per agent,
-    every message delivered. `absent` maps a step to agents whose action is lost (the world makes them idle).
+    """Run one batch of `batch` episodes from `episode` on (a multiple of `batch`) through the lockstep protocol in
+    one process: a WorldEpisode and one AgentMind per agent, every message delivered. `absent` maps a step to agents
+    whose actions are lost (the world makes them idle).
 
-    Returns levels (h+1, p), actions (h, N), observations (h, N), messages (h, N), rewards (h, N).
+    Returns levels (h+1, B, p), actions (h, B, N), observations (h, B, N), messages (h, B, N), rewards (h, B, N);
+    with batch 1 the B axis is dropped, as before batches.
     """
     model = model if model is not None else Model.build(scenario)
     n, h = scenario.n_agents, scenario.horizon
-    world = WorldEpisode(scenario, model, seed, episode)
-    minds = [AgentMind(scenario, i, seed, policies[i], model=model) for i in range(n)]
-    acts: dict[int, int] = {}
+    b = episode // batch
+    world = WorldEpisode(scenario, model, seed, episode, size=batch, b=b, mode=mode)
+    minds = [AgentMind(scenario, i, seed, policies[i], model=model, batch=batch, mode=mode) for i in range(n)]
+    acts: dict[int, IntArray] = {}
     for i, m in enumerate(minds):
-        act = m.begin(episode, epsilon).action
+        act = m.begin(episode, epsilon, size=batch).action
         assert act is not None and act[0] == 1
         acts[i] = act[1]
-    msgs = np.full((h, n), -1, dtype=np.int64)
-    rewards = np.zeros((h, n))
+    msgs = np.full((h, batch, n), -1, dtype=np.int64)
+    rewards = np.zeros((h, batch, n))
     for t in range(1, h + 1):
         chosen = {i: a for i, a in acts.items() if not (absent and i in absent.get(t, set()))}
         out = world.step(chosen)
         sends = []
         effects: list[list[Effects]] = [[] for _ in range(n)]
         for i, m in enumerate(minds):
-            eff = m.observe(episode, t, int(out.observations[i]), out.acted)
+            eff = m.observe(episode, t, out.observations[:, i], out.acted)
             if eff.broadcast is not None:
                 sends.append((i, eff.broadcast))
-                msgs[t - 1, i] = eff.broadcast[2]
+                msgs[t - 1, :, i] = eff.broadcast[2]
             effects[i].append(eff)
         for i, m in enumerate(minds):
             for j, (tj, aj, lj) in sends:
@@ -402,14 +485,18 @@ def loopback_episode(
         for i in range(n):
             done = [e for e in effects[i] if e.transition is not None]
             assert len(done) == 1, f"agent {i} did not finish step {t}"
-            rewards[t - 1, i] = done[0].transition.r  # type: ignore[union-attr]
+            rewards[t - 1, :, i] = done[0].transition.r  # type: ignore[union-attr]
             if done[0].action is not None:
                 acts[i] = done[0].action[1]
-    traj = world.trajectory()
-    return {
-        "levels": np.array(traj["levels"]),
-        "actions": np.array(traj["actions"]),
-        "observations": np.array(traj["observations"]),
-        "messages": msgs,
-        "rewards": rewards,
-    }
+    levels = np.stack(world.level_log)
+    actions = np.stack(world.action_log)
+    observations = np.stack(world.obs_log)
+    if batch == 1:
+        return {
+            "levels": levels[:, 0],
+            "actions": actions[:, 0],
+            "observations": observations[:, 0],
+            "messages": msgs[:, 0],
+            "rewards": rewards[:, 0],
+        }
+    return {"levels": levels, "actions": actions, "observations": observations, "messages": msgs, "rewards": rewards}
