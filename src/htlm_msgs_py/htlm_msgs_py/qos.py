@@ -36,7 +36,11 @@ EVENTS = QosSpec("EVENTS", "reliable", "volatile", 1000)
 to a restarted trainer, a flood of bad records) so that a slow reader does not lose the records in between: a
 record the protocol no longer needs is dropped (and counted) when read, never silently overwritten."""
 
+WEIGHTS = QosSpec("WEIGHTS", "reliable", "transient_local", 8)
+"""Weights: like STATE, but the writer keeps the last 8 versions, so an agent that acts with the weights of an
+earlier step than the newest (the trainer's lag) still receives every version on the cadence."""
+
 DIAGNOSTICS = QosSpec("DIAGNOSTICS", "reliable", "volatile", 10)
 """/diagnostics, as the ROS diagnostics tools expect it."""
 
-PROFILES: dict[str, QosSpec] = {q.name: q for q in (STATE, STATE_READER, EVENTS, DIAGNOSTICS)}
+PROFILES: dict[str, QosSpec] = {q.name: q for q in (STATE, STATE_READER, EVENTS, WEIGHTS, DIAGNOSTICS)}

@@ -228,7 +228,8 @@ class Rows(Field):
 
     def annotation(self, lim: Mapping[str, int] | None) -> Any:
         """See Field.annotation."""
-        return Annotated[list[self.item.annotation(lim)], msgspec.Meta(min_length=1, max_length=bound(self.max_rows, lim))]
+        item = self.item.annotation(lim)
+        return Annotated[list[item], msgspec.Meta(min_length=1, max_length=bound(self.max_rows, lim))]  # type: ignore[valid-type]
 
 
 @dataclass(frozen=True)
@@ -292,7 +293,7 @@ def _per_episode(item: Field) -> Rows:
 
 SCENARIO = Schema(
     "htlm/scenario",
-    1,
+    2,
     {
         "run": Text(64, r"[A-Za-z0-9_.:-]+"),
         "seed": Int(0, 2**63 - 1),
@@ -301,6 +302,7 @@ SCENARIO = Schema(
         "first_episode": _EPISODE,
         "episodes": Int(0, EPISODE_MAX),
         "batch": Int(1, STATIC_LIMITS["batch"]),
+        "trainer_lag": Int(0, 1000),
         "state": OneOf(("running", "stopped")),
         "layout": Text(64, r"[0-9a-f]+"),
         "scenario": Object(),
@@ -391,12 +393,13 @@ TRANSITION_ACK = Schema(
 )
 WEIGHTS = Schema(
     "htlm/weights",
-    1,
+    2,
     {
         "agent": _AGENT,
         "version": Int(0, SEQ_MAX),
         "episode": Int(-1, EPISODE_MAX),
         "trained": Int(0, SEQ_MAX),
+        "every": Int(1, SEQ_MAX),
         "encoding": OneOf(("base64",)),
         "data": Text(16 * 1024 * 1024),
         "sha256": Text(64, r"[0-9a-f]{64}"),
@@ -405,7 +408,8 @@ WEIGHTS = Schema(
     max_bytes=16 * 1024 * 1024 + 64 * 1024,
     doc="The agent's Q-network weights (AgentQ.get_weights bytes, base64) and the learner settings "
     "(for the exploration schedule); `episode` is the last episode the trainer had seen, `trained` the global "
-    "step index up to which (excluded) the trainer had done its updates when it took them.",
+    "step index up to which (excluded) the trainer had done its updates when it took them, `every` the cadence W "
+    "(weights are taken whenever trained - g0 is a multiple of W, g0 the run's first step).",
 )
 TRAINER_PROGRESS = Schema(
     "htlm/trainer_progress",

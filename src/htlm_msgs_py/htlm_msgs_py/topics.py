@@ -14,7 +14,7 @@ NAMESPACE = "/htlm"
 SCENARIO = f"{NAMESPACE}/scenario"
 """World -> everyone (state): the scenario, run id, seed, mode and episode range of the run."""
 STEP = f"{NAMESPACE}/step"
-"""World -> agents: the lockstep clock, {episode, step, phase}."""
+"""World -> agents and trainer: the lockstep clock, {episode, size, step, phase, acted} of a batch of episodes."""
 ACTION = f"{NAMESPACE}/action"
 """Agent -> world: the agent's assignment for a step."""
 BROADCAST = f"{NAMESPACE}/broadcast"
@@ -25,6 +25,8 @@ TRANSITIONS = f"{NAMESPACE}/transitions"
 """Agent -> trainer: one transition (K, a, r, K', mask', done) per agent and step."""
 TRANSITION_ACK = f"{NAMESPACE}/transition_ack"
 """Trainer -> agents: every transition of an agent's session up to a sequence number is stored durably."""
+TRAINER_PROGRESS = f"{NAMESPACE}/trainer/progress"
+"""Trainer -> world: the steps whose gradient updates are done (the world paces training by it)."""
 GROUND_TRUTH = f"{NAMESPACE}/ground_truth"
 """World -> monitoring tools: true levels and the joint assignment applied (agents never read it)."""
 EPISODE_METRICS = f"{NAMESPACE}/episode_metrics"
@@ -73,14 +75,15 @@ class TopicSpec:
 
 TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(SCENARIO, "std_msgs/msg/String", "STATE", "htlm/scenario", "world", "agents, trainer"),
-    TopicSpec(STEP, "std_msgs/msg/String", "EVENTS", "htlm/step", "world", "agents"),
+    TopicSpec(STEP, "std_msgs/msg/String", "EVENTS", "htlm/step", "world", "agents, trainer"),
     TopicSpec(ACTION, "std_msgs/msg/String", "EVENTS", "htlm/action", "agents", "world"),
     TopicSpec(observation("<agent>"), "std_msgs/msg/String", "EVENTS", "htlm/observation", "world", "<agent>"),
     TopicSpec(BROADCAST, "std_msgs/msg/String", "EVENTS", "htlm/broadcast", "agents", "agents"),
     TopicSpec(READY, "std_msgs/msg/String", "EVENTS", "htlm/ready", "agents", "world"),
     TopicSpec(TRANSITIONS, "std_msgs/msg/String", "EVENTS", "htlm/transition", "agents", "trainer"),
     TopicSpec(TRANSITION_ACK, "std_msgs/msg/String", "EVENTS", "htlm/transition_ack", "trainer", "agents"),
-    TopicSpec(weights("<agent>"), "std_msgs/msg/String", "STATE", "htlm/weights", "trainer", "<agent>"),
+    TopicSpec(weights("<agent>"), "std_msgs/msg/String", "WEIGHTS", "htlm/weights", "trainer", "<agent>"),
+    TopicSpec(TRAINER_PROGRESS, "std_msgs/msg/String", "EVENTS", "htlm/trainer_progress", "trainer", "world"),
     TopicSpec(belief("<agent>"), "std_msgs/msg/String", "STATE", "htlm/belief", "<agent>", "monitoring"),
     TopicSpec(goal_pose("<agent>"), "geometry_msgs/msg/PoseStamped", "STATE", None, "<agent>", "navigation"),
     TopicSpec(GROUND_TRUTH, "std_msgs/msg/String", "EVENTS", "htlm/ground_truth", "world", "monitoring"),

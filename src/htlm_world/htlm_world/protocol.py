@@ -350,8 +350,12 @@ class WorldProtocol:
         if not ok.all():  # an idle location away from the site of a_o
             i = int(np.flatnonzero(~ok)[0])
             out.rejects.append(
-                ("action", "range", f"agent {k} action {int(arr[i])} of episode {self.episode + i} is not in Â(a_o) "
-                 f"of a_o {int(prev[i])}")
+                (
+                    "action",
+                    "range",
+                    f"agent {k} action {int(arr[i])} of episode {self.episode + i} is not in Â(a_o) "
+                    f"of a_o {int(prev[i])}",
+                )
             )
             return out
         self.answers[k] = arr
@@ -406,8 +410,11 @@ class WorldProtocol:
             self.gate_since = None
             out.counters["trainer_timeouts"] += 1
             out.log.append(
-                ("warning", f"no progress from the trainer for {s.trainer_deadline:g} s (trained up to step "
-                 f"{self.trained}, step {g} waits for {g - s.trainer_lag}); going on without it")
+                (
+                    "warning",
+                    f"no progress from the trainer for {s.trainer_deadline:g} s (trained up to step "
+                    f"{self.trained}, step {g} waits for {g - s.trainer_lag}); going on without it",
+                )
             )
             self.deadline = max(self.deadline, now + (self._begin_wait() if self.joining else s.act_deadline))
             return False
@@ -597,6 +604,7 @@ class WorldProtocol:
             "first_episode": s.first_episode,
             "episodes": s.episodes,
             "batch": s.batch,
+            "trainer_lag": s.trainer_lag,
             "state": state,
             "layout": self.layout,
             "scenario": self.scenario_dict,

@@ -2,10 +2,11 @@
 
 The trainer node (htlm_agent.ros.trainer_node) only decodes messages, feeds them and the time to `TrainerCore` and
 publishes what it returns. The core keeps every transition in the durable store (transition_store.py) and feeds it
-to the learner of `htlm train` (htlm_agent.learning.dqn.Learner); it decides when to train (a round of
-`updates_per_step` updates per `train_every` transitions received, within a time budget, skipping rounds when far
-behind), when to publish weights (every `publish_every` episodes) and when to checkpoint (every `checkpoint_every`
-episodes and at shutdown). On start it resumes from run_dir: it loads run_dir/checkpoint (written by
+to the learner of `htlm train` (htlm_agent.learning.dqn.Learner) round by round: one round of `updates_per_step`
+updates per step of the batched lockstep, in step order (`TrainerCore` says when a round is complete); it publishes
+its progress after every round (the world's rate limiter), the weights on a fixed cadence (every `weights_every`
+steps), validates and selects as `htlm train` does, and checkpoints every `checkpoint_every` episodes and at
+shutdown. On start it resumes from run_dir: it loads run_dir/checkpoint (written by
 Learner.save), feeds the learner the store's records that came after it, and counts its starts (`epoch`) so that
 weight versions grow across restarts.
 """
@@ -28,24 +29,29 @@ from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
 from htlm_world.scenario import Scenario, ScenarioError, from_dict
 
-CATCH_UP = 3.0
-"""Seconds the trainer may spend at shutdown on the rounds of updates still owed."""
-
 
 @dataclass(frozen=True)
 class Schedule:
-    """When the trainer trains, publishes weights and checkpoints."""
+    """When the trainer publishes weights and checkpoints, and how long a round of updates waits for a late agent."""
 
-    train_every: int = 5
-    """Transitions received per round of learner updates (0: store only, never train)."""
-    train_budget: float = 0.005
-    """Longest stretch of training in one call of `TrainerCore.train`, seconds."""
-    max_backlog: int = 500
-    """Most rounds of updates the trainer may lag behind the transitions it received; older rounds are skipped."""
-    publish_every: int = 1
-    """Episodes between weight publications."""
-    checkpoint_every: int = 10
+    weights_every: int = 1
+    """Steps between weight publications (the fixed cadence W)."""
+    round_deadline: float = 5.0
+    """Longest wait for the transitions of a step from every agent that acted in it, seconds."""
+    checkpoint_every: int = 4096
     """Episodes between checkpoints (0: only at shutdown)."""
+
+
+@dataclass
+class _Round:
+    """The transitions of one step g, gathered until its round of updates can run."""
+
+    records: dict[int, dict[str, Any]] = field(default_factory=dict)
+    acted: set[int] | None = None
+    since: float | None = None
+    episode: int = 0
+    step: int = 0
+    size: int = 0
 
 
 @dataclass
@@ -56,6 +62,8 @@ class TrainerEffects:
     """transition_ack records {agent, session, upto} to publish."""
     weights: list[dict[str, Any]] = field(default_factory=list)
     """weights records, one per agent in agent order, to publish on each agent's weights topic."""
+    progress: list[dict[str, Any]] = field(default_factory=list)
+    """trainer_progress records {run, trained, updates} to publish (the world paces its steps by them)."""
     log: list[tuple[str, str]] = field(default_factory=list)
     """Log lines as (level, text), level info, warning or error."""
     counters: Counter[str] = field(default_factory=Counter)
@@ -108,7 +116,17 @@ def load_learner_data(settings_file: str, settings_json: str) -> dict[str, Any]:
 
 
 class TrainerCore:
-    """The trainer of one run directory: store, learner, schedule, weights and checkpoints."""
+    """The trainer of one run directory: store, learner, rounds of updates, weights, validation and checkpoints.
+
+    Training follows `htlm train` step for step: the transitions of step g (global index, batch index x h + t - 1)
+    of every agent are stored in the learner's memories in agent order, then every agent's network gets
+    `updates_per_step` gradient updates (the round of step g); rounds run in the order of g, each once all the
+    agents that acted in step g (the world's step record) have sent theirs, or after `round_deadline`. After round
+    g the trainer announces `trained = g + 1` (the world paces its steps by it) and, on the cadence, publishes the
+    weights; after the last step of a batch it counts the batch's episodes, validates and keeps the best networks
+    as `htlm train` does, and checkpoints when due. With the world's trainer_lag 0 and weights every step, the
+    agents act with exactly the networks the in-process loop acts with.
+    """
 
     def __init__(
         self,
@@ -131,21 +149,28 @@ class TrainerCore:
         self.run: str | None = None
         self.mode = ""
         self.run_range = (0, 0)
+        self.batch = 1
+        self.first_step = 0
+        self.trained = 0
+        """Every round with a global step index below it is done."""
+        self.rounds: dict[int, _Round] = {}
         self.stopping = False
         self.stop_at = 0.0
         self.last_transition_at = 0.0
         self.fatal: str | None = None
         self.scenario: Scenario | None = None
         self.learner: Any = None
+        self.selection: Any = None
+        self.last_val = 0
+        self.last_ckpt = 0
         self.store: TransitionStore | None = None
         self.log_file: Any = None
         self.reack: set[tuple[int, str]] = set()
-        self.new_transitions = 0
         self.updates = 0
         self.last_loss: float | None = None
         self.episodes_seen = 0
-        self.episodes_stored: set[int] = set()
-        self.published_updates = -1
+        self.batch_metrics: list[dict[str, Any]] = []
+        self.published_trained = -1
         self.version = 0
 
     def _next_epoch(self) -> int:
@@ -162,6 +187,11 @@ class TrainerCore:
     def weights_version(self) -> int:
         """Version of the latest weights published (grows across restarts of the trainer)."""
         return self.epoch * 2**32 + self.version
+
+    def global_step(self, episode: int, t: int) -> int:
+        """The global index of step t of the batch from `episode` on."""
+        assert self.scenario is not None
+        return (episode // self.batch) * self.scenario.horizon + t - 1
 
     # ----- the run ------------------------------------------------------------------------------------------------
     def on_scenario(self, rec: dict[str, Any], now: float) -> TrainerEffects:
@@ -193,6 +223,7 @@ class TrainerCore:
         self.run = rec["run"]
         self.mode = rec["mode"]
         self.run_range = (rec["first_episode"], rec["episodes"])
+        self.batch = rec["batch"]
         self.stopping = rec["state"] == "stopped"
         self.stop_at = now
         try:
@@ -222,11 +253,14 @@ class TrainerCore:
             StoreError: a store of another layout, or a store or checkpoint while `resume` is off.
             ValueError: bad learner settings, or a checkpoint that cannot be resumed.
         """
+        from htlm_agent.experiments.train import Selection
         from htlm_agent.learning.checkpoint import CheckpointError
         from htlm_agent.learning.dqn import Learner
 
         settings = self.learner_settings(seed)
         self.scenario = sc
+        self.first_step = self.global_step(self.run_range[0], 1)
+        self.trained = self.first_step
         store_path = self.dir / "transitions.bin"
         ckpt = self.dir / "checkpoint"
         if not self.resume and (store_path.exists() or ckpt.exists()):
@@ -237,6 +271,7 @@ class TrainerCore:
             out.log.append(("info", f"run {self.run}: mode {self.mode}: recording only (store {store_path})"))
             return
         fed = 0
+        info: dict[str, Any] = {}
         if (ckpt / "meta.json").exists():
             try:
                 self.learner = Learner.load(ckpt, settings)
@@ -257,23 +292,28 @@ class TrainerCore:
             )
         else:
             self.learner = Learner(sc, settings, seed)
+        self.selection = Selection(self.learner, info)
+        if info:
+            self.selection.restore(ckpt)
+        self.last_val = self.last_ckpt = self.episodes_seen
         replayed = 0
         for i, r in enumerate(self.store.records(0)):
+            g = self.global_step(int(r["episode"]) - int(r["row"]), int(r["step"]))
+            self.trained = max(self.trained, g + 1)  # what the store holds counts as trained (a restart goes on)
             if i < fed:  # already in the checkpoint's replay memory
-                self.episodes_stored.add(int(r["episode"]))
                 continue
-            self._learn(
-                r["agent"], r["k"], r["a"], r["r"], r["k2"], r["mask2"].astype(bool), bool(r["done"]), int(r["episode"])
+            self.learner.store(
+                int(r["agent"]), r["k"], int(r["a"]), float(r["r"]), r["k2"], r["mask2"].astype(bool), bool(r["done"])
             )
             replayed += 1
         (self.dir / "settings.json").write_text(json.dumps(settings.to_dict(), indent=1) + "\n")
-        out.weights.extend(self.publish_weights())
+        self._announce(out, force_weights=True)
         out.log.append(
             (
                 "info",
-                f"run {self.run}: training {sc.n_agents} agents of {sc.name}/{sc.team}; store {store_path} holds "
-                f"{self.store.count} transitions ({self.store.truncated} torn records cut, {replayed} fed to the "
-                "learner)",
+                f"run {self.run}: training {sc.n_agents} agents of {sc.name}/{sc.team} in batches of {self.batch}; "
+                f"store {store_path} holds {self.store.count} transitions ({self.store.truncated} torn records cut, "
+                f"{replayed} fed to the learner); trained up to step {self.trained}",
             )
         )
 
@@ -290,7 +330,8 @@ class TrainerCore:
 
     # ----- messages in --------------------------------------------------------------------------------------------
     def on_transition(self, rec: dict[str, Any], now: float) -> TrainerEffects:
-        """A decoded transition record: store it (acknowledged at the next flush) and feed it to the learner."""
+        """A decoded transition record (one agent, one step, B episodes): store it (acknowledged at the next flush)
+        and gather it for the round of its step."""
         out = TrainerEffects()
         if self.store is None:  # no scenario yet: the agents send it again until acknowledged
             out.counters["ignored/transitions/no_scenario"] += 1
@@ -299,67 +340,182 @@ class TrainerCore:
         if not self.in_run(rec["episode"]):
             out.drops.append(("transitions", "outside_run"))
             return out
-        agent, session = rec["agent"], rec["session"]
-        if not any(rec["mask2"]):
+        n = len(rec["a"])
+        if not (len(rec["k"]) == len(rec["r"]) == len(rec["k2"]) == len(rec["mask2"]) == n) or n > self.batch:
+            out.rejects.append(
+                (
+                    "transitions",
+                    "length",
+                    f"arrays of {len(rec['k'])}, {n}, {len(rec['r'])}, {len(rec['k2'])}, "
+                    f"{len(rec['mask2'])} entries (batch {self.batch})",
+                )
+            )
+            return out
+        if not all(any(m) for m in rec["mask2"]):
             out.rejects.append(("transitions", "range", "mask2 allows no action"))
             return out
+        agent, session = rec["agent"], rec["session"]
         if not self.store.append(rec):
             out.drops.append(("transitions", "duplicate"))
             self.reack.add((agent, session))
             return out
-        if self.learner is not None:
-            self._learn(agent, rec["k"], rec["a"], rec["r"], rec["k2"], rec["mask2"], rec["done"], rec["episode"])
-            self.new_transitions += 1
+        if self.learner is None:
+            return out
+        g = self.global_step(rec["episode"], rec["step"])
+        if g < self.trained:  # its round is over (a late or resent record): it joins the memories now
+            out.counters["late_transitions"] += 1
+            self._store_one(rec)
+            return out
+        rnd = self.rounds.setdefault(g, _Round(episode=rec["episode"], step=rec["step"], size=n))
+        if rnd.since is None:
+            rnd.since = now
+        rnd.records[agent] = rec
+        self._run_rounds(now, out)
         return out
 
-    def _learn(self, agent: Any, k: Any, a: Any, r: Any, k2: Any, mask2: Any, done: bool, episode: int) -> None:
-        self.episodes_stored.add(int(episode))
-        self.learner.store(
-            int(agent),
-            np.asarray(k, dtype=np.float64),
-            int(a),
-            float(r),
-            np.asarray(k2, dtype=np.float64),
-            np.asarray(mask2, dtype=bool),
-            bool(done),
-        )
+    def on_step(self, rec: dict[str, Any], now: float) -> TrainerEffects:
+        """A decoded step record of the world: which agents acted in step t (their transitions make the round)."""
+        out = TrainerEffects()
+        if self.learner is None or rec["phase"] != "step" or not self.in_run(rec["episode"]):
+            return out
+        g = self.global_step(rec["episode"], rec["step"])
+        if g < self.trained:
+            return out
+        rnd = self.rounds.setdefault(g, _Round(episode=rec["episode"], step=rec["step"], size=rec["size"]))
+        rnd.acted = set(rec["acted"])
+        if rnd.since is None:
+            rnd.since = now
+        self._run_rounds(now, out)
+        return out
+
+    def tick(self, now: float) -> TrainerEffects:
+        """Run the rounds whose wait for late agents is over."""
+        out = TrainerEffects()
+        self._run_rounds(now, out)
+        return out
+
+    def _ready(self, rnd: _Round, now: float) -> bool:
+        assert self.scenario is not None
+        if len(rnd.records) == self.scenario.n_agents:
+            return True
+        if rnd.acted is not None and rnd.records and rnd.acted <= rnd.records.keys():
+            return True
+        return rnd.since is not None and now - rnd.since > self.schedule.round_deadline
+
+    def _run_rounds(self, now: float, out: TrainerEffects) -> None:
+        """Every round that is due, in order of the global step."""
+        while self.learner is not None and self.fatal is None:
+            rnd = self.rounds.get(self.trained)
+            if rnd is None:
+                later = [r for g, r in self.rounds.items() if g > self.trained]
+                if later and any(r.since is not None and now - r.since > self.schedule.round_deadline for r in later):
+                    out.counters["empty_rounds"] += 1  # nobody's transitions of this step came: skip it
+                    self.trained += 1
+                    continue
+                return
+            if not self._ready(rnd, now):
+                return
+            del self.rounds[self.trained]
+            self._round(rnd, out)
+            self.trained += 1
+            if rnd.step == self.scenario.horizon:  # type: ignore[union-attr]
+                self._batch_done(rnd, out)
+            self._announce(out)
+
+    def _round(self, rnd: _Round, out: TrainerEffects) -> None:
+        """Store the step's transitions in the memories (agent order) and do updates_per_step updates."""
+        sc = self.scenario
+        assert sc is not None
+        if len(rnd.records) == sc.n_agents:  # everyone: exactly `htlm train`'s store_batch of the step
+            recs = [rnd.records[i] for i in range(sc.n_agents)]
+            k = np.stack([np.asarray(r["k"], dtype=np.float64) for r in recs], axis=1)
+            k2 = np.stack([np.asarray(r["k2"], dtype=np.float64) for r in recs], axis=1)
+            a = np.stack([np.asarray(r["a"], dtype=np.int64) for r in recs], axis=1)
+            rew = np.stack([np.asarray(r["r"], dtype=np.float64) for r in recs], axis=1)
+            m2 = np.stack([np.asarray(r["mask2"], dtype=bool) for r in recs], axis=1)
+            self.learner.store_batch(k, a, rew, k2, m2, bool(recs[0]["done"]))
+        else:
+            out.counters["partial_rounds"] += 1
+            for i in sorted(rnd.records):
+                self._store_one(rnd.records[i])
+        for _ in range(self.learner.settings.updates_per_step):
+            loss = self.learner.train_step()
+            if loss is not None:
+                self.last_loss = loss
+                self.updates += 1
+        out.counters["train_rounds"] += 1
+
+    def _store_one(self, rec: dict[str, Any]) -> None:
+        """One agent's B transitions, into its memory row by row."""
+        for i in range(len(rec["a"])):
+            self.learner.store(
+                int(rec["agent"]),
+                np.asarray(rec["k"][i], dtype=np.float64),
+                int(rec["a"][i]),
+                float(rec["r"][i]),
+                np.asarray(rec["k2"][i], dtype=np.float64),
+                np.asarray(rec["mask2"][i], dtype=bool),
+                bool(rec["done"]),
+            )
+
+    def _announce(self, out: TrainerEffects, force_weights: bool = False) -> None:
+        """The progress record, and the weights when the cadence says so."""
+        assert self.run is not None
+        out.progress.append({"run": self.run, "trained": self.trained, "updates": self.updates})
+        if force_weights or (self.trained - self.first_step) % self.schedule.weights_every == 0:
+            out.weights.extend(self.publish_weights())
+
+    def _batch_done(self, rnd: _Round, out: TrainerEffects) -> None:
+        """The last round of a batch: count its episodes, validate and select as `htlm train`, checkpoint when due."""
+        from htlm_agent.experiments.train import validate
+
+        s = self.learner.settings
+        self.learner.episodes_done += rnd.size
+        self.episodes_seen = int(self.learner.episodes_done)
+        done = self.episodes_seen
+        lo, n = self.run_range
+        final = n > 0 and rnd.episode + rnd.size >= lo + n
+        row: dict[str, Any] = {"episodes": done, "updates": self.updates, "loss": self.last_loss}
+        if s.validate_every and s.validate_episodes and (done - self.last_val >= s.validate_every or final):
+            self.last_val = done
+            t0 = time.monotonic()
+            vm = validate(self.learner, s.validate_episodes)
+            row.update(
+                val_completion=vm["completion"]["mean"],
+                val_failure_rate=vm["completion"]["failure_rate"],
+                val_unused_fraction=vm["unused_fraction"]["mean"],
+            )
+            if done >= s.eps_fraction * s.episodes:
+                self.selection.offer(vm["completion"]["mean"])
+            out.log.append(
+                (
+                    "info",
+                    f"validation after {done} episodes: completion {vm['completion']['mean']:.2f}, failures "
+                    f"{vm['completion']['failure_rate']:.1%} ({time.monotonic() - t0:.1f} s)",
+                )
+            )
+        self._write_log(row)
+        every = self.schedule.checkpoint_every
+        if every and done - self.last_ckpt >= every and not final:
+            self.last_ckpt = done
+            self.checkpoint(out)
 
     def on_metrics(self, rec: dict[str, Any]) -> TrainerEffects:
-        """A decoded episode_metrics record: log the episode; publish weights and checkpoint when they are due."""
+        """A decoded episode_metrics record: log the episode (train_log.jsonl)."""
         out = TrainerEffects()
         if self.store is None:
             return out
         if not self.in_run(rec["episode"]):
             out.drops.append(("episode_metrics", "outside_run"))
             return out
-        s = self.schedule
-        self.episodes_seen += 1
         if self.learner is None:
-            self._write_log(rec)
-            return out
-        self.learner.episodes_done = self.episodes_seen
-        eps = float(self.learner.settings.epsilon(rec["episode"]))
-        self._write_log(
-            {"episode": rec["episode"], "updates": self.updates, "loss": self.last_loss, "epsilon": eps, **rec}
-        )
-        loss = self.last_loss if self.last_loss is None else round(self.last_loss, 4)
-        out.log.append(
-            (
-                "info",
-                f"episode {rec['episode']}: completion {rec['completion']}, {self.updates} updates, loss {loss}, "
-                f"epsilon {eps:.3f}, store {self.store.count}",
-            )
-        )
-        if self.episodes_seen % s.publish_every == 0:
-            out.weights.extend(self.publish_weights())
-        if s.checkpoint_every and self.episodes_seen % s.checkpoint_every == 0:
-            self.checkpoint(out)
+            self.episodes_seen += 1
+        self._write_log({"updates": self.updates, **rec})
         return out
 
     def _write_log(self, line: dict[str, Any]) -> None:
         if self.log_file is not None:
             self.log_file.write(json.dumps(line) + "\n")
-            self.log_file.flush()
 
     # ----- the schedule -------------------------------------------------------------------------------------------
     def flush(self) -> TrainerEffects:
@@ -367,6 +523,8 @@ class TrainerCore:
         those that sent a duplicate)."""
         out = TrainerEffects()
         self._flush(out)
+        if self.log_file is not None:
+            self.log_file.flush()
         return out
 
     def _flush(self, out: TrainerEffects) -> None:
@@ -378,35 +536,11 @@ class TrainerCore:
         for agent, session in sorted(touched):
             out.acks.append({"agent": agent, "session": session, "upto": store.acked_upto(agent, session)})
 
-    def train(self, clock: Callable[[], float] = time.monotonic) -> TrainerEffects:
-        """The rounds of updates owed: one round of `updates_per_step` updates per `train_every` transitions
-        received, for at most `train_budget` seconds of `clock`; more than `max_backlog` rounds behind, the oldest
-        rounds are skipped (counted)."""
-        out = TrainerEffects()
-        s = self.schedule
-        if self.learner is None or not s.train_every or self.new_transitions < s.train_every:
-            return out
-        backlog = self.new_transitions // s.train_every
-        if backlog > s.max_backlog:  # far behind (a burst of resent transitions): skip rounds, do not fall further
-            out.counters["skipped_rounds"] += backlog - s.max_backlog
-            self.new_transitions -= (backlog - s.max_backlog) * s.train_every
-        start = clock()
-        out.counters["train_calls"] += 1
-        while self.new_transitions >= s.train_every and clock() - start < s.train_budget:
-            self.new_transitions -= s.train_every
-            out.counters["train_rounds"] += 1
-            for _ in range(self.learner.settings.updates_per_step):
-                loss = self.learner.train_step()
-                if loss is not None:
-                    self.last_loss = loss
-                    self.updates += 1
-        return out
-
     def publish_weights(self) -> list[dict[str, Any]]:
-        """Every agent's weights record, when the networks changed since the last ones (else nothing)."""
-        if self.learner is None or self.updates == self.published_updates:
+        """Every agent's weights record taken now (trained = the rounds done), once per value of trained."""
+        if self.learner is None or self.trained == self.published_trained:
             return []
-        self.published_updates = self.updates
+        self.published_trained = self.trained
         self.version += 1
         settings = self.learner.settings.to_dict()
         out = []
@@ -417,6 +551,8 @@ class TrainerCore:
                     "agent": i,
                     "version": self.weights_version,
                     "episode": self.episodes_seen,
+                    "trained": self.trained,
+                    "every": self.schedule.weights_every,
                     "encoding": "base64",
                     "data": base64.b64encode(data).decode(),
                     "sha256": hashlib.sha256(data).hexdigest(),
@@ -426,30 +562,29 @@ class TrainerCore:
         return out
 
     def checkpoint(self, out: TrainerEffects) -> None:
-        """Flush the store (acknowledging) and write the learner's checkpoint with the number of records it holds."""
+        """Flush the store (acknowledging) and write the learner's checkpoint with the number of records it holds;
+        with select_best its networks are the best validated ones (as `htlm train` writes them)."""
         if self.learner is None or self.store is None:
             return
         self._flush(out)
-        self.learner.episodes_done = max(self.episodes_seen, len(self.episodes_stored))
         t0 = time.monotonic()
-        path = self.learner.save(self.dir / "checkpoint", extra={"store_records": self.store.count, "run": self.run})
+        s = self.learner.settings
+        policy = self.selection.flat if (s.select_best and self.selection is not None) else None
+        extra = {"store_records": self.store.count, "run": self.run}
+        if self.selection is not None:
+            extra.update(self.selection.info())
+        path = self.learner.save(self.dir / "checkpoint", replay=s.keep_replay, extra=extra, policy_flat=policy)
         out.counters["checkpoints"] += 1
         out.log.append(("info", f"checkpoint {path} ({self.store.count} transitions, {time.monotonic() - t0:.2f} s)"))
 
     def shutdown(self, clock: Callable[[], float] = time.monotonic) -> TrainerEffects:
-        """Flush the store and acknowledge, catch up briefly on the rounds still owed, write the final checkpoint,
-        close the files."""
+        """Flush the store and acknowledge, run the rounds still gathered, write the final checkpoint, close the
+        files."""
         out = TrainerEffects()
         if self.store is not None:
             self._flush(out)
             if self.fatal is None:
-                end = clock() + CATCH_UP
-                every = self.schedule.train_every
-                while self.learner is not None and every and self.new_transitions >= every:
-                    if clock() > end:
-                        break
-                    more = self.train(clock)
-                    out.counters.update(more.counters)
+                self._run_rounds(clock() + 1e9, out)  # whatever came: no more waiting
                 self.checkpoint(out)
             self.store.close()
             self.store = None
@@ -466,6 +601,8 @@ class TrainerCore:
             "updates": str(self.updates),
             "loss": str(self.last_loss),
             "episodes_seen": str(self.episodes_seen),
+            "trained": str(self.trained),
+            "rounds_waiting": str(len(self.rounds)),
             "weights_version": str(self.weights_version),
             "epoch": str(self.epoch),
         }

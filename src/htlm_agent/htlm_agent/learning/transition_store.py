@@ -1,7 +1,9 @@
 """The trainer's durable transition store, without ROS: an append-only file of fixed-size records with checksums.
 
-Every transition an agent sends is identified by (agent, session, seq): `session` is random per agent process,
-`seq` counts that process's transitions from 0. `append` buffers, `flush` writes and fsyncs; only then does
+Every transition record an agent sends (its transitions of one step in the B episodes of a batch) is identified by
+(agent, session, seq): `session` is random per agent process, `seq` counts that process's records from 0. The store
+keeps one row per transition; the B rows of a record carry its key, their index `row` and the count `rows`, and a
+record counts as stored only when all its rows are on disk. `append` buffers, `flush` writes and fsyncs; only then does
 `acked_upto` move, so an acknowledgement sent to an agent always means "on disk". On opening, a torn last record
 (a crash in the middle of a write) is cut off; every record's CRC-32 is checked.
 """
@@ -18,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-MAGIC = b"HTLMTS01"
+MAGIC = b"HTLMTS02"
 
 
 class StoreError(ValueError):
@@ -32,6 +34,8 @@ def record_dtype(knowledge: int, actions: int) -> np.dtype[Any]:
             ("agent", "<u2"),
             ("session", "S16"),
             ("seq", "<u8"),
+            ("row", "<u2"),
+            ("rows", "<u2"),
             ("episode", "<i8"),
             ("step", "<i4"),
             ("a", "<i2"),
@@ -73,6 +77,7 @@ class TransitionStore:
         self.buffer: list[bytes] = []
         self.buffered: list[tuple[int, bytes, int]] = []
         self.buffered_keys: set[tuple[int, bytes, int]] = set()
+        self.buffered_rows = 0
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.path.exists() and self.path.stat().st_size > 0:
             self._open_existing()
@@ -104,6 +109,11 @@ class TransitionStore:
             if zlib.crc32(rec[:-4]) != int.from_bytes(rec[-4:], "little"):
                 break
             good += 1
+        if good:  # a record whose rows were not all written is cut off with the torn tail
+            tail = np.frombuffer(body[: good * self.size], dtype=self.dtype)
+            last = tail[-1]
+            if int(last["row"]) != int(last["rows"]) - 1:
+                good -= int(last["row"]) + 1
         keep = start + good * self.size
         if keep < len(data):
             self.truncated = (len(data) - keep + self.size - 1) // self.size
@@ -139,21 +149,29 @@ class TransitionStore:
         return key in self.seen or key in self.buffered_keys
 
     def append(self, rec: dict[str, Any]) -> bool:
-        """Buffer one decoded transition record; False if it is a duplicate (already stored or buffered)."""
+        """Buffer one decoded transition record (B transitions: a, r (B,), k, k2 (B, K), mask2 (B, |G|); the rows'
+        episodes are episode .. episode + B - 1); False if it is a duplicate (already stored or buffered)."""
         agent, session, seq = int(rec["agent"]), rec["session"].encode(), int(rec["seq"])
         key = (agent, session, seq)
         if key in self.seen or key in self.buffered_keys:
             return False
-        row = np.zeros((), dtype=self.dtype)
-        row["agent"], row["session"], row["seq"] = agent, session, seq
-        row["episode"], row["step"], row["a"] = rec["episode"], rec["step"], rec["a"]
-        row["done"], row["r"] = bool(rec["done"]), rec["r"]
-        row["k"], row["k2"], row["mask2"] = rec["k"], rec["k2"], rec["mask2"]
-        raw = bytearray(row.tobytes())
-        raw[-4:] = zlib.crc32(bytes(raw[:-4])).to_bytes(4, "little")
+        n = len(rec["a"])
+        rows = np.zeros(n, dtype=self.dtype)
+        rows["agent"], rows["session"], rows["seq"] = agent, session, seq
+        rows["row"], rows["rows"] = np.arange(n), n
+        rows["episode"] = rec["episode"] + np.arange(n)
+        rows["step"], rows["a"] = rec["step"], rec["a"]
+        rows["done"], rows["r"] = bool(rec["done"]), rec["r"]
+        rows["k"], rows["k2"], rows["mask2"] = rec["k"], rec["k2"], rec["mask2"]
+        raw = bytearray(rows.tobytes())
+        size = self.size
+        for i in range(n):
+            end = (i + 1) * size
+            raw[end - 4 : end] = zlib.crc32(memoryview(raw)[i * size : end - 4]).to_bytes(4, "little")
         self.buffer.append(bytes(raw))
         self.buffered.append(key)
         self.buffered_keys.add(key)
+        self.buffered_rows += n
         return True
 
     def flush(self) -> list[tuple[int, str]]:
@@ -170,7 +188,8 @@ class TransitionStore:
         for agent, session, seq in self.buffered:
             self._mark(agent, session, seq)
             touched.add((agent, session.decode()))
-        self.count += len(self.buffer)
+        self.count += self.buffered_rows
+        self.buffered_rows = 0
         self.buffer, self.buffered = [], []
         self.buffered_keys.clear()
         return sorted(touched)
@@ -181,7 +200,7 @@ class TransitionStore:
         return st.upto if st is not None else -1
 
     def records(self, start: int = 0) -> Iterator[np.void]:
-        """The durable records from index `start`, in the order they were stored."""
+        """The durable rows (one transition each) from index `start`, in the order they were stored."""
         with open(self.path, "rb") as f:
             data = f.read()
         n = int.from_bytes(data[len(MAGIC) : len(MAGIC) + 4], "little")

@@ -56,7 +56,7 @@ def epsilon_greedy(
 
 
 def choose(
-    policy: AgentPolicy, knowledge: FloatArray, mask: BoolArray, epsilon: float, rng: np.random.Generator
+    policy: AgentPolicy, knowledge: FloatArray, mask: BoolArray, epsilon: float | FloatArray, rng: np.random.Generator
 ) -> IntArray:
     """`epsilon_greedy` around an agent policy: (B, K) knowledge and (B, |Ḡ|) masks -> (B,) actions."""
     return epsilon_greedy(np.asarray(policy.act(knowledge, mask), dtype=np.int64), mask, epsilon, rng)

@@ -31,6 +31,7 @@ from htlm_msgs_py.ros import (
     EVENTS,
     STATE,
     STATE_READER,
+    WEIGHTS,
     Health,
     PoseStamped,
     SettingsError,
@@ -44,6 +45,7 @@ from htlm_msgs_py.ros import (
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
+from htlm_world.protocol import global_step
 from htlm_world.scenario import Scenario, ScenarioError, from_dict
 
 
@@ -86,6 +88,12 @@ class AgentNode(Node):
         self.net: Any = None
         self.learner_settings: Any = None
         self.weights_version = -1
+        self.versions: dict[int, Any] = {}  # trained -> AgentQ: the weights the trainer took after that step
+        self.weights_every = 1
+        self.batch = 1
+        self.trainer_lag = 0
+        self.first_step = 0
+        self.deferred_since = 0.0
         self.send_transitions = False
         self.stopping = False
         self.stop_deadline = 0.0
@@ -142,11 +150,14 @@ class AgentNode(Node):
         self.seed = rec["seed"]
         self.first_episode = rec["first_episode"]
         self.episodes = rec["episodes"]
+        self.batch = rec["batch"]
+        self.trainer_lag = rec["trainer_lag"]
+        self.first_step = global_step(self.first_episode, self.batch, 1, sc.horizon)
         self.scenario = sc
         self.scenario_at = time.monotonic()
         self.model = Model.build(sc)
         self.index = names.index(self.name)
-        self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon)
+        self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, self.batch)
         self.mind = None
         self.stopping = False
         s = self.settings
@@ -190,7 +201,7 @@ class AgentNode(Node):
             self.policy = None
             if self.sub_weights is None:
                 self.sub_weights = self.create_subscription(
-                    String, topics.weights(self.name), self._on_weights, STATE_READER
+                    String, topics.weights(self.name), self._on_weights, WEIGHTS
                 )
 
     def _fail(self, why: str) -> None:
@@ -211,13 +222,32 @@ class AgentNode(Node):
             return False
         return not (self.send_transitions and self.outbox) or time.monotonic() >= self.stop_deadline
 
-    def _epsilon(self, episode: int) -> float:
+    def _epsilon(self, episode: int, size: int) -> Any:
+        """ε of the batch from `episode` on: the parameter, else the learner's schedule while training (per episode
+        with eps_spread, as `htlm train` does), else the policy's own."""
         s = self.settings
         if s.epsilon >= 0.0:
             return s.epsilon
         if self.policy_kind == "trainer" and self.learner_settings is not None and self.mode == "train":
-            return float(self.learner_settings.epsilon(episode))
+            from htlm_agent.experiments.train import episode_epsilons
+
+            return episode_epsilons(self.learner_settings, episode, size)[1]
         return self.policy_epsilon
+
+    def _gate(self, episode: int, t: int) -> AgentPolicy | None:
+        """The trainer's weights to act with at step t of the batch from `episode` on (the fixed cadence): those
+        taken after the updates of the steps before T = max(g0, g - lag), the newest at or below T; None while the
+        newest at or below T is older than the cadence's last version R <= T (they are on their way)."""
+        assert self.scenario is not None
+        g = global_step(episode, self.batch, t, self.scenario.horizon)
+        target = max(self.first_step, g - self.trainer_lag)
+        need = self.first_step + (target - self.first_step) // self.weights_every * self.weights_every
+        have = [v for v in self.versions if v <= target]
+        if not have or max(have) < need:
+            if self.mind is not None and self.mind.deferred is None:
+                self.deferred_since = time.monotonic()
+            return None
+        return self.versions[max(have)]
 
     # ----- messages in ------------------------------------------------------------------------------------------
     def _discovered(self) -> bool:
@@ -248,10 +278,17 @@ class AgentNode(Node):
             if self.policy is None or not self._discovered():
                 return  # not ready yet: the world asks again
             if self.mind is None:
-                self.mind = AgentMind(self.scenario, self.index, self.seed, self.policy, model=self.model)
+                gate = self._gate if self.policy_kind == "trainer" and self.mode == "train" else None
+                self.mind = AgentMind(
+                    self.scenario, self.index, self.seed, self.policy, self.model, self.batch, self.mode, gate
+                )
             force = self.mind.episode is not None and time.monotonic() - self.last_accept > self.settings.resync_timeout
-            eff = self.mind.begin(e, self._epsilon(e), force=force)
-        elif self.mind is None:
+            size = rec["size"]
+            if size > self.batch:
+                self.health.reject("step", "length", f"batch of {size} episodes > the run's batch {self.batch}")
+                return
+            eff = self.mind.begin(e, self._epsilon(e, size), force=force, size=size)
+        elif self.mind is None or phase == "step":
             return
         else:
             eff = self.mind.end(e, t)
@@ -266,7 +303,7 @@ class AgentNode(Node):
         if rec["agent"] != self.index:
             self.health.reject("observation", "agent", f"observation for agent {rec['agent']} on {self.name}'s topic")
             return
-        eff = self.mind.observe(rec["episode"], rec["step"], rec["level"], rec["acted"], time.monotonic())
+        eff = self.mind.observe(rec["episode"], rec["step"], rec["levels"], rec["acted"], time.monotonic())
         if eff.drop is None:
             self.last_accept = time.monotonic()
         self._apply("observation", eff)
@@ -277,10 +314,20 @@ class AgentNode(Node):
             return
         if rec["agent"] == self.index:
             return  # our own broadcast, looped back
-        eff = self.mind.hear(rec["agent"], rec["episode"], rec["step"], rec["action"], rec["level"])
+        eff = self.mind.hear(rec["agent"], rec["episode"], rec["step"], rec["actions"], rec["levels"])
         self._apply("broadcast", eff)
 
     def _tick(self) -> None:
+        m = self.mind
+        if m is not None and m.deferred is not None:
+            if time.monotonic() - self.deferred_since > self.settings.weights_timeout and m.policy is not None:
+                self.health.counters["stale_weights"] += 1
+                self.get_logger().warning(
+                    f"no weights for step {m.deferred} of episode {m.episode} within "
+                    f"{self.settings.weights_timeout:g} s; acting with the newest ({self.weights_version})"
+                )
+                self._apply("tick", m.act_now(force=True))
+            return
         if self.mind is not None and self.mind.pending is not None:
             eff = self.mind.tick(time.monotonic(), self.settings.broadcast_timeout)
             if eff.transition is not None:
@@ -332,13 +379,19 @@ class AgentNode(Node):
         except ValueError as e:
             self.health.reject("weights", "data", str(e))
             return
-        self.net = net
+        self.net = None  # every version is its own network (the agent may act with an older one)
         self.learner_settings = ls
         self.weights_version = rec["version"]
+        self.weights_every = rec["every"]
+        self.versions[rec["trained"]] = net
+        while len(self.versions) > 16:
+            del self.versions[min(self.versions)]
         if self.policy_kind == "trainer":
             self.policy = net
             if self.mind is not None:
                 self.mind.policy = net
+                if self.mind.deferred is not None:
+                    self._apply("weights", self.mind.act_now())
 
     # ----- messages out -----------------------------------------------------------------------------------------
     def _apply(self, topic: str, eff: Effects) -> None:
@@ -354,7 +407,13 @@ class AgentNode(Node):
                 string(
                     encode(
                         S.BROADCAST,
-                        {"agent": me, "episode": mind.episode, "step": t, "action": a, "level": level},
+                        {
+                            "agent": me,
+                            "episode": mind.episode,
+                            "step": t,
+                            "actions": a.tolist(),
+                            "levels": level.tolist(),
+                        },
                         signer,
                     )
                 )
@@ -362,7 +421,9 @@ class AgentNode(Node):
         if eff.action is not None:  # before the transition: the world and the team wait for it
             t, a = eff.action
             self.pub_action.publish(
-                string(encode(S.ACTION, {"agent": me, "episode": mind.episode, "step": t, "action": a}, signer))
+                string(
+                    encode(S.ACTION, {"agent": me, "episode": mind.episode, "step": t, "actions": a.tolist()}, signer)
+                )
             )
         if eff.ready is not None:
             self.pub_ready.publish(
@@ -371,7 +432,7 @@ class AgentNode(Node):
         if eff.transition is not None:
             self._finished(eff.transition)
         if eff.action is not None:
-            self._goal(eff.action[1])
+            self._goal(int(eff.action[1][min(self.settings.belief_episode, len(eff.action[1]) - 1)]))
 
     def _finished(self, tr: Transition) -> None:
         me = self.index
@@ -387,8 +448,8 @@ class AgentNode(Node):
                     "episode": tr.episode,
                     "step": tr.step,
                     "k": tr.k.tolist(),
-                    "a": tr.a,
-                    "r": tr.r,
+                    "a": tr.a.tolist(),
+                    "r": tr.r.tolist(),
                     "k2": tr.k2.tolist(),
                     "mask2": tr.mask2.tolist(),
                     "done": tr.done,
@@ -403,12 +464,13 @@ class AgentNode(Node):
         every = self.settings.belief_every
         if every and (tr.done or (tr.step % every == 0 and self.pub_belief.get_subscription_count() > 0)):
             assert self.mind is not None
-            marg, conf = self.mind.belief_summary()
+            i = min(self.settings.belief_episode, self.mind.size - 1)
+            marg, conf = self.mind.belief_summary(i)
             self.pub_belief.publish(
                 string(
                     encode(
                         S.BELIEF,
-                        {"agent": me, "episode": tr.episode, "step": tr.step, "marginals": marg, "confident": conf},
+                        {"agent": me, "episode": tr.episode + i, "step": tr.step, "marginals": marg, "confident": conf},
                         self.signer,
                     )
                 )
@@ -417,10 +479,15 @@ class AgentNode(Node):
             self._episode_done(tr.episode)
 
     def _episode_done(self, episode: int) -> None:
+        """The batch from `episode` on is over: log its episodes (in train mode only the first of each batch)."""
         assert self.mind is not None
-        self.episodes_done += 1
+        self.episodes_done += self.mind.size
         if self.log_file is not None:
-            self.log_file.write(json.dumps({"run": self.run, "episode": episode, **self.mind.log}) + "\n")
+            logged = 1 if self.mode == "train" else self.mind.size
+            lines = [
+                json.dumps({"run": self.run, "episode": episode + i, **self.mind.episode_log(i)}) for i in range(logged)
+            ]
+            self.log_file.write("\n".join(lines) + "\n")
             self.log_file.flush()
 
     def _goal(self, action: int) -> None:

@@ -60,6 +60,11 @@ class AgentSettings:
     """Seconds between /diagnostics messages."""
     executor: str = setting("events", choices=EXECUTORS)
     """events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
+    weights_timeout: float = setting(60.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Training: longest wait for the trainer's weights of a step (the fixed cadence), seconds; then the agent acts
+    with the newest weights it has (counted as stale_weights)."""
+    belief_episode: int = setting(0, lo=0, hi=4095)
+    """Which episode of a batch the belief summary and the goal pose follow (its index in the batch)."""
 
 
 def validate_agent_settings(s: AgentSettings) -> list[str]:
@@ -92,16 +97,13 @@ class TrainerSettings:
     """Continue from run_dir's checkpoint and store when they exist."""
     ack_period: float = setting(0.05, lo=SECONDS[0], hi=SECONDS[1])
     """Seconds between store flushes (fsync) and acknowledgements."""
-    train_every: int = setting(5, lo=0, hi=1_000_000, tunable=True)
-    """Transitions received per round of learner updates (0: store only, never train)."""
-    train_budget: float = setting(0.005, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
-    """Longest stretch of training between two looks at the network, seconds (training gets at most about half of
-    the trainer's time; receiving and acknowledging transitions comes first)."""
-    max_backlog: int = setting(500, lo=0, hi=1_000_000_000, tunable=True)
-    """Most rounds of updates the trainer may lag behind the transitions it received; older rounds are skipped."""
-    publish_every: int = setting(1, lo=1, hi=1_000_000, tunable=True)
-    """Episodes between weight publications."""
-    checkpoint_every: int = setting(10, lo=0, hi=1_000_000, tunable=True)
+    weights_every: int = setting(1, lo=1, hi=1_000_000)
+    """Steps between weight publications (the fixed cadence W): the agents act at step g with the weights taken
+    after the updates of the steps before max(g0, g - trainer_lag), rounded down to a multiple of W."""
+    round_deadline: float = setting(5.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
+    """Longest wait for the transitions of a step from every agent that acted in it, seconds; then the round of
+    updates of the step runs with those that came (a late one joins the next round)."""
+    checkpoint_every: int = setting(4096, lo=0, hi=1_000_000_000, tunable=True)
     """Episodes between checkpoints (0: only when the run stops; always one then)."""
     exit_on_stop: bool = setting(True)
     """Exit when the world announces the end of the run."""

@@ -23,8 +23,8 @@ from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import (
     EVENTS,
-    STATE,
     STATE_READER,
+    WEIGHTS,
     Health,
     SettingsError,
     String,
@@ -70,12 +70,14 @@ class TrainerNode(Node):
         self.lim: dict[str, int] | None = None
         self.pub_weights: list[Any] = []
         self.pub_ack = self.create_publisher(String, topics.TRANSITION_ACK, EVENTS)
+        self.pub_progress = self.create_publisher(String, topics.TRAINER_PROGRESS, EVENTS)
         self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
         self.create_subscription(String, topics.TRANSITIONS, self._on_transition, EVENTS)
         self.create_subscription(String, topics.EPISODE_METRICS, self._on_metrics, EVENTS)
+        self.create_subscription(String, topics.STEP, self._on_step, EVENTS)
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.create_timer(s.ack_period, lambda: self._apply(self.core.flush()))
-        self.create_timer(0.01, lambda: self._apply(self.core.train()))
+        self.create_timer(0.25, lambda: self._apply(self.core.tick(time.monotonic())))
 
     def _on_settings(self, new: TrainerSettings) -> None:
         self.settings = new
@@ -97,7 +99,7 @@ class TrainerNode(Node):
         self._apply(self.core.on_scenario(rec, time.monotonic()))
         sc = self.core.scenario
         if sc is not None and self.lim is None:
-            self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon)
+            self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, self.core.batch)
 
     def _on_transition(self, msg: String) -> None:
         if self.core.store is None:  # no scenario yet: the agents send it again until acknowledged
@@ -106,6 +108,13 @@ class TrainerNode(Node):
         rec = self.health.decode("transitions", msg, S.TRANSITION, self.lim)
         if rec is not None:
             self._apply(self.core.on_transition(rec, time.monotonic()))
+
+    def _on_step(self, msg: String) -> None:
+        if self.core.learner is None:
+            return
+        rec = self.health.decode("step", msg, S.STEP, self.lim)
+        if rec is not None:
+            self._apply(self.core.on_step(rec, time.monotonic()))
 
     def _on_metrics(self, msg: String) -> None:
         rec = self.health.decode("episode_metrics", msg, S.EPISODE_METRICS, self.lim)
@@ -136,10 +145,12 @@ class TrainerNode(Node):
         if eff.weights and not self.pub_weights:
             assert self.core.scenario is not None
             self.pub_weights = [
-                self.create_publisher(String, topics.weights(a.name), STATE) for a in self.core.scenario.agents
+                self.create_publisher(String, topics.weights(a.name), WEIGHTS) for a in self.core.scenario.agents
             ]
-        for rec in eff.weights:
+        for rec in eff.weights:  # the weights before the progress: an agent gets them no later than the world's step
             self.pub_weights[rec["agent"]].publish(string(encode(S.WEIGHTS, rec, self.signer)))
+        for rec in eff.progress:
+            self.pub_progress.publish(string(encode(S.TRAINER_PROGRESS, rec, self.signer)))
 
     def shutdown(self) -> None:
         """Flush the store, acknowledge, and write the final checkpoint."""

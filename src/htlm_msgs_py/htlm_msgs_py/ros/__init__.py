@@ -40,6 +40,7 @@ from ..validation import ConversionError, convert, convert_value
 T = TypeVar("T")
 
 __all__ = [
+    "WEIGHTS",
     "DiagnosticArray",
     "Health",
     "PoseStamped",
@@ -69,6 +70,7 @@ def qos_profile(spec: _qos.QosSpec) -> QoSProfile:
 STATE = qos_profile(_qos.STATE)
 STATE_READER = qos_profile(_qos.STATE_READER)
 EVENTS = qos_profile(_qos.EVENTS)
+WEIGHTS = qos_profile(_qos.WEIGHTS)
 DIAGNOSTICS = qos_profile(_qos.DIAGNOSTICS)
 
 

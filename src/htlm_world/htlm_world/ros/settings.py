@@ -56,11 +56,22 @@ class WorldSettings:
     """Seconds between /diagnostics messages."""
     executor: str = setting("events", choices=EXECUTORS)
     """events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
+    batch: int = setting(1, lo=1, hi=4096)
+    """B, episodes run at once: every per-step record carries B values, every agent acts for B episodes per step
+    (first_episode must be a multiple of B; the last batch is shorter when `episodes` is not)."""
+    pace: str = setting("auto", choices=("auto", "on", "off"))
+    """Wait for the trainer's updates before each step (auto: in train mode with the lockstep clock)."""
+    trainer_lag: int = setting(1, lo=0, hi=1000)
+    """k of the rate limiter: step g waits until the trainer has done the updates of every step before g - k."""
+    trainer_deadline: float = setting(30.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
+    """Longest wait for the trainer's progress, seconds; then the world goes on without it until it is heard."""
 
     def lockstep(self, run_id: str) -> LockstepSettings:
         """What the world's side of the protocol takes from these settings, for the run `run_id`."""
-        kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(LockstepSettings) if f.name != "run_id"}
-        return LockstepSettings(run_id=run_id, **kw)
+        skip = ("run_id", "pace")
+        kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(LockstepSettings) if f.name not in skip}
+        pace = self.pace == "on" or (self.pace == "auto" and self.mode == "train" and self.clock == "lockstep")
+        return LockstepSettings(run_id=run_id, pace=pace, **kw)
 
 
 def validate_world_settings(s: WorldSettings) -> list[str]:
@@ -68,6 +79,8 @@ def validate_world_settings(s: WorldSettings) -> list[str]:
     bad = problems(s)
     if s.scenario == "" and s.team not in TEAMS:
         bad.append(f"team: {s.team!r} is not one of {sorted(TEAMS)}")
+    if s.first_episode % s.batch:
+        bad.append(f"first_episode: {s.first_episode!r} must be a multiple of batch ({s.batch})")
     if s.run_id and (len(s.run_id) > 64 or not all(c.isalnum() or c in "_.:-" for c in s.run_id)):
         bad.append(f"run_id: {s.run_id!r} may hold only letters, digits and _.:- (at most 64)")
     return bad

@@ -61,7 +61,7 @@ class WorldNode(Node):
         except SigningError as e:
             raise SettingsError(str(e)) from None
         sc = self.scenario
-        self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon)
+        self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, s.batch)
         self.run_id = s.run_id or f"run-{s.seed}-{int(time.time())}"
         self.health = Health(self, "htlm: world", self.signer)
         self.stop_signal = 0
@@ -80,6 +80,7 @@ class WorldNode(Node):
         # subscriptions
         self.create_subscription(String, topics.ACTION, self._on_action, EVENTS)
         self.create_subscription(String, topics.READY, self._on_ready, EVENTS)
+        self.create_subscription(String, topics.TRAINER_PROGRESS, self._on_trainer, EVENTS)
         # timers
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.log_file: Any = None
@@ -101,6 +102,11 @@ class WorldNode(Node):
         rec = self.health.decode("ready", msg, S.READY, self.lim)
         if rec is not None:
             self._apply(self.protocol.on_ready(rec, time.monotonic()))
+
+    def _on_trainer(self, msg: String) -> None:
+        rec = self.health.decode("trainer_progress", msg, S.TRAINER_PROGRESS, self.lim)
+        if rec is not None:
+            self._apply(self.protocol.on_trainer(rec, time.monotonic()))
 
     # ----- effects out ------------------------------------------------------------------------------------------
     def _apply(self, eff: WorldEffects) -> None:
@@ -148,7 +154,8 @@ class WorldNode(Node):
         self.health.message = "running"
         self.get_logger().info(
             f"run {self.run_id}: {sc.name}/{sc.team}, {sc.n_agents} agents, h={sc.horizon}, seed {s.seed}, "
-            f"mode {s.mode}, clock {s.clock}, {s.episodes or 'unlimited'} episodes, "
+            f"mode {s.mode}, clock {s.clock}, {s.episodes or 'unlimited'} episodes in batches of {s.batch}, "
+            f"pace {'on' if proto.settings.pace else 'off'}, "
             f"signing {'on' if self.signer.enabled else 'off'}"
         )
         self._apply(proto.start(time.monotonic()))
