@@ -61,7 +61,11 @@ def _with(schema: S.Schema, **changes: object) -> str:
         ({"agent": True}, "type", "agent"),
         ({"agent": 1.0}, "type", "agent"),
         ({"agent": "1"}, "type", "agent"),
-        ({"action": 6}, "range", "action"),  # |G| = 6
+        ({"actions": [6, 0]}, "range", "actions"),  # |G| = 6
+        ({"actions": [0, -1]}, "range", "actions"),
+        ({"actions": []}, "length", "actions"),  # one action per episode of the batch, at least one
+        ({"actions": 2}, "type", "actions"),
+        ({"actions": [[2]]}, "type", "actions"),
         ({"step": 0}, "range", "step"),  # actions are for steps 1..h
         ({"step": 31}, "range", "step"),
         ({"episode": -3}, "range", "episode"),
@@ -76,65 +80,133 @@ def test_action_rejections_name_the_field_and_value(changes: dict[str, object], 
 
 
 def test_record_text_is_compact_json_in_field_order() -> None:
-    # the exact bytes on the wire (and so the signatures) must not change with the validation library
-    fields = {"agent": 1, "episode": 2, "step": 3, "action": 4}
-    assert S.encode(S.ACTION, fields) == '{"schema":"htlm/action","v":1,"agent":1,"episode":2,"step":3,"action":4}'
-    rec = {**VALID["htlm/transition"], "k": [0.1, 1e-07, 1.0, -2.5e5] + [0.0] * 22, "r": -1.25}
+    # the exact bytes on the wire (and so the signatures): schema, version, then the fields in order, no spaces
+    fields = {"agent": 1, "episode": 2, "step": 3, "actions": [4, 0]}
+    text = S.encode(S.ACTION, fields)
+    assert text == '{"schema":"htlm/action","v":2,"agent":1,"episode":2,"step":3,"actions":[4,0]}'
+    rec = {**VALID["htlm/transition"], "k": [[0.1, 1e-07, 1.0, -2.5e5] + [0.0] * 22] * 2, "r": [-1.25, 2.0]}
     text = S.encode(S.TRANSITION, rec)
-    assert text == json.dumps({"schema": "htlm/transition", "v": 1, **rec}, separators=(",", ":"))
-    assert '"k":[0.1,1e-07,1.0,-250000.0,' in text
+    assert json.loads(text) == {"schema": "htlm/transition", "v": 2, **rec}
+    assert list(json.loads(text)) == ["schema", "v", *S.TRANSITION.fields]
+    assert " " not in text and '"k":[[0.1,1e-7,1.0,-250000.0,' in text  # msgspec: shortest round-trip floats
     assert S.decode(text, S.TRANSITION, PAPER_LIMITS) == rec
+
+
+def test_nan_is_encoded_as_null_and_rejected_on_receipt() -> None:
+    rec = {**VALID["htlm/transition"], "r": [float("nan"), 1.0]}
+    text = S.encode(S.TRANSITION, rec)
+    assert '"r":[null,1.0]' in text
+    assert _reason(text, S.TRANSITION) == ("type", "r")
+    with pytest.raises(ValueError, match="cannot encode"):
+        S.encode(S.TRANSITION, {**VALID["htlm/transition"], "a": object()})
 
 
 def test_rejections_name_the_place_inside_a_list() -> None:
     with pytest.raises(S.WireError) as e:
-        S.decode(_with(S.TRANSITION, k=[0.0] * 5 + ["x"] + [0.0] * 20), S.TRANSITION, PAPER_LIMITS)
-    assert (e.value.reason, e.value.where, e.value.path, e.value.value) == ("type", "k", "k[5]", "x")
-    assert str(e.value).startswith("field 'k[5]': type: 'x'")
+        S.decode(_with(S.TRANSITION, k=[[0.0] * 26, [0.0] * 5 + ["x"] + [0.0] * 20]), S.TRANSITION, PAPER_LIMITS)
+    assert (e.value.reason, e.value.where, e.value.path, e.value.value) == ("type", "k", "k[1][5]", "x")
+    assert str(e.value).startswith("field 'k[1][5]': type: 'x'")
 
 
 def test_numbers_keep_their_json_type() -> None:
-    rec = S.decode(_with(S.TRANSITION, r=2, k=[1] + [0.5] * 25), S.TRANSITION, PAPER_LIMITS)
-    assert type(rec["r"]) is int and type(rec["k"][0]) is int and type(rec["k"][1]) is float
+    rec = S.decode(_with(S.TRANSITION, r=[2, 0.5], k=[[1] + [0.5] * 25] * 2), S.TRANSITION, PAPER_LIMITS)
+    assert type(rec["r"][0]) is int and type(rec["r"][1]) is float
+    assert type(rec["k"][1][0]) is int and type(rec["k"][1][1]) is float
 
 
 def test_levels_and_lists_are_range_checked() -> None:
-    assert _reason(_with(S.OBSERVATION, level=5), S.OBSERVATION) == ("range", "level")
+    assert _reason(_with(S.OBSERVATION, levels=[3, 5]), S.OBSERVATION) == ("range", "levels")
+    assert _reason(_with(S.OBSERVATION, tasks=[4, -1]), S.OBSERVATION) == ("range", "tasks")
+    assert _reason(_with(S.OBSERVATION, levels=[]), S.OBSERVATION) == ("length", "levels")
     assert _reason(_with(S.OBSERVATION, acted=[0, 0]), S.OBSERVATION) == ("range", "acted")
     assert _reason(_with(S.OBSERVATION, acted=[0, 7]), S.OBSERVATION) == ("range", "acted")
-    assert _reason(_with(S.TRANSITION, k=[0.0] * 25), S.TRANSITION) == ("length", "k")
-    assert _reason(_with(S.TRANSITION, mask2=[1, 0, 0, 0, 0, 0]), S.TRANSITION) == ("type", "mask2")
-    assert _reason(_with(S.TRANSITION, r=1e7), S.TRANSITION) == ("range", "r")
+    assert _reason(_with(S.TRANSITION, k=[[0.0] * 26, [0.0] * 25]), S.TRANSITION) == ("length", "k")
+    assert _reason(_with(S.TRANSITION, k=[0.0] * 26), S.TRANSITION) == ("type", "k")  # one row per episode
+    assert _reason(_with(S.TRANSITION, mask2=[[1, 0, 0, 0, 0, 0]] * 2), S.TRANSITION) == ("type", "mask2")
+    assert _reason(_with(S.TRANSITION, r=[1.0, 1e7]), S.TRANSITION) == ("range", "r")
+    assert _reason(_with(S.TRANSITION, r=1.5), S.TRANSITION) == ("type", "r")
+    assert _reason(_with(S.GROUND_TRUTH, levels=[[1, 2, 3, 4], [1, 2, 3]]), S.GROUND_TRUTH) == ("length", "levels")
+    assert _reason(_with(S.GROUND_TRUTH, actions=[[0, 1, 2, 3, 6]]), S.GROUND_TRUTH) == ("range", "actions")
+    assert _reason(_with(S.STEP, size=0), S.STEP) == ("range", "size")
+    assert _reason(_with(S.STEP, phase="middle"), S.STEP) == ("range", "phase")
     assert _reason(_with(S.BELIEF, marginals=[1.5] * 20), S.BELIEF) == ("range", "marginals")
 
 
 @pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity", "1e400"])
 def test_nan_and_infinity_are_rejected(literal: str) -> None:
     body = json.dumps(
-        {"schema": "htlm/transition", "v": 1, **{k: v for k, v in VALID["htlm/transition"].items() if k != "r"}}
+        {"schema": "htlm/transition", "v": 2, **{k: v for k, v in VALID["htlm/transition"].items() if k != "r"}}
     )
-    text = body[:-1] + f',"r":{literal}}}'
+    text = body[:-1] + f',"r":[1.0,{literal}]}}'
     assert _reason(text, S.TRANSITION)[0] in ("json", "range")
-    text = _with(S.TRANSITION).replace('"k":[0.0,', f'"k":[{literal},')
+    text = _with(S.TRANSITION).replace('"k":[[0.0,', f'"k":[[{literal},')
+    assert '"k":[[0.0,' not in text
     assert _reason(text, S.TRANSITION)[0] in ("json", "range")
 
 
 def test_wrong_schema_version_and_shape() -> None:
     assert _reason(_with(S.ACTION).replace("htlm/action", "htlm/broadcast"), S.ACTION)[0] == "schema"
-    assert _reason(_with(S.ACTION).replace('"v":1', '"v":2'), S.ACTION)[0] == "version"
+    assert _reason(_with(S.ACTION).replace('"v":2', '"v":1'), S.ACTION)[0] == "version"  # v1: one action
     assert _reason("[1, 2]", S.ACTION)[0] == "not_object"
     assert _reason("{not json", S.ACTION)[0] == "json"
     assert _reason("[" * 100_000, S.ACTION)[0] in ("json", "size")
     assert _reason("x" * (S.ACTION.max_bytes + 1), S.ACTION)[0] == "size"
-    missing = json.dumps({"schema": "htlm/action", "v": 1, "agent": 1})
+    missing = json.dumps({"schema": "htlm/action", "v": 2, "agent": 1})
     assert _reason(missing, S.ACTION)[0] == "missing_field"
 
 
 def test_static_limits_apply_without_a_scenario() -> None:
-    text = _with(S.ACTION, agent=100, action=50)
+    text = _with(S.ACTION, agent=100, actions=[50] * 4096)
     assert S.decode(text, S.ACTION)["agent"] == 100  # plausible before the scenario is known
     with pytest.raises(S.WireError):
         S.decode(_with(S.ACTION, agent=10_000), S.ACTION)
+    assert _reason_under(_with(S.ACTION, actions=[0] * 4097), S.ACTION) == ("length", "actions")
+
+
+def _reason_under(text: str, schema: S.Schema, lim: dict[str, int] | None = None) -> tuple[str, str | None]:
+    with pytest.raises(S.WireError) as e:
+        S.decode(text, schema, lim)
+    return e.value.reason, e.value.where
+
+
+def test_a_batched_transition_of_128_episodes_round_trips() -> None:
+    rng = random.Random(128)
+    b, lim = 128, S.limits(5, 4, 6, 5, 30, batch=128)
+    rec = {
+        **VALID["htlm/transition"],
+        "k": [[rng.uniform(-1.0, 1.0) for _ in range(26)] for _ in range(b)],
+        "a": [rng.randrange(6) for _ in range(b)],
+        "r": [rng.uniform(-100.0, 100.0) for _ in range(b)],
+        "k2": [[rng.random() for _ in range(26)] for _ in range(b)],
+        "mask2": [[rng.random() < 0.5 for _ in range(6)] for _ in range(b)],
+        "done": True,
+    }
+    text = S.encode(S.TRANSITION, rec)
+    assert S.decode(text, S.TRANSITION, lim) == rec  # every float bit for bit
+    assert S.decode(text, S.TRANSITION, PAPER_LIMITS) == rec
+    signer = Signer(KEY)
+    assert S.decode(S.encode(S.TRANSITION, rec, signer), S.TRANSITION, lim, signer) == rec
+
+
+@pytest.mark.parametrize(
+    ("name", "key"),
+    [
+        ("htlm/action", "actions"),
+        ("htlm/observation", "levels"),
+        ("htlm/broadcast", "actions"),
+        ("htlm/transition", "k"),
+        ("htlm/transition", "mask2"),
+        ("htlm/ground_truth", "levels"),
+    ],
+)
+def test_a_per_episode_array_longer_than_the_batch_is_rejected(name: str, key: str) -> None:
+    schema = S.SCHEMAS[name]
+    lim = S.limits(5, 4, 6, 5, 30, batch=4)
+    for b in (1, 4):
+        rows = VALID[name][key][:1] * b
+        assert S.decode(_with(schema, **{key: rows}), schema, lim)[key] == rows
+    assert _reason_under(_with(schema, **{key: VALID[name][key][:1] * 5}), schema, lim) == ("length", key)
+    assert _reason_under(_with(schema, **{key: []}), schema, lim) == ("length", key)
 
 
 @pytest.mark.parametrize("name", sorted(S.SCHEMAS))
@@ -192,10 +264,11 @@ def test_arbitrary_json_objects_only_ever_raise_wire_error(obj: dict[str, object
 def test_signed_records_are_verified() -> None:
     signer = Signer(KEY)
     text = S.encode(S.BROADCAST, valid(S.BROADCAST), signer)
-    assert S.decode(text, S.BROADCAST, PAPER_LIMITS, signer)["level"] == 3
+    assert S.decode(text, S.BROADCAST, PAPER_LIMITS, signer)["levels"] == [3, -1]
     unsigned = S.encode(S.BROADCAST, valid(S.BROADCAST))
     assert _reason(unsigned, S.BROADCAST, signer) == ("signature", "sig")
-    tampered = text.replace('"level":3', '"level":1')
+    tampered = text.replace('"levels":[3,', '"levels":[1,')
+    assert tampered != text
     assert _reason(tampered, S.BROADCAST, signer) == ("signature", "sig")
     other = S.encode(S.BROADCAST, valid(S.BROADCAST), Signer(b"another-team-key-of-16+"))
     assert _reason(other, S.BROADCAST, signer) == ("signature", "sig")

@@ -1,11 +1,13 @@
 """The world's side of the lockstep protocol without ROS (htlm_world.protocol.WorldProtocol): phases, deadlines,
 presence, late and duplicate answers, the free-running clock, the end of episodes and of the run, driven in one
-process with the time passed in; and the protocol with one AgentMind per agent, every message delivered in one
+process with the time passed in; batches of B episodes (a short last one), arrays of the wrong length, the pace
+gate on the trainer's progress; and the protocol with one AgentMind per agent, every message delivered in one
 process, equal to the in-process `team.rollout`."""
 
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -32,12 +34,24 @@ def _records(eff: WorldEffects, kind: str) -> list[dict[str, Any]]:
 
 
 def _act(
-    p: WorldProtocol, agent: int, action: int, now: float, episode: int | None = None, step: int | None = None
+    p: WorldProtocol,
+    agent: int,
+    action: int | list[int],
+    now: float,
+    episode: int | None = None,
+    step: int | None = None,
 ) -> WorldEffects:
-    """Agent `agent` sends `action` for `step` of `episode` (default: the protocol's current ones)."""
+    """Agent `agent` sends `action` for `step` of `episode` (default: the protocol's current ones): a list of
+    actions, or one action for every episode of the current batch."""
     e = p.episode if episode is None else episode
-    rec = {"agent": agent, "episode": e, "step": p.t if step is None else step, "action": action}
+    actions = [action] * p.size if isinstance(action, int) else action
+    rec = {"agent": agent, "episode": e, "step": p.t if step is None else step, "actions": actions}
     return p.on_action(rec, now)
+
+
+def _step(episode: int, step: int, phase: str, acted: Iterable[int] = (), size: int = 1) -> dict[str, Any]:
+    """A step record of the world."""
+    return {"episode": episode, "size": size, "step": step, "phase": phase, "acted": list(acted)}
 
 
 def _ready(p: WorldProtocol, agent: int, now: float, episode: int = 0, step: int = H) -> WorldEffects:
@@ -57,21 +71,26 @@ def test_begin_then_a_normal_step() -> None:
     eff = p.start(0.0)
     assert [k for k, _ in eff.publish] == ["scenario", "step"]
     assert eff.publish[0][1]["state"] == "running" and eff.publish[0][1]["run"] == "test"
-    assert eff.publish[1][1] == {"episode": 0, "step": 0, "phase": "begin"}
+    assert eff.publish[1][1] == _step(0, 0, "begin")
     assert p.joining and p.next_wakeup() == pytest.approx(0.5)  # the begin is announced again after NUDGE
-    assert _records(p.tick(0.5), "step") == [{"episode": 0, "step": 0, "phase": "begin"}]
+    assert _records(p.tick(0.5), "step") == [_step(0, 0, "begin")]
     for k in range(N - 1):
         assert _act(p, k, k % SC.n_tasks, 0.6).publish == []  # waiting for the last agent
     eff = _act(p, N - 1, (N - 1) % SC.n_tasks, 0.6)  # everyone answered: step 1 goes at once
+    # the observations, then the step record (after every applied step), then the ground truth
+    assert [k for k, _ in eff.publish] == ["observation"] * N + ["step", "ground_truth"]
+    assert _records(eff, "step") == [_step(0, 1, "step", range(N))]
     obs = _records(eff, "observation")
     assert [o["agent"] for o in obs] == list(range(N)) and all(o["step"] == 1 for o in obs)
-    assert all(o["acted"] == list(range(N)) and o["task"] == k % SC.n_tasks for k, o in enumerate(obs))
+    assert all(o["acted"] == list(range(N)) and o["tasks"] == [k % SC.n_tasks] for k, o in enumerate(obs))
+    assert all(len(o["levels"]) == 1 for o in obs)
     (truth,) = _records(eff, "ground_truth")
-    assert truth["actions"] == [k % SC.n_tasks for k in range(N)] and len(truth["levels"]) == SC.n_tasks
+    assert truth["actions"] == [[k % SC.n_tasks for k in range(N)]] and len(truth["levels"][0]) == SC.n_tasks
     assert (p.phase, p.t, p.joining, p.present) == ("act", 2, False, set(range(N)))
     assert p.next_wakeup() == pytest.approx(0.6 + p.settings.act_deadline)
     eff = _everyone_acts(p, 0.7)  # step 2 as soon as the live agents answered, long before the deadline
     assert [o["step"] for o in _records(eff, "observation")] == [2] * N and p.t == 3
+    assert _records(eff, "step") == [_step(0, 2, "step", range(N))]
     assert not eff.counters and not eff.drops
 
 
@@ -90,6 +109,7 @@ def test_begin_waits_for_listeners_then_the_deadline() -> None:
     eff = q.tick(5.0)  # the join timeout: the episode starts with the agents that answered
     assert eff.log == [("warning", "starting without agents [2, 3, 4]")]
     assert _records(eff, "observation")[0]["acted"] == [0, 1] and q.present == {0, 1}
+    assert _records(eff, "step") == [_step(0, 1, "step", [0, 1])]
 
 
 def test_a_silent_agent_idles_at_its_site_and_is_counted() -> None:
@@ -97,19 +117,20 @@ def test_a_silent_agent_idles_at_its_site_and_is_counted() -> None:
     p.start(0.0)
     _everyone_acts(p, 0.0)  # step 1: agent 4 works on task 4 % p
     assert p.ep is not None
-    prev4 = int(p.ep.prev[4])
+    prev4 = int(p.ep.prev[0, 4])
     assert _everyone_acts(p, 0.1, agents=range(N - 1)).publish == []  # step 2: agent 4 is silent; wait for it
     eff = p.tick(0.1 + p.settings.act_deadline)  # the deadline: go on without it
     (truth,) = _records(eff, "ground_truth")
-    assert truth["actions"][4] == int(Model.build(SC).idle_action(np.int64(prev4))) >= SC.n_tasks
-    assert _records(eff, "observation")[4]["task"] == -1 and _records(eff, "observation")[4]["level"] == -1
+    assert truth["actions"][0][4] == int(Model.build(SC).idle_action(np.int64(prev4))) >= SC.n_tasks
+    assert _records(eff, "observation")[4]["tasks"] == [-1] and _records(eff, "observation")[4]["levels"] == [-1]
     assert _records(eff, "observation")[0]["acted"] == [0, 1, 2, 3]
+    assert _records(eff, "step") == [_step(0, 2, "step", [0, 1, 2, 3])]
     assert eff.counters["absent_agent_steps"] == 1 and p.absent_total == 1
     assert eff.log and eff.log[0][0] == "warning" and "agents [4]" in eff.log[0][1]
     assert p.status() == (False, "act episode 0 step 3: agents [4] absent")
     # no longer waited for: step 3 goes as soon as the others answered, and it is not counted again
     eff = _everyone_acts(p, 2.2, agents=range(N - 1))
-    assert _records(eff, "ground_truth")[0]["actions"][4] >= SC.n_tasks and not eff.counters
+    assert _records(eff, "ground_truth")[0]["actions"][0][4] >= SC.n_tasks and not eff.counters
     assert p.ep.absent.tolist() == [0, 0, 0, 0, 2]
 
 
@@ -120,11 +141,12 @@ def test_late_duplicate_future_and_misplaced_answers_are_dropped() -> None:
     _everyone_acts(p, 0.0)
     _act(p, 0, 1, 0.1)
     assert _act(p, 0, 2, 0.1).drops == [("action", "duplicate")]
-    assert p.answers[0] == 1  # the first answer stands
+    assert p.answers[0].tolist() == [1]  # the first answer stands
     assert _act(p, 1, 0, 0.1, step=3).drops == [("action", "future")]
     assert _act(p, 1, 0, 0.1, episode=1, step=1).drops == [("action", "future")]
     assert _ready(p, 1, 0.1, step=2).drops == [("ready", "past")]  # a ready is for the end phase only
-    idle_elsewhere = next(a for a in range(SC.n_tasks, SC.n_actions) if not p.model.action_mask(p.ep.prev[2])[a])  # type: ignore[union-attr]
+    assert p.ep is not None
+    idle_elsewhere = next(a for a in range(SC.n_tasks, SC.n_actions) if not p.model.action_mask(p.ep.prev[:, 2])[0, a])
     eff = _act(p, 2, idle_elsewhere, 0.1)
     assert eff.rejects and eff.rejects[0][:2] == ("action", "range") and 2 not in p.answers
     # agent 4 misses step 2; its action for step 2 arrives after the step was applied: dropped, but it is
@@ -158,10 +180,10 @@ def test_episode_end_late_ready_and_the_end_of_the_run() -> None:
     assert eff.counters["late_ready"] == 1
     kinds = [k for k, _ in eff.publish]
     assert kinds == ["step", "episode_metrics", "step"]
-    assert eff.publish[0][1] == {"episode": 3, "step": H, "phase": "end"}
+    assert eff.publish[0][1] == _step(3, H, "end")
     m = eff.publish[1][1]
     assert m["episode"] == 3 and m["absent"] == [0] * N and m["seconds"] == pytest.approx(3.0)
-    assert eff.publish[2][1] == {"episode": 4, "step": 0, "phase": "begin"}
+    assert eff.publish[2][1] == _step(4, 0, "begin")
     (line,) = eff.episode_log
     assert line["run"] == "test" and line["metrics"] == m and len(line["levels"]) == H + 1 and len(line["actions"]) == H
     assert any(text.startswith("episode 3: completion") for _, text in eff.log)
@@ -190,7 +212,7 @@ def test_episodes_can_change_while_running_and_stop_ends_at_once() -> None:
     eff = WorldEffects()
     for k in range(N):
         eff = _ready(p, k, 1.0)
-    assert eff.publish[-1] == ("step", {"episode": 1, "step": 0, "phase": "begin"})  # one more episode
+    assert eff.publish[-1] == ("step", _step(1, 0, "begin"))  # one more episode
     eff = p.stop(1.5)
     assert eff.publish[0][0] == "scenario" and eff.publish[0][1]["state"] == "stopped" and p.done
     assert p.stop(1.6).publish == []
@@ -209,8 +231,157 @@ def test_free_running_clock_steps_every_period() -> None:
     assert _records(eff, "observation")[0]["acted"] == list(range(N))
     eff = p.tick(0.35)  # the node looked late: the steps due at 0.2 and 0.3 go now, nobody answered them
     assert [t["step"] for t in _records(eff, "ground_truth")] == [3, 4] and p.t == 5
+    assert _records(eff, "step") == [_step(0, 3, "step", []), _step(0, 4, "step", [])]
     assert eff.counters["absent_agent_steps"] == N  # counted once: absent agents are no longer live
     assert p.next_wakeup() == pytest.approx(0.4)
+
+
+# ----- batches, arrays of the wrong length, the pace gate ---------------------------------------------------------
+
+
+def _finish_batch(p: WorldProtocol, now: float) -> WorldEffects:
+    """Every agent plays the current batch to its last step and sends its ready; the effects of the last ready."""
+    e = p.episode
+    _play_to_the_end(p, now, episode=e)
+    assert (p.phase, p.t) == ("end", H)
+    eff = WorldEffects()
+    for k in range(N):
+        eff = _ready(p, k, now, episode=e)
+    return eff
+
+
+def test_a_batch_of_4_runs_10_episodes_as_4_4_2() -> None:
+    p = _protocol(episodes=10, batch=4)
+    eff = p.start(0.0)
+    assert eff.publish[0][1]["batch"] == 4
+    begins, metrics, logs = _records(eff, "step"), [], []
+    assert [p.batch_size(e) for e in (0, 4, 8)] == [4, 4, 2]
+    while p.phase != "stopped":
+        e, size = p.episode, p.size
+        eff = _everyone_acts(p, 1.0)  # step 1 of the batch: one action per episode
+        (truth,) = _records(eff, "ground_truth")
+        assert len(truth["actions"]) == len(truth["levels"]) == size and truth["episode"] == e
+        assert all(len(o["tasks"]) == len(o["levels"]) == size for o in _records(eff, "observation"))
+        assert _records(eff, "step") == [_step(e, 1, "step", range(N), size=size)]
+        eff = _finish_batch(p, 1.0)
+        assert _records(eff, "step")[0] == _step(e, H, "end", size=size)
+        metrics += _records(eff, "episode_metrics")
+        logs += eff.episode_log
+        begins += [r for r in _records(eff, "step") if r["phase"] == "begin"]
+    assert [(b["episode"], b["size"]) for b in begins] == [(0, 4), (4, 4), (8, 2)]
+    assert all(b["step"] == 0 and b["acted"] == [] for b in begins)
+    assert [m["episode"] for m in metrics] == list(range(10)) and p.episodes_done == 10
+    assert [line["metrics"] for line in logs] == metrics
+    assert all(len(line["levels"]) == H + 1 and len(line["actions"]) == H for line in logs)
+    assert all(np.shape(line["actions"]) == (H, N) for line in logs)
+    assert p.phase == "stopped" and _records(eff, "scenario")[0]["state"] == "stopped"
+
+
+def test_actions_of_another_length_are_rejected_and_the_agent_is_still_waited_for() -> None:
+    p = _protocol(episodes=4, batch=4)
+    p.start(0.0)
+    eff = _act(p, 0, [0, 1, 2], 0.1)  # during the begin: 3 actions for a batch of 4
+    assert [r[:2] for r in eff.rejects] == [("action", "length")] and "3 actions for a batch of 4" in eff.rejects[0][2]
+    assert 0 not in p.answers and p.joining
+    _everyone_acts(p, 0.2)
+    assert p.t == 2 and p.present == set(range(N))
+    for wrong in ([0, 1, 2, 3, 0], [1]):  # step 2: too many, too few
+        eff = _act(p, 4, wrong, 0.3)
+        assert [r[:2] for r in eff.rejects] == [("action", "length")] and not eff.publish and 4 not in p.answers
+    assert _everyone_acts(p, 0.4, agents=range(N - 1)).publish == []  # agent 4 is still waited for
+    assert p.t == 2 and p.next_wakeup() == pytest.approx(0.2 + p.settings.act_deadline)
+    eff = _act(p, 4, [4, 4, 4, 4], 0.5)  # the right length: accepted, the step goes
+    assert not eff.rejects and p.t == 3 and not eff.counters
+    assert _records(eff, "step") == [_step(0, 2, "step", range(N), size=4)]
+
+
+def _progress(p: WorldProtocol, trained: int, now: float, run: str = "test") -> WorldEffects:
+    return p.on_trainer({"run": run, "trained": trained, "updates": 10 * trained}, now)
+
+
+def test_the_pace_gate_waits_for_the_trainer_and_gives_up_on_a_silent_one() -> None:
+    # batch 1 from episode 2: step t of episode 2 is global step g = 2 h + t - 1; with lag 1 it needs trained >= g - 1
+    p = _protocol(pace=True, trainer_lag=1, trainer_deadline=10.0, first_episode=2, episodes=2, join_timeout=5.0)
+    g1 = 2 * H
+    p.start(0.0)
+    assert p.gate_since == 0.0 and p.next_wakeup() == pytest.approx(0.5)  # the begin is still announced
+    assert _everyone_acts(p, 0.1, agents=range(N - 1)).publish == []  # agent 4 does not answer the begin
+    eff = p.tick(6.0)  # past the join timeout, but the gate is closed: the agents' deadline does not run
+    assert p.joining and _records(eff, "observation") == [] and _records(eff, "step") == [_step(2, 0, "begin")]
+    eff = _progress(p, g1 - 2, 6.1)  # not enough yet
+    assert _records(eff, "observation") == [] and p.joining and p.trained == g1 - 2
+    eff = _progress(p, g1 + 50, 6.2, run="another")
+    assert eff.drops == [("trainer_progress", "other_run")] and p.trained == g1 - 2
+    eff = _progress(p, g1 - 1, 7.0)  # the gate opens: the begin's deadline starts now
+    assert _records(eff, "observation") == [] and p.joining and p.gate_since is None
+    assert p.deadline == pytest.approx(7.0 + p.settings.join_timeout)
+    assert _records(p.tick(11.9), "observation") == []
+    eff = p.tick(12.0)  # the join timeout, counted from the gate's opening: start without agent 4
+    assert eff.log == [("warning", "starting without agents [4]")]
+    assert _records(eff, "step")[0] == _step(2, 1, "step", [0, 1, 2, 3]) and p.t == 2
+    # step 2 (g1 + 1) waits for trained >= g1
+    assert p.gate_since == 12.0
+    assert _everyone_acts(p, 12.1, agents=range(N - 2)).publish == []  # agent 3 is late
+    assert p.status() == (True, f"act episode 2 step 2: waiting for the trainer (trained up to step {g1 - 1})")
+    assert p.values()["trainer_trained"] == str(g1 - 1)
+    eff = p.tick(15.0)  # past the act deadline: nothing, the gate is closed
+    assert eff.publish == [] and not eff.counters and p.t == 2
+    eff = _progress(p, g1, 16.0)  # the gate opens; the act deadline starts now
+    assert eff.publish == [] and p.deadline == pytest.approx(16.0 + p.settings.act_deadline)
+    assert p.next_wakeup() == pytest.approx(18.0)
+    assert p.tick(17.9).publish == []
+    eff = p.tick(18.0)
+    assert _records(eff, "step") == [_step(2, 2, "step", [0, 1, 2])] and eff.counters["absent_agent_steps"] == 1
+    # step 3 (g1 + 2) waits for trained >= g1 + 1; the trainer stays silent and is given up after its deadline
+    assert p.gate_since == 18.0 and p.next_wakeup() == pytest.approx(18.0 + p.settings.act_deadline)
+    assert _everyone_acts(p, 18.5, agents=range(N - 2)).publish == []
+    eff = p.tick(27.9)
+    assert eff.publish == [] and not eff.counters
+    eff = p.tick(28.0)
+    assert eff.counters["trainer_timeouts"] == 1 and [level for level, _ in eff.log] == ["warning"]
+    assert "no progress from the trainer for 10 s" in eff.log[0][1]
+    assert _records(eff, "step") == [_step(2, 3, "step", [0, 1, 2])] and not p.trainer_live
+    # the run goes on without it: steps go as soon as the live agents answered
+    _everyone_acts(p, 28.1, agents=range(N - 2))
+    assert p.t == 5 and p.gate_since is None
+    eff = _progress(p, g1 + 1, 28.2)  # heard again: it is waited for again
+    assert eff.log == [("info", f"the trainer is back (trained up to step {g1 + 1})")] and p.trainer_live
+    assert _everyone_acts(p, 28.3, agents=range(N - 2)).publish == [] and p.t == 5  # step 5 (g1 + 4) waits
+    eff = _progress(p, 4 * H, 28.4)  # the trainer catches up with everything: step 5 goes
+    assert p.t == 6 and len(_records(eff, "observation")) == N and p.gate_since is None
+    _everyone_acts(p, 28.5, agents=range(N - 2))
+    assert p.t == 7
+    eff = _finish_batch(p, 29.0)  # and to the next episode
+    assert [m["episode"] for m in _records(eff, "episode_metrics")] == [2] and p.episode == 3
+    assert _records(eff, "step")[-1] == _step(3, 0, "begin")
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="src bug: while the pace gate is closed, next_wakeup() keeps returning the agents' deadline once it has "
+    "passed (a busy loop in the world node until the trainer reports or trainer_deadline), and during a begin "
+    "nudge_at stays at that past deadline, so every tick announces the begin again; remove this marker once fixed",
+)
+def test_a_gated_world_sleeps_until_the_trainer_or_its_deadline() -> None:
+    p = _protocol(pace=True, trainer_lag=1, trainer_deadline=10.0, first_episode=2, episodes=2, join_timeout=5.0)
+    p.start(0.0)
+    _everyone_acts(p, 0.1)
+    p.tick(6.0)  # past the join timeout, gated
+    assert p.next_wakeup() > 6.0
+    assert _records(p.tick(6.01), "step") == []  # no new announcement before NUDGE has passed
+    _progress(p, 2 * H - 1, 7.0)  # step 1 goes; step 2 waits for the trainer
+    assert p.t == 2 and p.gate_since == 7.0
+    _everyone_acts(p, 7.1)
+    p.tick(7.0 + p.settings.act_deadline + 1.0)  # past the act deadline, gated
+    assert p.next_wakeup() > 7.0 + p.settings.act_deadline + 1.0
+
+
+def test_the_pace_gate_only_applies_to_the_lockstep_clock_with_pace() -> None:
+    for kw in ({"pace": False}, {"pace": True, "clock": "free", "period": 0.1}):
+        p = _protocol(trainer_lag=1, first_episode=2, **kw)
+        p.start(0.0)
+        _everyone_acts(p, 0.0)
+        assert p.t == 2 and p.gate_since is None
 
 
 # ----- the protocol with the agents' minds, in one process --------------------------------------------------------
@@ -224,21 +395,22 @@ def _loopback_run(
     policies: list[AgentPolicy],
     epsilon: float,
     silent: frozenset[int] = frozenset(),
+    batch: int = 1,
 ) -> tuple[list[dict[str, Any]], dict[int, list[dict[str, Any]]]]:
-    """Run `episodes` episodes of WorldProtocol with one AgentMind per agent, delivering every record in order
-    (the actions and readies of the `silent` agents are lost); when nothing is left to deliver, the clock jumps to
-    the protocol's next deadline. Returns the world's episode log and each agent's episode logs."""
+    """Run `episodes` episodes of WorldProtocol in batches of `batch` with one AgentMind per agent, delivering
+    every record in order, its arrays as lists (the actions and readies of the `silent` agents are lost); when
+    nothing is left to deliver, the clock jumps to the protocol's next deadline. Returns the world's episode log
+    and each agent's episode logs."""
     model = Model.build(scenario)
-    proto = WorldProtocol(
-        scenario, LockstepSettings(seed=seed, first_episode=first, episodes=episodes, linger=0.0), model
-    )
-    minds = [AgentMind(scenario, i, seed, policies[i], model=model) for i in range(scenario.n_agents)]
+    settings = LockstepSettings(seed=seed, first_episode=first, episodes=episodes, linger=0.0, batch=batch)
+    proto = WorldProtocol(scenario, settings, model)
+    minds = [AgentMind(scenario, i, seed, policies[i], model=model, batch=batch) for i in range(scenario.n_agents)]
     queue: deque[tuple[str, str, Any]] = deque()
     world_log: list[dict[str, Any]] = []
     agent_logs: dict[int, list[dict[str, Any]]] = {i: [] for i in range(scenario.n_agents)}
 
     def from_world(eff: WorldEffects) -> None:
-        # an agent answers a repeated begin with the same action again: the world drops the duplicate
+        # an agent answers a repeated begin with the same actions again: the world drops the duplicate
         assert set(eff.drops) <= {("action", "duplicate")} and not eff.rejects, (eff.drops, eff.rejects)
         queue.extend(("world", kind, fields) for kind, fields in eff.publish)
         world_log.extend(eff.episode_log)
@@ -247,13 +419,14 @@ def _loopback_run(
         assert eff.drop is None, eff.drop
         m = minds[i]
         if eff.broadcast is not None:
-            queue.append(("agent", "broadcast", (i, m.episode, *eff.broadcast)))
+            t, a, levels = eff.broadcast
+            queue.append(("agent", "broadcast", (i, m.episode, t, a.tolist(), levels.tolist())))
         if eff.action is not None and i not in silent:
-            queue.append(
-                ("agent", "action", {"agent": i, "episode": m.episode, "step": eff.action[0], "action": eff.action[1]})
-            )
+            rec = {"agent": i, "episode": m.episode, "step": eff.action[0], "actions": eff.action[1].tolist()}
+            queue.append(("agent", "action", rec))
         if eff.ready is not None:
-            agent_logs[i].append({"episode": m.episode, **m.log})
+            assert m.episode is not None
+            agent_logs[i].extend({"episode": m.episode + j, **m.episode_log(j)} for j in range(m.size))
             if i not in silent:
                 queue.append(("agent", "ready", {"agent": i, "episode": m.episode, "step": eff.ready}))
 
@@ -267,18 +440,20 @@ def _loopback_run(
         _, kind, rec = queue.popleft()
         if kind == "step" and rec["phase"] == "begin":
             for i, m in enumerate(minds):
-                from_agent(i, m.begin(rec["episode"], epsilon))
-        elif kind == "step":
+                from_agent(i, m.begin(rec["episode"], epsilon, size=rec["size"]))
+        elif kind == "step" and rec["phase"] == "end":
             for i, m in enumerate(minds):
                 from_agent(i, m.end(rec["episode"], rec["step"]))
+        elif kind == "step":  # step t was applied: the agents learn it from their observations
+            assert rec["phase"] == "step" and rec["size"] == proto.size
         elif kind == "observation":
             i = rec["agent"]
-            from_agent(i, minds[i].observe(rec["episode"], rec["step"], rec["level"], rec["acted"], now))
+            from_agent(i, minds[i].observe(rec["episode"], rec["step"], rec["levels"], rec["acted"], now))
         elif kind == "broadcast":
-            j, e, t, a, level = rec
+            j, e, t, a, levels = rec
             for i, m in enumerate(minds):
                 if i != j:
-                    from_agent(i, m.hear(j, e, t, a, level))
+                    from_agent(i, m.hear(j, e, t, a, levels))
         elif kind == "action":
             from_world(proto.on_action(rec, now))
         elif kind == "ready":
@@ -289,34 +464,44 @@ def _loopback_run(
 def _assert_equal_to_rollout(
     world_log: list[dict[str, Any]], agent_logs: dict[int, list[dict[str, Any]]], ref: Any
 ) -> None:
+    """`ref(e)` is the in-process trajectory of the batch holding episode e and e's index in it."""
     for w in world_log:
         e = w["metrics"]["episode"]
-        tr = ref(e)
-        assert np.array_equal(tr.levels[:, 0], w["levels"]), f"episode {e}: levels"
-        assert np.array_equal(tr.actions[:, 0], w["actions"]), f"episode {e}: actions"
-        assert np.array_equal(tr.observations[:, 0], w["observations"]), f"episode {e}: observations"
+        tr, j = ref(e)
+        assert np.array_equal(tr.levels[:, j], w["levels"]), f"episode {e}: levels"
+        assert np.array_equal(tr.actions[:, j], w["actions"]), f"episode {e}: actions"
+        assert np.array_equal(tr.observations[:, j], w["observations"]), f"episode {e}: observations"
         for i, logs in agent_logs.items():
             (rec,) = [x for x in logs if x["episode"] == e]
-            assert rec["actions"] == tr.actions[:, 0, i].tolist(), f"episode {e} agent {i}: actions"
-            assert rec["messages"] == tr.messages[:, 0, i].tolist(), f"episode {e} agent {i}: broadcasts"
-            assert rec["rewards"] == tr.rewards[:, 0, i].tolist(), f"episode {e} agent {i}: rewards"
+            assert rec["actions"] == tr.actions[:, j, i].tolist(), f"episode {e} agent {i}: actions"
+            assert rec["messages"] == tr.messages[:, j, i].tolist(), f"episode {e} agent {i}: broadcasts"
+            assert rec["rewards"] == tr.rewards[:, j, i].tolist(), f"episode {e} agent {i}: rewards"
 
 
 @pytest.mark.parametrize(
-    ("team", "name", "seed", "first"), [("heterogeneous", "greedy", 11, 0), ("homogeneous", "random", 5, 40)]
+    ("team", "name", "seed", "first", "episodes", "batch"),
+    [
+        ("heterogeneous", "greedy", 11, 0, 3, 1),
+        ("homogeneous", "random", 5, 40, 3, 1),
+        ("heterogeneous", "random", 3, 8, 6, 4),  # batches of 4 and 2 episodes
+    ],
 )
-def test_protocol_with_the_minds_equals_team_rollout(team: str, name: str, seed: int, first: int) -> None:
+def test_protocol_with_the_minds_equals_team_rollout(
+    team: str, name: str, seed: int, first: int, episodes: int, batch: int
+) -> None:
     sc = builtin(team)
     pols = [builtin_policy(sc, name, i) for i in range(sc.n_agents)]
     policies, eps = [p for p, _ in pols], pols[0][1]
-    world_log, agent_logs = _loopback_run(sc, seed, first, 3, policies, eps)
-    assert [w["metrics"]["episode"] for w in world_log] == [first, first + 1, first + 2]
+    world_log, agent_logs = _loopback_run(sc, seed, first, episodes, policies, eps, batch=batch)
+    assert [w["metrics"]["episode"] for w in world_log] == list(range(first, first + episodes))
     assert all(w["metrics"]["absent"] == [0] * sc.n_agents for w in world_log)
+    last = first + episodes
 
     def ref(e: int) -> Any:
+        b = e // batch
         dp = DecentralizedPolicy(policies, seed, eps)
-        dp.begin(e)
-        return rollout(Team(sc, 1, seed, episode=e), dp)
+        dp.begin(b)
+        return rollout(Team(sc, min(batch, last - b * batch), seed, episode=b), dp), e - b * batch
 
     _assert_equal_to_rollout(world_log, agent_logs, ref)
 
@@ -333,6 +518,6 @@ def test_protocol_with_a_silent_agent_equals_an_inactive_one() -> None:
     def ref(e: int) -> Any:
         dp = DecentralizedPolicy(policies, 4, 0.0)
         dp.begin(e)
-        return rollout(Team(SC, 1, 4, episode=e, inactive=(2,)), dp)
+        return rollout(Team(SC, 1, 4, episode=e, inactive=(2,)), dp), 0
 
     _assert_equal_to_rollout(world_log, agent_logs, ref)

@@ -18,26 +18,28 @@ VALID: dict[str, dict[str, Any]] = {
         "clock": "lockstep",
         "first_episode": 0,
         "episodes": 1,
+        "batch": 2,
+        "trainer_lag": 1,
         "state": "running",
         "layout": "0123abcd",
         "scenario": {"name": "paper"},
     },
-    "htlm/step": {"episode": 1, "step": 0, "phase": "begin"},
-    "htlm/action": {"agent": 1, "episode": 1, "step": 3, "action": 2},
-    "htlm/observation": {"agent": 1, "episode": 1, "step": 3, "task": 2, "level": 3, "acted": [0, 1, 2]},
-    "htlm/broadcast": {"agent": 1, "episode": 1, "step": 3, "action": 2, "level": 3},
+    "htlm/step": {"episode": 2, "size": 2, "step": 3, "phase": "step", "acted": [0, 1, 2]},
+    "htlm/action": {"agent": 1, "episode": 2, "step": 3, "actions": [2, 5]},
+    "htlm/observation": {"agent": 1, "episode": 2, "step": 3, "tasks": [2, -1], "levels": [3, -1], "acted": [0, 1, 2]},
+    "htlm/broadcast": {"agent": 1, "episode": 2, "step": 3, "actions": [2, 5], "levels": [3, -1]},
     "htlm/ready": {"agent": 1, "episode": 1, "step": 30},
     "htlm/transition": {
         "agent": 1,
         "session": "0123456789abcdef",
         "seq": 0,
-        "episode": 1,
+        "episode": 2,
         "step": 3,
-        "k": [0.0] * 26,
-        "a": 2,
-        "r": 1.5,
-        "k2": [0.0] * 26,
-        "mask2": [True] * 5 + [False],
+        "k": [[0.0] * 26, [0.5] * 26],
+        "a": [2, 5],
+        "r": [1.5, -0.25],
+        "k2": [[0.0] * 26, [0.25] * 26],
+        "mask2": [[True] * 5 + [False], [False] * 4 + [True] * 2],
         "done": False,
     },
     "htlm/transition_ack": {"agent": 1, "session": "0123456789abcdef", "upto": 5},
@@ -45,13 +47,21 @@ VALID: dict[str, dict[str, Any]] = {
         "agent": 1,
         "version": 3,
         "episode": 2,
+        "trained": 90,
+        "every": 1,
         "encoding": "base64",
         "data": "AAAA",
         "sha256": "0" * 64,
         "settings": {},
     },
+    "htlm/trainer_progress": {"run": "r1", "trained": 90, "updates": 12},
     "htlm/belief": {"agent": 1, "episode": 1, "step": 3, "marginals": [0.2] * 20, "confident": [1, 2, 3, 4]},
-    "htlm/ground_truth": {"episode": 1, "step": 3, "levels": [1, 2, 3, 4], "actions": [0, 1, 2, 3, 4]},
+    "htlm/ground_truth": {
+        "episode": 2,
+        "step": 3,
+        "levels": [[1, 2, 3, 4], [0, 1, 2, 4]],
+        "actions": [[0, 1, 2, 3, 4], [5, -1, 2, 3, 4]],
+    },
     "htlm/episode_metrics": {
         "episode": 1,
         "completion": 9,
@@ -64,9 +74,11 @@ VALID: dict[str, dict[str, Any]] = {
         "seconds": 0.3,
     },
 }
-"""A valid record of every schema for the paper scenario's limits (5 agents, 4 tasks, 6 actions, 5 levels, h 30)."""
+"""A valid record of every schema for the paper scenario's limits (5 agents, 4 tasks, 6 actions, 5 levels, h 30);
+the per-step records are of a batch of B = 2 episodes (2 and 3)."""
 
 PAPER_LIMITS = S.limits(5, 4, 6, 5, 30)
+"""The paper scenario's limits, with the default bound on the batch (4096 episodes per record)."""
 
 
 def wrong_type(fld: S.Field, rng: random.Random) -> Any:
@@ -101,6 +113,9 @@ def out_of_range(fld: S.Field, rng: random.Random, lim: dict[str, int]) -> Any:
         return [fld.hi * 10 + 1.0] * (S.bound(fld.length, lim) if fld.length is not None else 1)
     if isinstance(fld, S.BoolList):
         return [True] * (S.bound(fld.length, lim) + 1)
+    if isinstance(fld, S.Rows):  # one episode's value out of range
+        inner = out_of_range(fld.item, rng, lim)
+        return None if inner is None else [inner]
     return None
 
 
@@ -135,7 +150,10 @@ def malformed(
         elif kind == 3:
             yield json.dumps({"schema": rng.choice(["htlm/nope", "", 7, None]), "v": schema.version, **rec})
         elif kind == 4:
-            yield json.dumps({"schema": schema.name, "v": rng.choice([0, 2, 99, "1", 1.0, True, None]), **rec})
+            v = schema.version
+            yield json.dumps(
+                {"schema": schema.name, "v": rng.choice([0, v + 1, 99, str(v), float(v), True, None]), **rec}
+            )
         elif kind == 5:
             rec.pop(rng.choice(names))
             yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
@@ -158,10 +176,21 @@ def malformed(
             rec[names[0]] = "x" * (schema.max_bytes + 10 if schema.max_bytes <= 1 << 20 else 70_000)
             yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
         elif kind == 11:  # lists of the wrong length or with bad entries
-            lists = [k for k, fld in schema.fields.items() if isinstance(fld, (S.IntList, S.FloatList, S.BoolList))]
+            lists = [
+                k for k, fld in schema.fields.items() if isinstance(fld, (S.IntList, S.FloatList, S.BoolList, S.Rows))
+            ]
             if lists:
                 k = rng.choice(lists)
-                rec[k] = rng.choice([[1] * 1000, [float("nan")] * 3, ["a"], [None], [[1]]])
+                fld = schema.fields[k]
+                if isinstance(fld, S.Rows):  # per-episode arrays: no rows, too many, a row of the wrong length
+                    row = rec[k][0]
+                    if isinstance(row, list):
+                        wrong = [row[:-1]] if len(row) > 1 else [row * 2]
+                    else:
+                        wrong = [row] * (S.bound(fld.max_rows, lim) + 1)
+                    rec[k] = rng.choice([[], wrong, [float("nan")], ["a"], [None]])
+                else:
+                    rec[k] = rng.choice([[1] * 1000, [float("nan")] * 3, ["a"], [None], [[1]]])
             else:
                 rec[names[-1]] = [[[]]]
             yield json.dumps({"schema": schema.name, "v": schema.version, **rec}).replace("NaN", "NaN")
