@@ -333,7 +333,7 @@ def test_the_pace_gate_waits_for_the_trainer_and_gives_up_on_a_silent_one() -> N
     eff = p.tick(18.0)
     assert _records(eff, "step") == [_step(2, 2, "step", [0, 1, 2])] and eff.counters["absent_agent_steps"] == 1
     # step 3 (g1 + 2) waits for trained >= g1 + 1; the trainer stays silent and is given up after its deadline
-    assert p.gate_since == 18.0 and p.next_wakeup() == pytest.approx(18.0 + p.settings.act_deadline)
+    assert p.gate_since == 18.0 and p.next_wakeup() == pytest.approx(18.0 + p.settings.trainer_deadline)
     assert _everyone_acts(p, 18.5, agents=range(N - 2)).publish == []
     eff = p.tick(27.9)
     assert eff.publish == [] and not eff.counters
@@ -356,12 +356,6 @@ def test_the_pace_gate_waits_for_the_trainer_and_gives_up_on_a_silent_one() -> N
     assert _records(eff, "step")[-1] == _step(3, 0, "begin")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="src bug: while the pace gate is closed, next_wakeup() keeps returning the agents' deadline once it has "
-    "passed (a busy loop in the world node until the trainer reports or trainer_deadline), and during a begin "
-    "nudge_at stays at that past deadline, so every tick announces the begin again; remove this marker once fixed",
-)
 def test_a_gated_world_sleeps_until_the_trainer_or_its_deadline() -> None:
     p = _protocol(pace=True, trainer_lag=1, trainer_deadline=10.0, first_episode=2, episodes=2, join_timeout=5.0)
     p.start(0.0)

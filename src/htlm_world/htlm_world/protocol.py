@@ -319,10 +319,12 @@ class WorldProtocol:
             return math.inf
         if self.phase == "stopped":
             return self.linger_until
-        gate = math.inf if self.gate_since is None else self.gate_since + self.settings.trainer_deadline
+        if self.gate_since is not None:  # waiting for the trainer: the agents' deadline does not run meanwhile
+            gate = self.gate_since + self.settings.trainer_deadline
+            return min(self.nudge_at, gate) if self.joining else gate
         if self.joining:
-            return min(self.deadline, self.nudge_at, gate)
-        return min(self.deadline, gate)
+            return min(self.deadline, self.nudge_at)
+        return self.deadline
 
     def tick(self, now: float) -> WorldEffects:
         """Look at the clock (and, while an episode begins, at who listens): apply what is due."""
@@ -497,7 +499,7 @@ class WorldProtocol:
 
     def _announce_begin(self, now: float, out: WorldEffects) -> None:
         out.publish.append(self._step_record(0, "begin", []))
-        self.nudge_at = min(self.deadline, now + NUDGE)
+        self.nudge_at = now + NUDGE if self.deadline <= now else min(self.deadline, now + NUDGE)
 
     def _step_record(self, t: int, phase: str, acted: list[int]) -> tuple[str, dict[str, Any]]:
         return ("step", {"episode": self.episode, "size": self.size, "step": t, "phase": phase, "acted": acted})

@@ -36,6 +36,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="episodes to run (default: train 20, evaluate 10, deploy 0 = until Ctrl-C)",
     )
     p.add_argument("--first-episode", type=int, default=0, help="index of the first episode (seeds derive from it)")
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=None,
+        help="B, episodes run at once through the same processes (default: train the learner's envs, evaluate 128, "
+        "deploy 1)",
+    )
     p.add_argument("--seed", type=int, default=0, help="master seed")
     p.add_argument(
         "--policy",
@@ -114,7 +121,19 @@ def run(args: argparse.Namespace) -> int:
     if args.mode in ("evaluate", "deploy") and args.policy in ("auto", "checkpoint") and not args.checkpoint:
         print(f"htlm launch {args.mode}: needs --checkpoint DIR (or --policy greedy / random)")
         return 2
-    episodes = args.episodes if args.episodes is not None else {"train": 20, "evaluate": 10, "deploy": 0}[args.mode]
+    from htlm_agent.learning.settings import Settings
+
+    try:
+        learner = Settings.from_dict(dict(args.learner), "--set")
+    except ValueError as e:
+        print(f"htlm launch: {e}")
+        return 2
+    default_episodes = {"train": learner.episodes, "evaluate": 500, "deploy": 0}[args.mode]
+    episodes = args.episodes if args.episodes is not None else default_episodes
+    batch = args.batch if args.batch is not None else {"train": learner.envs, "evaluate": 128, "deploy": 1}[args.mode]
+    if batch < 1 or args.first_episode % batch:
+        print(f"htlm launch: --batch {batch}: must be >= 1 and divide --first-episode {args.first_episode}")
+        return 2
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_dir = Path(args.run_dir or f"runs/launch-{args.mode}__{args.seed}__{stamp}")
     only = tuple(x.strip() for x in args.only.split(",") if x.strip())
@@ -128,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
         scenario_file=args.scenario,
         episodes=episodes,
         first_episode=args.first_episode,
+        batch=batch,
         seed=args.seed,
         run_dir=run_dir,
         policy=args.policy,
@@ -147,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
     code = run_team(cfg)
     out: dict[str, Any] = {"mode": args.mode, "run_dir": str(run_dir), "exit_code": code, **summarize(run_dir)}
     ckpt = run_dir / "trainer" / "checkpoint"
-    eval_episodes = 5 if args.eval_episodes is None else args.eval_episodes
+    eval_episodes = 500 if args.eval_episodes is None else args.eval_episodes
     if args.mode == "train" and code == 0 and (ckpt / "meta.json").exists():
         out["checkpoint"] = str(ckpt)
         if eval_episodes > 0 and (not only or "world" in only):
@@ -157,7 +177,8 @@ def run(args: argparse.Namespace) -> int:
                     **cfg.__dict__,
                     "mode": "evaluate",
                     "episodes": eval_episodes,
-                    "first_episode": 1_000_000,  # evaluation episodes apart from the training ones
+                    "first_episode": 0,  # evaluation streams (seeds.world), apart from the training ones
+                    "batch": min(128, eval_episodes),
                     "run_dir": run_dir / "evaluate",
                     "policy": "checkpoint",
                     "checkpoint": str(ckpt),

@@ -37,16 +37,9 @@ EXIT_CODES = {
 
 DISCOVERY = {"localhost": "LOCALHOST", "subnet": "SUBNET", "off": "OFF", "system_default": "SYSTEM_DEFAULT"}
 
-DEFAULT_LEARNER = {
-    "learning_starts": 150,
-    "batch_size": 64,
-    "memory": 20_000,
-    "envs": 1,
-    "eps_fraction": 0.7,
-    "updates_per_step": 1,
-    "target_sync": 100,
-}
-"""Learner settings of a launched training run unless overridden (short runs over ROS, one episode at a time)."""
+DEFAULT_LEARNER: dict[str, Any] = {}
+"""Learner settings of a launched training run unless overridden: none, so training over ROS uses the settings of
+`htlm train` (htlm_agent.learning.settings.Settings), with B = envs episodes per batch."""
 
 
 @dataclass
@@ -62,7 +55,9 @@ class LaunchConfig:
     episodes: int = 10
     """Episodes the world runs (0: until stopped)."""
     first_episode: int = 0
-    """Index of the first episode."""
+    """Index of the first episode (a multiple of `batch`)."""
+    batch: int = 1
+    """B, episodes run at once (the learner's envs in train mode)."""
     seed: int = 0
     """Master seed."""
     run_dir: Path = Path("runs/launch")
@@ -147,6 +142,7 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         "mode": cfg.mode,
         "episodes": cfg.episodes,
         "first_episode": cfg.first_episode,
+        "batch": cfg.batch,
         "run_dir": str(run),
         "run_id": f"{run.name}"[:64].replace(" ", "_"),
         **cfg.world_params,

@@ -361,6 +361,10 @@ def run_node(
         code = 130
     finally:
         cleanup(node)
+        health = getattr(node, "health", None)
+        if health is not None and health.counters:
+            counts = ", ".join(f"{k} {v}" for k, v in sorted(health.counters.items()))
+            node.get_logger().info(f"counters at exit: {counts}")
         node.destroy_node()
         rclpy.try_shutdown()
     return code
