@@ -172,6 +172,7 @@ class TrainerCore:
         self.batch_metrics: list[dict[str, Any]] = []
         self.published_trained = -1
         self.version = 0
+        self._settings_dict: dict[str, Any] | None = None
 
     def _next_epoch(self) -> int:
         """A counter of trainer starts in this run directory, so weight versions grow across restarts."""
@@ -351,7 +352,15 @@ class TrainerCore:
                 )
             )
             return out
-        if not all(any(m) for m in rec["mask2"]):
+        rec = {
+            **rec,
+            "k": np.asarray(rec["k"], dtype=np.float64),
+            "a": np.asarray(rec["a"], dtype=np.int64),
+            "r": np.asarray(rec["r"], dtype=np.float64),
+            "k2": np.asarray(rec["k2"], dtype=np.float64),
+            "mask2": np.asarray(rec["mask2"], dtype=bool),
+        }  # once, for the store and the learner
+        if not rec["mask2"].any(axis=1).all():
             out.rejects.append(("transitions", "range", "mask2 allows no action"))
             return out
         agent, session = rec["agent"], rec["session"]
@@ -428,11 +437,11 @@ class TrainerCore:
         assert sc is not None
         if len(rnd.records) == sc.n_agents:  # everyone: exactly `htlm train`'s store_batch of the step
             recs = [rnd.records[i] for i in range(sc.n_agents)]
-            k = np.stack([np.asarray(r["k"], dtype=np.float64) for r in recs], axis=1)
-            k2 = np.stack([np.asarray(r["k2"], dtype=np.float64) for r in recs], axis=1)
-            a = np.stack([np.asarray(r["a"], dtype=np.int64) for r in recs], axis=1)
-            rew = np.stack([np.asarray(r["r"], dtype=np.float64) for r in recs], axis=1)
-            m2 = np.stack([np.asarray(r["mask2"], dtype=bool) for r in recs], axis=1)
+            k = np.stack([r["k"] for r in recs], axis=1)
+            k2 = np.stack([r["k2"] for r in recs], axis=1)
+            a = np.stack([r["a"] for r in recs], axis=1)
+            rew = np.stack([r["r"] for r in recs], axis=1)
+            m2 = np.stack([r["mask2"] for r in recs], axis=1)
             self.learner.store_batch(k, a, rew, k2, m2, bool(recs[0]["done"]))
         else:
             out.counters["partial_rounds"] += 1
@@ -542,7 +551,9 @@ class TrainerCore:
             return []
         self.published_trained = self.trained
         self.version += 1
-        settings = self.learner.settings.to_dict()
+        if self._settings_dict is None:
+            self._settings_dict = self.learner.settings.to_dict()
+        settings = self._settings_dict
         out = []
         for i in range(self.learner.n_agents):
             data = self.learner.agent_weights(i)

@@ -89,6 +89,7 @@ class AgentNode(Node):
         self.learner_settings: Any = None
         self.weights_version = -1
         self.versions: dict[int, Any] = {}  # trained -> AgentQ: the weights the trainer took after that step
+        self._settings_data: Any = None
         self.weights_every = 1
         self.batch = 1
         self.trainer_lag = 0
@@ -368,18 +369,20 @@ class AgentNode(Node):
             self.health.reject("weights", "data", "sha256 mismatch")
             return
         try:
-            from htlm_agent.learning.qnet import AgentQ, layer_sizes
+            from htlm_agent.learning.qnet import AgentQ, layer_sizes, param_shapes, unpack_weights
             from htlm_agent.learning.settings import Settings
 
-            ls = Settings.from_dict(rec["settings"], "weights.settings")
-            net = self.net
-            if net is None or tuple(net.sizes) != layer_sizes(self.scenario, ls.hidden):
-                net = AgentQ(layer_sizes(self.scenario, ls.hidden))
-            net.set_weights(data)
+            if self.learner_settings is None or rec["settings"] != self._settings_data:
+                ls = Settings.from_dict(rec["settings"], "weights.settings")
+                self._settings_data = rec["settings"]
+            else:
+                ls = self.learner_settings
+            sizes = layer_sizes(self.scenario, ls.hidden)
+            net = AgentQ(sizes, unpack_weights(data, param_shapes(sizes)))  # every version its own network
         except ValueError as e:
             self.health.reject("weights", "data", str(e))
             return
-        self.net = None  # every version is its own network (the agent may act with an older one)
+        self.net = net
         self.learner_settings = ls
         self.weights_version = rec["version"]
         self.weights_every = rec["every"]
