@@ -69,8 +69,9 @@ class LockstepSettings:
     pace: bool = False
     """Wait for the trainer (train mode): step g is applied only once the trainer has finished the gradient updates
     of every step before g - trainer_lag (its /htlm/trainer/progress records)."""
-    trainer_lag: int = 1
-    """k of the rate limiter: how many steps the trainer's updates may lag behind the world."""
+    trainer_lag: int = 0
+    """k of the rate limiter: how many steps the trainer's updates may lag behind the world (0: the agents act with
+    the networks of every update before the step, exactly as `htlm train`)."""
     trainer_deadline: float = 30.0
     """Longest wait for the trainer's progress, seconds; then the world goes on without it until it is heard."""
 
