@@ -187,11 +187,27 @@ def run(args: argparse.Namespace) -> int:
             )
             code = run_team(ecfg)
             out["evaluation"] = {"exit_code": code, **summarize(ecfg.run_dir)}
+            if code == 0:
+                out["result"] = _report(sc, args.seed, episodes, eval_episodes, run_dir, ecfg.run_dir)
     if args.json:
         print(json.dumps(out))
     else:
         _print_summary(out)
     return code
+
+
+def _report(sc: Any, seed: int, train_episodes: int, episodes: int, run_dir: Path, eval_dir: Path) -> dict[str, Any]:
+    """The learned team (evaluated over ROS) beside random, greedy and the optimum: run_dir/result.{csv,json,png}."""
+    import sys
+
+    from htlm_agent.experiments.ros_report import baseline_rows, learned_row, write_report
+
+    print(f"htlm launch: evaluating the baselines in process on {episodes} episodes (seed {seed})", file=sys.stderr)
+    rows = [learned_row(eval_dir / "world.jsonl"), *baseline_rows(sc, episodes, seed)]
+    info = {"team": sc.team, "seed": seed, "train_episodes": train_episodes, "eval_episodes": episodes}
+    doc = write_report(run_dir, rows, info)
+    doc["files"] = [str(run_dir / f"result.{x}") for x in ("csv", "json", "png")]
+    return doc
 
 
 def _print_summary(out: dict[str, Any]) -> None:
@@ -206,7 +222,17 @@ def _print_summary(out: dict[str, Any]) -> None:
 
     print(line(out["mode"], out))
     if "evaluation" in out:
-        print(line("evaluation of the trained team", out["evaluation"]))
+        print(line("evaluation of the trained team over ROS", out["evaluation"]))
+    if "result" in out:
+        from htlm_agent.experiments.ros_report import table
+
+        r = out["result"]
+        print(
+            f"\nthe team trained over ROS 2 beside the baselines "
+            f"({r['eval_episodes']} episodes each, seed {r['seed']}):"
+        )
+        print(table(r["rows"]))
+        print("result: " + ", ".join(r["files"]))
     if "checkpoint" in out:
         print(f"checkpoint: {out['checkpoint']}")
     print(f"run directory: {out['run_dir']} (exit code {out['exit_code']})")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -249,6 +250,48 @@ class _Tail:
                 print(f"{self.prefix}{line.split(']: ', 1)[-1]}", flush=True)
 
 
+class _ProgressTail(_Tail):
+    """Follow the world's log and show its finished episodes as a progress line (rate, ETA, running completion)."""
+
+    PATTERN = re.compile(r"episodes? (\d+)(?:\.\.(\d+))?: completion ([0-9.]+)(?: \(mean\))?(?:, (\d+) failed)?")
+
+    def __init__(self, path: Path, total: int, first: int) -> None:
+        from htlm_agent.experiments.progress import Progress
+
+        super().__init__(path, ("episode",), "")
+        self.first = first
+        self.bar = Progress(total, unit="ep")
+        self.done = 0
+        self.comp_sum = 0.0
+        self.failed = 0
+
+    def poll(self) -> None:
+        try:
+            with open(self.path, "rb") as f:
+                f.seek(self.pos)
+                data = f.read()
+        except OSError:
+            return
+        cut = data.rfind(b"\n") + 1
+        self.pos += cut
+        for line in data[:cut].decode(errors="replace").splitlines():
+            m = self.PATTERN.search(line)
+            if m is None:
+                continue
+            lo, hi = int(m.group(1)), int(m.group(2) or m.group(1))
+            n = hi - lo + 1
+            self.done = hi + 1 - self.first
+            self.comp_sum += float(m.group(3)) * n
+            self.failed += int(m.group(4) or ("(failed)" in line))
+            seen = max(self.done, 1)
+            self.bar.update(
+                self.done, completion=f"{self.comp_sum / seen:.2f}", failed=f"{self.failed / seen:.1%}", last=m.group(3)
+            )
+
+    def close(self) -> None:
+        self.bar.close()
+
+
 def run_team(cfg: LaunchConfig) -> int:
     """Start the team, wait for it to finish, stop it cleanly; returns the exit code (EXIT_CODES)."""
     got: list[int] = []
@@ -267,15 +310,15 @@ def run_team(cfg: LaunchConfig) -> int:
             flush=True,
             file=sys.stderr,
         )
-        tails = (
-            [
-                _Tail(p.log, ("episode", "ERROR", "checkpoint", "resumed"), f"[{p.name}] ")
-                for p in procs
-                if p.name in ("world", "trainer")
-            ]
-            if cfg.echo
-            else []
-        )
+        tails: list[_Tail] = []
+        if cfg.echo:
+            for p in procs:
+                if p.name == "world" and cfg.mode == "train" and cfg.episodes:
+                    tails.append(_ProgressTail(p.log, cfg.episodes, cfg.first_episode))
+                elif p.name == "world":
+                    tails.append(_Tail(p.log, ("episode", "ERROR"), "[world] "))
+                elif p.name == "trainer":
+                    tails.append(_Tail(p.log, ("ERROR", "resumed", "validation"), "[trainer] "))
         world = next((p for p in procs if p.name == "world"), None)
         start_t = time.monotonic()
         ended_at: float | None = None
@@ -334,6 +377,8 @@ def run_team(cfg: LaunchConfig) -> int:
                 break
         for t in tails:
             t.poll()
+            if isinstance(t, _ProgressTail):
+                t.close()
         return code
     finally:
         stop(procs, signal.SIGKILL, wait=1.0)  # nothing survives the launcher
@@ -350,11 +395,14 @@ def summarize(run_dir: Path) -> dict[str, Any]:
     if not eps:
         return {"episodes": 0}
     comp = [e["completion"] for e in eps]
+    batches: dict[float, list[int]] = {}  # the episodes of one batch share their absences and seconds
+    for e in eps:
+        batches.setdefault(e["seconds"], e["absent"])
     return {
         "episodes": len(eps),
         "completion_mean": sum(comp) / len(comp),
         "failure_rate": sum(e["failed"] for e in eps) / len(eps),
         "unused_fraction_mean": sum(e["unused_fraction"] for e in eps) / len(eps),
-        "absent_agent_steps": sum(sum(e["absent"]) for e in eps),
-        "seconds": sum(e["seconds"] for e in eps),
+        "absent_agent_steps": sum(sum(a) for a in batches.values()),
+        "seconds": sum(batches),
     }

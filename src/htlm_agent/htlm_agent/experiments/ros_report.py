@@ -1,0 +1,136 @@
+"""The result of a team trained and evaluated over ROS, beside the baselines: a table (printed), result.csv,
+result.json and result.png in the run directory.
+
+The learned team's row comes from the world's episode log (world.jsonl) of the evaluation run over ROS; the
+baselines (random, greedy, and the centralized optimum that reads the true state) are evaluated in process on the
+same number of episodes with the same master seed (`htlm evaluate --baseline`), so every row is measured, none is
+drawn from constants.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from htlm_world.metrics import mean_se
+from htlm_world.scenario import Scenario
+
+FIELDS = ("policy", "runtime", "episodes", "completion_mean", "completion_se", "failure_rate", "unused_fraction")
+"""Columns of result.csv (and keys of every row of result.json)."""
+
+BASELINES = ("random", "greedy", "optimal")
+"""Baselines shown beside the learned team."""
+
+
+class ReportError(ValueError):
+    """No finished episode to report on; names the file."""
+
+
+def world_rows(world_log: Path) -> list[dict[str, Any]]:
+    """The per-episode metrics of a world.jsonl (one line per finished episode).
+
+    Raises:
+        ReportError: the file is missing or holds no episode.
+    """
+    if not world_log.exists():
+        raise ReportError(f"{world_log}: no episode log (did the run start?)")
+    rows = [json.loads(line)["metrics"] for line in world_log.read_text().splitlines() if line.strip()]
+    if not rows:
+        raise ReportError(f"{world_log}: no finished episode")
+    return rows
+
+
+def _row(policy: str, runtime: str, completion: Any, failed: Any, unused: Any) -> dict[str, Any]:
+    m, se = mean_se(np.asarray(completion, dtype=np.float64))
+    return {
+        "policy": policy,
+        "runtime": runtime,
+        "episodes": len(completion),
+        "completion_mean": round(m, 4),
+        "completion_se": round(se, 4),
+        "failure_rate": round(float(np.mean(failed)), 4),
+        "unused_fraction": round(float(np.mean(unused)), 4),
+    }
+
+
+def learned_row(world_log: Path, name: str = "learned (HTLM DQN)") -> dict[str, Any]:
+    """The row of the team evaluated over ROS, from its world.jsonl."""
+    eps = world_rows(world_log)
+    return _row(
+        name,
+        "ROS 2",
+        [e["completion"] for e in eps],
+        [e["failed"] for e in eps],
+        [e["unused_fraction"] for e in eps],
+    )
+
+
+def baseline_rows(scenario: Scenario, episodes: int, seed: int) -> list[dict[str, Any]]:
+    """random, greedy and the optimum, evaluated in process on `episodes` episodes of master seed `seed`."""
+    from htlm_agent.baselines.registry import make_baseline
+    from htlm_agent.experiments.evaluate import evaluate_run
+
+    rows = []
+    for name in BASELINES:
+        policy, sc = make_baseline(name, scenario, seed=seed)
+        ev = evaluate_run(policy, sc, episodes, seed=seed, policy_name=name)
+        em = ev.episodes
+        rows.append(_row(name, "in process", em.completion, em.failed, em.unused_fraction))
+    return rows
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """The rows as an aligned text table."""
+    head = f"{'policy':<22} {'runtime':<11} {'episodes':>8}  {'completion':>15}  {'failures':>8}  {'unused':>7}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        comp = f"{r['completion_mean']:.2f} ± {r['completion_se']:.2f}"
+        lines.append(
+            f"{r['policy']:<22} {r['runtime']:<11} {r['episodes']:>8}  {comp:>15}  {r['failure_rate']:>8.1%}  "
+            f"{r['unused_fraction']:>7.1%}"
+        )
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
+    """Completion step (mean ± 2 SE) and failure rate of every row, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [r["policy"] for r in rows]
+    x = np.arange(len(rows))
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    colors = ["tab:green" if r["runtime"] == "ROS 2" else "tab:gray" for r in rows]
+    ax1.bar(x, [r["completion_mean"] for r in rows], yerr=[2 * r["completion_se"] for r in rows], color=colors)
+    ax1.set_xticks(x, names, rotation=15)
+    ax1.set_ylabel("completion step (lower is better), mean ± 2 SE")
+    ax2.bar(x, [100 * r["failure_rate"] for r in rows], color=colors)
+    ax2.set_xticks(x, names, rotation=15)
+    ax2.set_ylabel("failed episodes (%)")
+    for ax in (ax1, ax2):
+        ax.grid(axis="y", alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_report(out_dir: Path, rows: list[dict[str, Any]], info: dict[str, Any]) -> dict[str, Any]:
+    """result.csv, result.json and result.png in `out_dir`; returns the JSON document."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with (out_dir / "result.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+    doc = {**info, "rows": rows}
+    (out_dir / "result.json").write_text(json.dumps(doc, indent=2) + "\n")
+    title = f"{info.get('team', '')}: team trained over ROS 2 ({info.get('train_episodes', '?')} episodes) vs baselines"
+    plot(rows, out_dir / "result.png", title)
+    return doc
