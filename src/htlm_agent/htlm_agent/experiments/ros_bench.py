@@ -1,6 +1,7 @@
-"""`htlm bench ros`: lockstep steps per second of a team over ROS 2 (world + 5 agent processes + trainer = 7
-processes on real DDS) and its ratio to the in-process runtime (batch 1, the same per-agent policies), measured in
-one run. Also `python -m htlm_agent.experiments.ros_bench [--json]`.
+"""`htlm bench ros`: episode-steps per second of the batched lockstep over ROS 2 (world + 5 agent processes +
+trainer = 7 processes on real DDS) at B = 1, 16, 64 and 128, each beside the in-process runtime at the same B with
+the same per-agent policies, and the wall time of a training run over ROS beside `htlm train` with the same budget,
+all measured in one run. Also `python -m htlm_agent.experiments.ros_bench [--json]`.
 """
 
 from __future__ import annotations
@@ -14,31 +15,42 @@ import time
 from pathlib import Path
 from typing import Any
 
-TARGET_STEPS_PER_S = 100.0
-"""The ROS runtime's target on a 2-core machine (issue 4)."""
+TARGET_EPISODE_STEPS_PER_S = 5000.0
+"""Target of the batched lockstep at B = 64 with 7 processes on a 2-core machine (episode-steps per second)."""
+
+TARGET_TRAIN_RATIO = 2.0
+"""Target: a training run over ROS takes at most this many times the wall time of `htlm train` with its budget."""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of the ROS benchmark (added to `htlm bench`)."""
-    p.add_argument("--ros-episodes", type=int, default=20, help="ros: episodes of the timed run (default 20)")
     p.add_argument(
-        "--ros-mode",
-        choices=("evaluate", "train"),
-        default="evaluate",
-        help="ros: evaluate (greedy policy per agent, default) or train (Q-networks, ε-greedy, learner)",
+        "--ros-batches",
+        default="1,16,64,128",
+        help="ros: batch sizes B to time, comma-separated (default 1,16,64,128)",
+    )
+    p.add_argument(
+        "--ros-batches-timed", type=int, default=3, help="ros: batches timed per B after the first (default 3)"
     )
     p.add_argument(
         "--ros-policy",
         choices=("greedy", "random"),
         default="greedy",
-        help="ros, evaluate: the agents' built-in policy (default greedy)",
+        help="ros: the agents' built-in policy of the timed evaluations (default greedy)",
+    )
+    p.add_argument(
+        "--ros-train-episodes",
+        type=int,
+        default=1024,
+        help="ros: episodes of the timed training runs, over ROS and in process (default 1024; 0: none; the "
+        "default budget of htlm train is 32768)",
     )
     p.add_argument("--domain-id", type=int, default=99, help="ros: ROS_DOMAIN_ID of the timed team (default 99)")
-    p.add_argument("--keep", default="", metavar="DIR", help="ros: keep the run directory here")
+    p.add_argument("--keep", default="", metavar="DIR", help="ros: keep the run directories here")
 
 
-def inprocess_rate(policy: str, episodes: int, seed: int = 0) -> float:
-    """Steps per second of the in-process runtime, batch 1, with the same decentralized per-agent policies."""
+def inprocess_rate(policy: str, batch: int, batches: int, seed: int = 0) -> float:
+    """Episode-steps per second of the in-process runtime at batch B with the same per-agent policies."""
     from htlm_agent.mind.policies import DecentralizedPolicy, builtin_policy
     from htlm_agent.runtime.team import Team, rollout
     from htlm_world.scenario import builtin
@@ -47,70 +59,133 @@ def inprocess_rate(policy: str, episodes: int, seed: int = 0) -> float:
     pols = [builtin_policy(sc, policy, i) for i in range(sc.n_agents)]
     dp = DecentralizedPolicy([p for p, _ in pols], seed, pols[0][1])
     dp.begin(0)
-    rollout(Team(sc, 1, seed, episode=0), dp)  # warm-up
+    rollout(Team(sc, batch, seed, episode=0), dp)  # warm-up
     t0 = time.perf_counter()
-    for e in range(episodes):
-        dp.begin(e)
-        rollout(Team(sc, 1, seed, episode=e), dp)
-    return episodes * sc.horizon / (time.perf_counter() - t0)
+    for b in range(1, batches + 1):
+        dp.begin(b)
+        rollout(Team(sc, batch, seed, episode=b), dp)
+    return batches * batch * sc.horizon / (time.perf_counter() - t0)
 
 
-def ros_bench(args: argparse.Namespace) -> dict[str, Any]:
-    """Run a team over ROS, time its lockstep steps, and the in-process runtime right after."""
+def _batch_seconds(run_dir: Path, batch: int) -> list[float]:
+    """Seconds of every finished batch of a run (world.jsonl: the episodes of a batch share its seconds)."""
+    f = run_dir / "world.jsonl"
+    eps = [json.loads(x)["metrics"] for x in f.read_text().splitlines()] if f.exists() else []
+    return [eps[i]["seconds"] for i in range(0, len(eps), batch)]
+
+
+def ros_rate(batch: int, batches: int, policy: str, domain: int, run_dir: Path) -> tuple[float, int]:
+    """Episode-steps per second over ROS at batch B (the first batch, with the start-up, is not timed), and the
+    absent agent-steps of the run."""
+    from htlm_agent.ros.launch import LaunchConfig, run_team, summarize
+    from htlm_world.scenario import builtin
+
+    sc = builtin()
+    cfg = LaunchConfig(
+        mode="evaluate",
+        scenario=sc,
+        episodes=batch * (batches + 1),
+        batch=batch,
+        seed=0,
+        run_dir=run_dir,
+        policy=policy,
+        domain_id=domain,
+        echo=False,
+    )
+    code = run_team(cfg)
+    secs = _batch_seconds(run_dir, batch)
+    if code != 0 or len(secs) < batches + 1:
+        raise SystemExit(f"htlm bench ros: the team failed at B={batch} (exit {code}); logs in {run_dir / 'logs'}")
+    timed = secs[1:]
+    return batch * sc.horizon * len(timed) / sum(timed), int(summarize(run_dir).get("absent_agent_steps", 0))
+
+
+def train_walls(episodes: int, domain: int, run_dir: Path) -> dict[str, float]:
+    """Wall seconds of a training run over ROS (7 processes, start-up included) and of `htlm train` in process,
+    both with `episodes` episodes of the default settings and no validation or final evaluation."""
+    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.settings import Settings
     from htlm_agent.ros.launch import LaunchConfig, run_team
     from htlm_world.scenario import builtin
 
-    episodes = max(3, int(getattr(args, "ros_episodes", 20)))
-    mode = getattr(args, "ros_mode", "evaluate")
-    policy = getattr(args, "ros_policy", "greedy")
-    keep = getattr(args, "keep", "")
-    tmp = None
-    if keep:
-        run_dir = Path(keep)
-    else:
-        tmp = tempfile.TemporaryDirectory(prefix="htlm-bench-ros-")
-        run_dir = Path(tmp.name)
     sc = builtin()
+    learner = {"episodes": episodes, "validate_every": 0, "eval_episodes": 0}
+    s = Settings.from_dict(learner, "bench")
     cfg = LaunchConfig(
-        mode=mode,
+        mode="train",
         scenario=sc,
         episodes=episodes,
+        batch=s.envs,
         seed=0,
-        run_dir=run_dir,
-        policy=policy if mode == "evaluate" else "auto",
-        domain_id=int(getattr(args, "domain_id", 99)),
+        run_dir=run_dir / "ros-train",
+        learner=learner,
+        domain_id=domain,
         echo=False,
     )
     t0 = time.monotonic()
     code = run_team(cfg)
-    wall = time.monotonic() - t0
-    lines = (run_dir / "world.jsonl").read_text().splitlines() if (run_dir / "world.jsonl").exists() else []
-    eps = [json.loads(x)["metrics"] for x in lines]
-    if code != 0 or len(eps) < episodes:
-        raise SystemExit(
-            f"htlm bench ros: the team failed (exit {code}, {len(eps)} of {episodes} episodes); "
-            f"logs in {run_dir / 'logs'}"
+    ros_wall = time.monotonic() - t0
+    if code != 0:
+        raise SystemExit(f"htlm bench ros: the training run failed (exit {code}); logs in {cfg.run_dir / 'logs'}")
+    t0 = time.monotonic()
+    train(sc, s, run_dir / "inprocess-train", progress=False, tensorboard=False, evaluate_at_end=False)
+    return {"ros": ros_wall, "inprocess": time.monotonic() - t0}
+
+
+def ros_bench(args: argparse.Namespace) -> dict[str, Any]:
+    """Time the batched lockstep over ROS at every B (and the in-process runtime at the same B right after), then a
+    training run over ROS beside `htlm train`; every ratio is of two numbers measured in this run."""
+    batches = [int(x) for x in str(getattr(args, "ros_batches", "1,16,64,128")).split(",") if x.strip()]
+    timed = max(1, int(getattr(args, "ros_batches_timed", 3)))
+    policy = getattr(args, "ros_policy", "greedy")
+    domain = int(getattr(args, "domain_id", 99))
+    train_episodes = int(getattr(args, "ros_train_episodes", 1024))
+    keep = getattr(args, "keep", "")
+    tmp = None
+    if keep:
+        root = Path(keep)
+    else:
+        tmp = tempfile.TemporaryDirectory(prefix="htlm-bench-ros-")
+        root = Path(tmp.name)
+    rows = []
+    for b in batches:
+        n = timed if b > 1 else max(timed, 20)
+        rate, absent = ros_rate(b, n, policy, domain, root / f"B{b}")
+        inproc = inprocess_rate(policy, b, max(n, 3))
+        rows.append(
+            {
+                "batch": b,
+                "ros_episode_steps_per_s": round(rate, 1),
+                "inprocess_episode_steps_per_s": round(inproc, 1),
+                "ratio_ros_to_inprocess": round(rate / inproc, 3),
+                "absent_agent_steps": absent,
+            }
         )
-    timed = eps[1:]  # the first episode includes the start-up of the processes
-    seconds = sum(e["seconds"] for e in timed)
-    steps = len(timed) * sc.horizon
-    ros_rate = steps / seconds
-    inproc = inprocess_rate(policy if mode == "evaluate" else "random", max(10, episodes))
-    out = {
-        "processes": 2 + sc.n_agents,
-        "agents": sc.n_agents,
-        "mode": mode,
-        "policy": policy if mode == "evaluate" else "q-network (epsilon-greedy) + learner",
-        "episodes_timed": len(timed),
-        "ros_lockstep_steps_per_s": round(ros_rate, 1),
-        "inprocess_steps_per_s_B1": round(inproc, 1),
-        "ratio_ros_to_inprocess": round(ros_rate / inproc, 3),
-        "target_steps_per_s": TARGET_STEPS_PER_S,
-        "target_met": ros_rate >= TARGET_STEPS_PER_S,
-        "absent_agent_steps": sum(sum(e["absent"]) for e in eps),
-        "launch_wall_s": round(wall, 1),
-        "cpu_count": os.cpu_count(),
+        print(
+            f"B={b:4d}: {rate:9.1f} episode-steps/s over ROS, {inproc:10.1f} in process (ratio {rate / inproc:.3f})",
+            file=sys.stderr,
+            flush=True,
+        )
+    out: dict[str, Any] = {
+        "processes": 7,
+        "policy": policy,
+        "batches": rows,
+        "target_episode_steps_per_s_at_B64": TARGET_EPISODE_STEPS_PER_S,
     }
+    at64 = [r for r in rows if r["batch"] == 64]
+    if at64:
+        out["target_met_at_B64"] = at64[0]["ros_episode_steps_per_s"] >= TARGET_EPISODE_STEPS_PER_S
+    if train_episodes > 0:
+        walls = train_walls(train_episodes, domain, root)
+        out["training"] = {
+            "episodes": train_episodes,
+            "ros_wall_s": round(walls["ros"], 1),
+            "inprocess_wall_s": round(walls["inprocess"], 1),
+            "ratio_ros_to_inprocess": round(walls["ros"] / walls["inprocess"], 2),
+            "target_ratio": TARGET_TRAIN_RATIO,
+            "target_met": walls["ros"] <= TARGET_TRAIN_RATIO * walls["inprocess"],
+        }
+    out["cpu_count"] = os.cpu_count()
     if tmp is not None:
         tmp.cleanup()
     return out
