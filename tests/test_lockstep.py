@@ -203,19 +203,20 @@ def test_mind_random_policy_uses_the_exploration_generator() -> None:
     assert len({int(x[1][0]) for x in a if x}) > 1
 
 
-def _rec(agent: int, session: str, seq: int) -> dict[str, object]:
+def _rec(agent: int, session: str, seq: int, batch: int = 3) -> dict[str, object]:
+    """One agent's transitions of one step in a batch of `batch` episodes (from episode 4): one row each."""
     return {
         "agent": agent,
         "session": session,
         "seq": seq,
-        "episode": 1,
+        "episode": 4,
         "step": seq % 30 + 1,
-        "k": [0.5] * 26,
-        "a": 2,
-        "r": -1.25,
-        "k2": [0.25] * 26,
-        "mask2": [True] * 5 + [False],
-        "done": False,
+        "k": np.full((batch, 26), 0.5) + np.arange(batch)[:, None],
+        "a": np.arange(batch) % 6,
+        "r": -1.25 * np.arange(1, batch + 1),
+        "k2": np.full((batch, 26), 0.25),
+        "mask2": np.tile([True] * 5 + [False], (batch, 1)),
+        "done": seq % 30 == 29,
     }
 
 
@@ -225,20 +226,25 @@ def test_store_acknowledges_only_durable_records_and_survives_reopen(tmp_path: P
     s = "0123456789abcdef"
     assert st.append(_rec(1, s, 0)) and st.append(_rec(1, s, 2))
     assert not st.append(_rec(1, s, 0))
-    assert st.acked_upto(1, s) == -1  # not flushed yet
+    assert st.contains(1, s, 2) and st.count == 0 and st.acked_upto(1, s) == -1  # not flushed yet
     assert st.flush() == [(1, s)]
-    assert st.acked_upto(1, s) == 0  # seq 1 is missing
+    assert st.acked_upto(1, s) == 0 and st.count == 6  # seq 1 is missing; 3 rows per record
     st.append(_rec(1, s, 1))
     st.flush()
     assert st.acked_upto(1, s) == 2
     st.close()
     with open(path, "ab") as f:
-        f.write(b"\x01" * 100)  # a torn record
+        f.write(b"\x01" * 100)  # a torn row
     st2 = TransitionStore(path, 26, 6)
-    assert st2.count == 3 and st2.truncated == 1 and st2.acked_upto(1, s) == 2
+    assert st2.count == 9 and st2.truncated == 1 and st2.acked_upto(1, s) == 2
     assert not st2.append(_rec(1, s, 1))
     recs = read_store(path)
-    assert recs["seq"].tolist() == [0, 2, 1] and recs["r"][0] == -1.25 and recs["k"][0, 0] == 0.5
+    assert recs["seq"].tolist() == [0, 0, 0, 2, 2, 2, 1, 1, 1]
+    assert recs["row"].tolist() == [0, 1, 2] * 3 and set(recs["rows"].tolist()) == {3}
+    assert recs["episode"].tolist() == [4, 5, 6] * 3 and recs["step"].tolist()[3:6] == [3, 3, 3]
+    assert recs["r"][:3].tolist() == [-1.25, -2.5, -3.75] and recs["k"][1, 0] == 1.5 and recs["a"][2] == 2
+    assert recs["mask2"][0].tolist() == [1, 1, 1, 1, 1, 0]
+    assert [r["seq"] for r in st2.records(6)] == [1, 1, 1]
     st2.close()
     with pytest.raises(StoreError, match="layout"):
         TransitionStore(path, 20, 6)
@@ -248,14 +254,43 @@ def test_store_detects_a_corrupted_record(tmp_path: Path) -> None:
     path = tmp_path / "t.bin"
     st = TransitionStore(path, 26, 6)
     for i in range(4):
-        st.append(_rec(0, "aaaaaaaaaaaaaaaa", i))
+        st.append(_rec(0, "aaaaaaaaaaaaaaaa", i, batch=2))
     st.close()
     data = bytearray(path.read_bytes())
-    data[-10] ^= 0xFF  # flip a bit of the last record
+    data[-10] ^= 0xFF  # flip a bit of the last row: its whole record goes
     path.write_bytes(bytes(data))
     st2 = TransitionStore(path, 26, 6)
-    assert st2.count == 3 and st2.acked_upto(0, "aaaaaaaaaaaaaaaa") == 2
+    assert st2.count == 6 and st2.truncated == 2 and st2.acked_upto(0, "aaaaaaaaaaaaaaaa") == 2
     st2.close()
+    assert read_store(path)["seq"].tolist() == [0, 0, 1, 1, 2, 2]
+
+
+@pytest.mark.parametrize("cut", ["rows", "bytes"])
+def test_store_cuts_a_record_torn_in_the_middle_of_its_rows(tmp_path: Path, cut: str) -> None:
+    """A crash after 2 of a record's 4 rows (or in the middle of its third row): the whole record is cut on reopen,
+    its seq is not acknowledged, and the agent's resend is accepted and stored again."""
+    path = tmp_path / "t.bin"
+    s = "bbbbbbbbbbbbbbbb"
+    st = TransitionStore(path, 26, 6)
+    for i in range(3):
+        st.append(_rec(2, s, i, batch=4))
+    st.close()
+    size = st.size
+    data = path.read_bytes()
+    keep = len(data) - 2 * size if cut == "rows" else len(data) - 2 * size + size // 2
+    path.write_bytes(data[:keep])
+    st2 = TransitionStore(path, 26, 6)
+    assert st2.count == 8 and st2.acked_upto(2, s) == 1 and not st2.contains(2, s, 2)
+    assert st2.truncated == (2 if cut == "rows" else 3)
+    assert read_store(path)["seq"].tolist() == [0] * 4 + [1] * 4
+    assert st2.append(_rec(2, s, 2, batch=4)) and st2.flush() == [(2, s)]
+    assert st2.acked_upto(2, s) == 2 and st2.count == 12
+    st2.close()
+    st3 = TransitionStore(path, 26, 6)
+    assert st3.count == 12 and st3.truncated == 0 and st3.acked_upto(2, s) == 2
+    recs = read_store(path)
+    assert recs["seq"].tolist()[8:] == [2] * 4 and recs["row"].tolist()[8:] == [0, 1, 2, 3]
+    st3.close()
 
 
 @pytest.mark.parametrize(

@@ -1,169 +1,290 @@
-"""The trainer's core without ROS (htlm_agent.learning.trainer.TrainerCore): the training schedule (rounds per
-received transitions, the backlog limit, weights and checkpoints when due) is deterministic, and a trainer started
-again on its run directory resumes from the checkpoint and the store's later records."""
+"""The trainer's core without ROS (htlm_agent.learning.trainer.TrainerCore): rounds of updates per step of the
+batched lockstep (run in step order once every agent that acted sent its transitions, or after the deadline) are
+deterministic and equal `htlm train`'s store_batch + train_steps; progress after every round, weights on a fixed
+cadence, checkpoints every few episodes; a trainer started again on its run directory resumes from the checkpoint
+and the store's later records."""
 
 from __future__ import annotations
 
+import json
+import random
+import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
+from htlm_agent.learning.dqn import Learner
+from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.trainer import Schedule, TrainerCore, TrainerEffects, load_learner_data
 from htlm_world.model import Model
 from htlm_world.scenario import builtin
 
 SC = builtin()
 N = SC.n_agents
+H = SC.horizon
 LEARNER = {
     "hidden": [16],
     "learning_starts": 4,
     "batch_size": 4,
     "memory": 200,
-    "envs": 1,
     "updates_per_step": 2,
     "episodes": 10,
+    "validate_every": 0,
 }
-EVERY = Schedule(train_every=5, train_budget=1e9, max_backlog=500, publish_every=1, checkpoint_every=0)
+SCHED = Schedule(weights_every=1, round_deadline=5.0, checkpoint_every=0)
+MODEL = Model.build(SC)
 
 
-def _scenario(mode: str = "train", run: str = "r1", state: str = "running", episodes: int = 0) -> dict[str, Any]:
+def _scenario(
+    mode: str = "train", run: str = "r1", state: str = "running", episodes: int = 0, first: int = 0, batch: int = 2
+) -> dict[str, Any]:
     return {
         "run": run,
         "seed": 7,
         "mode": mode,
         "clock": "lockstep",
-        "first_episode": 0,
+        "first_episode": first,
         "episodes": episodes,
+        "batch": batch,
+        "trainer_lag": 0,
         "state": state,
         "layout": SC.layout_hash(),
         "scenario": SC.to_dict(),
     }
 
 
-def _transitions(count: int, episode: int = 0, seed: int = 0, start: int = 0) -> list[dict[str, Any]]:
-    """`count` valid transition records, round robin over the agents (session per agent, seq from `start`)."""
-    rng = np.random.default_rng(seed)
-    model = Model.build(SC)
+def _step(g: int, batch: int = 2, seed: int = 0) -> list[dict[str, Any]]:
+    """The N transition records (agent order) of global step g = batch index * H + t - 1 in batches of `batch`
+    episodes; each agent's seq is g (one record per step from its first)."""
+    b, t = divmod(g, H)
+    rng = np.random.default_rng((seed, g))
     out = []
-    for i in range(count):
-        agent = i % N
-        a = int(rng.integers(SC.n_tasks))
+    for agent in range(N):
+        a = rng.integers(SC.n_actions, size=batch)
         out.append(
             {
                 "agent": agent,
                 "session": f"{agent:016x}",
-                "seq": start + i // N,
-                "episode": episode,
-                "step": i // N % SC.horizon + 1,
-                "k": rng.random(SC.knowledge_size).tolist(),
-                "a": a,
-                "r": float(rng.normal()),
-                "k2": rng.random(SC.knowledge_size).tolist(),
-                "mask2": model.action_mask(np.int64(a)).tolist(),
-                "done": False,
+                "seq": g,
+                "episode": b * batch,
+                "step": t + 1,
+                "k": rng.random((batch, SC.knowledge_size)).tolist(),
+                "a": a.tolist(),
+                "r": rng.normal(size=batch).tolist(),
+                "k2": rng.random((batch, SC.knowledge_size)).tolist(),
+                "mask2": MODEL.action_mask(a).tolist(),
+                "done": t + 1 == H,
             }
         )
     return out
 
 
-def _core(run_dir: Path, schedule: Schedule = EVERY, resume: bool = True, mode: str = "train") -> TrainerCore:
-    core = TrainerCore(run_dir, schedule, dict(LEARNER), "test", resume)
-    eff = core.on_scenario(_scenario(mode), 0.0)
+def _steps(lo: int, hi: int, batch: int = 2, seed: int = 0) -> list[dict[str, Any]]:
+    """The records of global steps lo .. hi - 1, step by step in agent order."""
+    return [r for g in range(lo, hi) for r in _step(g, batch, seed)]
+
+
+def _core(
+    run_dir: Path, schedule: Schedule = SCHED, batch: int = 2, resume: bool = True, **scenario: Any
+) -> TrainerCore:
+    core = TrainerCore(run_dir, schedule, {**LEARNER, "envs": batch}, "test", resume)
+    eff = core.on_scenario(_scenario(batch=batch, **scenario), 0.0)
     assert eff.fatal is None, eff.fatal
     return core
 
 
-def _feed(core: TrainerCore, recs: list[dict[str, Any]]) -> TrainerEffects:
-    out = TrainerEffects()
-    for r in recs:
-        eff = core.on_transition(r, 1.0)
-        out.drops += eff.drops
-        out.rejects += eff.rejects
+def _merge(out: TrainerEffects, eff: TrainerEffects) -> TrainerEffects:
+    out.acks += eff.acks
+    out.weights += eff.weights
+    out.progress += eff.progress
+    out.log += eff.log
+    out.counters.update(eff.counters)
+    out.drops += eff.drops
+    out.rejects += eff.rejects
     return out
 
 
-def _metrics(episode: int) -> dict[str, Any]:
-    return {"episode": episode, "completion": 30, "failed": True, "absent": [0] * N}
+def _feed(core: TrainerCore, recs: list[dict[str, Any]], now: float = 1.0) -> TrainerEffects:
+    out = TrainerEffects()
+    for r in recs:
+        _merge(out, core.on_transition(r, now))
+    return out
 
 
-def test_start_publishes_the_first_weights_and_settings(tmp_path: Path) -> None:
-    core = TrainerCore(tmp_path, EVERY, dict(LEARNER), "test")
-    assert core.epoch == 1 and core.on_transition(_transitions(1)[0], 0.0).counters == {
-        "ignored/transitions/no_scenario": 1
-    }
+def _weights(core: TrainerCore) -> list[bytes]:
+    return [core.learner.agent_weights(i) for i in range(N)]
+
+
+def test_start_publishes_the_first_weights_progress_and_settings(tmp_path: Path) -> None:
+    core = TrainerCore(tmp_path, SCHED, {**LEARNER, "envs": 2}, "test")
+    assert core.epoch == 1 and core.on_transition(_step(0)[0], 0.0).counters == {"ignored/transitions/no_scenario": 1}
     eff = core.on_scenario(_scenario(), 0.0)
     assert [w["agent"] for w in eff.weights] == list(range(N))
-    assert all(w["version"] == 2**32 + 1 and w["settings"]["seed"] == 7 for w in eff.weights)
-    assert (tmp_path / "settings.json").exists() and core.learner.settings.hidden == (16,)
-    assert any("training 5 agents" in text for _, text in eff.log)
-    assert core.publish_weights() == []  # nothing changed since
+    assert all(w["version"] == 2**32 + 1 and w["trained"] == 0 and w["settings"]["seed"] == 7 for w in eff.weights)
+    assert eff.progress == [{"run": "r1", "trained": 0, "updates": 0}]
+    assert (tmp_path / "settings.json").exists() and core.learner.settings.hidden == (16,) and core.batch == 2
+    assert any("training 5 agents" in text and "batches of 2" in text for _, text in eff.log), eff.log
+    assert core.publish_weights() == []  # nothing trained since
 
 
-def test_schedule_one_round_per_train_every_transitions(tmp_path: Path) -> None:
+def test_rounds_run_in_step_order_once_every_agent_sent_its_step(tmp_path: Path) -> None:
     core = _core(tmp_path)
-    assert _feed(core, _transitions(4)).drops == []
-    assert core.train(lambda: 0.0).counters == {}  # fewer than train_every: nothing owed yet
-    _feed(core, _transitions(56, start=1))
-    eff = core.train(lambda: 0.0)
-    assert eff.counters == {"train_calls": 1, "train_rounds": 12}  # 60 // 5 rounds
-    assert core.new_transitions == 0
-    assert core.updates == int(np.asarray(core.learner.updates).max()) > 0
-    assert core.updates <= 12 * LEARNER["updates_per_step"]
+    s0, s1, s2 = _step(0), _step(1), _step(2)
+    eff = _feed(core, s0[:-1])
+    assert eff.progress == [] and eff.counters == {} and core.trained == 0  # agent 4 missing
+    eff = _feed(core, s0[-1:])
+    assert eff.progress == [{"run": "r1", "trained": 1, "updates": 0}] and eff.counters == {"train_rounds": 1}
+    assert [w["trained"] for w in eff.weights] == [1] * N
+    eff = _feed(core, s2)  # complete, but step 1 is not: it waits
+    assert eff.progress == [] and core.trained == 1 and core.values()["rounds_waiting"] == "1"
+    eff = _feed(core, s1)
+    assert [p["trained"] for p in eff.progress] == [2, 3]  # one progress record per round, in step order
+    assert eff.counters == {"train_rounds": 2}
+    assert core.updates == int(np.asarray(core.learner.updates).max()) > 0  # 30 transitions per agent by now
+    assert eff.progress[-1]["updates"] == core.updates <= 3 * LEARNER["updates_per_step"]
+    assert int(core.learner.replay.size.sum()) == 3 * N * 2
 
 
-def test_schedule_skips_rounds_beyond_the_backlog_and_respects_the_budget(tmp_path: Path) -> None:
-    core = _core(tmp_path, Schedule(train_every=5, train_budget=1e9, max_backlog=3))
-    _feed(core, _transitions(60))
-    eff = core.train(lambda: 0.0)
-    assert eff.counters == {"skipped_rounds": 9, "train_calls": 1, "train_rounds": 3}
-    ticks = iter(range(100))
-    core2 = _core(tmp_path / "b", Schedule(train_every=5, train_budget=2.5))
-    _feed(core2, _transitions(60))
-    eff = core2.train(lambda: float(next(ticks)))  # each look at the clock is one second later
-    assert eff.counters["train_rounds"] == 2 and core2.new_transitions == 50  # the rest waits for later calls
-
-
-def test_schedule_is_deterministic(tmp_path: Path) -> None:
+def test_rounds_are_deterministic_whatever_the_arrival_order(tmp_path: Path) -> None:
+    recs = _steps(0, 40, seed=1)
+    by_agent = sorted(recs, key=lambda r: (r["agent"], r["seq"]))  # each agent sends all its steps in turn
+    shuffled = []
+    for g in range(40):  # agents in a random order within each step, now and then a step ahead of another's
+        step = recs[g * N : (g + 1) * N]
+        random.Random(g).shuffle(step)
+        shuffled += step
+    shuffled[5 * N : 7 * N] = sorted(shuffled[5 * N : 7 * N], key=lambda r: -r["seq"])
     runs = []
-    for name in ("a", "b"):
+    for name, order in (("a", recs), ("b", by_agent), ("c", shuffled)):
         core = _core(tmp_path / name)
-        for chunk in range(4):
-            _feed(core, _transitions(23, seed=chunk, start=chunk * 5))
-            core.train(lambda: 0.0)
-        runs.append((core.updates, core.last_loss, [core.learner.agent_weights(i) for i in range(N)]))
-    assert runs[0] == runs[1]
+        eff = _feed(core, order)
+        assert eff.counters["train_rounds"] == 40 and "partial_rounds" not in eff.counters
+        assert [p["trained"] for p in eff.progress] == list(range(1, 41))
+        runs.append((core.trained, core.updates, core.last_loss, core.episodes_seen, _weights(core)))
+    assert runs[0] == runs[1] == runs[2]
+    assert runs[0][3] == 2  # the first batch of 2 episodes is done
 
 
-def test_weights_and_checkpoints_when_due(tmp_path: Path) -> None:
-    core = _core(tmp_path, Schedule(train_every=5, train_budget=1e9, publish_every=2, checkpoint_every=3))
-    _feed(core, _transitions(40))
-    core.train(lambda: 0.0)
-    first = core.on_metrics(_metrics(0))
-    assert first.weights == [] and first.acks == [] and first.counters == {}
-    second = core.on_metrics(_metrics(1))
-    assert [w["version"] for w in second.weights] == [2**32 + 2] * N  # publish_every 2
-    third = core.on_metrics(_metrics(2))
-    assert third.counters["checkpoints"] == 1 and (tmp_path / "checkpoint" / "meta.json").exists()
+def test_trainer_rounds_equal_the_in_process_learner(tmp_path: Path) -> None:
+    """Round by round the trainer does what `htlm train` does per step: store_batch of every agent's transitions,
+    then train_steps(updates_per_step); the networks are identical."""
+    batch, steps = 4, 2 * H + 5
+    core = _core(tmp_path, batch=batch)
+    recs = _steps(0, steps, batch, seed=2)
+    _feed(core, sorted(recs, key=lambda r: (r["agent"], r["seq"])))
+    assert core.trained == steps
+    learner = Learner(SC, Settings.from_dict({"seed": 7, **LEARNER, "envs": batch}, "test"), 7)
+    for g in range(steps):
+        step = recs[g * N : (g + 1) * N]
+
+        def col(f: str, step: list[dict[str, Any]] = step) -> np.ndarray:
+            return np.stack([np.asarray(r[f]) for r in step], axis=1)  # (B, N, ...)
+
+        learner.store_batch(col("k"), col("a"), col("r"), col("k2"), col("mask2").astype(bool), bool(step[0]["done"]))
+        learner.train_steps(LEARNER["updates_per_step"])
+        if g % H == H - 1:
+            learner.episodes_done += batch
+    assert core.learner.episodes_done == learner.episodes_done == 2 * batch
+    assert np.array_equal(np.asarray(core.learner.updates), np.asarray(learner.updates))
+    assert _weights(core) == [learner.agent_weights(i) for i in range(N)]
+
+
+def test_a_round_waits_for_the_agents_that_acted_or_the_deadline(tmp_path: Path) -> None:
+    core = _core(tmp_path)
+    s0 = _step(0)
+    assert core.on_step({"episode": 0, "size": 2, "step": 1, "phase": "step", "acted": [0, 1, 2]}, 1.0).progress == []
+    eff = _feed(core, s0[:2])
+    assert eff.progress == []  # agent 2 acted too: its transitions are missing
+    eff = _feed(core, s0[2:3])
+    assert eff.counters == {"partial_rounds": 1, "train_rounds": 1} and [p["trained"] for p in eff.progress] == [1]
+    assert int(core.learner.replay.size.sum()) == 3 * 2
+    eff = _feed(core, s0[3:])  # the absent agents' records after all: into the memories, no round
+    assert eff.counters == {"late_transitions": 2} and eff.progress == []
+    assert int(core.learner.replay.size.sum()) == N * 2
+
+    s1 = _step(1)
+    _feed(core, s1[:4], now=10.0)  # no step record, agent 4 silent: the deadline decides
+    assert core.tick(14.0).progress == [] and core.trained == 1
+    eff = core.tick(15.5)
+    assert eff.counters == {"partial_rounds": 1, "train_rounds": 1} and [p["trained"] for p in eff.progress] == [2]
+
+    eff = _feed(core, _step(3), now=20.0)  # step 2 never comes: skipped once step 3 waited past the deadline
+    assert eff.progress == [] and core.tick(24.0).progress == []
+    eff = core.tick(25.5)
+    assert eff.counters == {"empty_rounds": 1, "train_rounds": 1} and [p["trained"] for p in eff.progress] == [4]
+    # a step record of a step already trained, or outside the run, changes nothing
+    assert core.on_step({"episode": 0, "size": 2, "step": 2, "phase": "step", "acted": [0]}, 30.0).progress == []
+    assert core.values()["rounds_waiting"] == "0"
+
+
+@pytest.mark.parametrize(("every", "first"), [(3, 0), (4, 2)])
+def test_weights_on_their_cadence_and_progress_after_every_round(tmp_path: Path, every: int, first: int) -> None:
+    """Weights when trained - first_step is a multiple of weights_every (first_step: the run's first step; with
+    first episode 2 in batches of 2 it is H = 30, not a multiple of 4), and once at start."""
+    core = TrainerCore(tmp_path, Schedule(weights_every=every, round_deadline=5.0), {**LEARNER, "envs": 2}, "test")
+    eff = core.on_scenario(_scenario(first=first), 0.0)
+    lo = core.first_step
+    assert lo == first // 2 * H and [w["trained"] for w in eff.weights] == [lo] * N
+    assert eff.progress == [{"run": "r1", "trained": lo, "updates": 0}]
+    eff = _feed(core, _steps(lo, lo + 13))
+    assert [p["trained"] for p in eff.progress] == list(range(lo + 1, lo + 14))
+    due = [g for g in range(lo + 1, lo + 14) if (g - lo) % every == 0]
+    assert [w["trained"] for w in eff.weights] == [g for g in due for _ in range(N)]
+    assert [w["version"] for w in eff.weights[::N]] == [2**32 + 2 + i for i in range(len(due))]
+    assert all(w["every"] == every and w["agent"] == i % N for i, w in enumerate(eff.weights))
+    assert core.publish_weights() != []  # asked for: the latest networks, once
+
+
+def test_batches_are_counted_logged_and_checkpointed(tmp_path: Path) -> None:
+    core = _core(tmp_path, Schedule(weights_every=1, round_deadline=5.0, checkpoint_every=4))
+    eff = _feed(core, _steps(0, H))
+    assert core.episodes_seen == 2 and "checkpoints" not in eff.counters
+    eff = _feed(core, _steps(H, 2 * H))
+    assert core.episodes_seen == 4 and eff.counters["checkpoints"] == 1
+    assert (tmp_path / "checkpoint" / "meta.json").exists()
     # the checkpoint flushed the store first: every agent session is acknowledged up to its last seq
-    assert sorted((a["agent"], a["upto"]) for a in third.acks) == [(i, 7) for i in range(N)]
-    assert core.on_metrics(_metrics(9)).drops == []  # episodes 0 (unbounded run): in the run
-    lines = (tmp_path / "train_log.jsonl").read_text().splitlines()
-    assert len(lines) == 4
+    assert sorted((a["agent"], a["upto"]) for a in eff.acks) == [(i, 2 * H - 1) for i in range(N)]
+    assert core.on_metrics({"episode": 1, "completion": 30, "failed": True, "absent": [0] * N}).drops == []
+    core.flush()
+    lines = [json.loads(x) for x in (tmp_path / "train_log.jsonl").read_text().splitlines()]
+    assert [x.get("episodes") for x in lines] == [2, 4, None] and lines[-1]["episode"] == 1
 
 
-def test_transitions_outside_the_run_duplicates_and_empty_masks(tmp_path: Path) -> None:
-    core = TrainerCore(tmp_path, EVERY, dict(LEARNER), "test")
-    core.on_scenario(_scenario(episodes=2), 0.0)
-    rec = _transitions(1)[0]
+def test_validation_at_the_end_of_a_batch(tmp_path: Path) -> None:
+    core = TrainerCore(tmp_path, SCHED, {**LEARNER, "envs": 2, "validate_every": 2, "validate_episodes": 2}, "t")
+    core.on_scenario(_scenario(), 0.0)
+    eff = _feed(core, _steps(0, H))
+    assert any(text.startswith("validation after 2 episodes") for _, text in eff.log), eff.log
+    core.flush()
+    (row,) = [json.loads(x) for x in (tmp_path / "train_log.jsonl").read_text().splitlines()]
+    assert row["episodes"] == 2 and 0 < row["val_completion"] <= H + 1
+
+
+def test_transitions_outside_the_run_duplicates_and_bad_arrays(tmp_path: Path) -> None:
+    core = _core(tmp_path, episodes=4)
+    rec = _step(0)[0]
     assert _feed(core, [rec]).drops == []
     assert _feed(core, [rec]).drops == [("transitions", "duplicate")]
-    assert _feed(core, [{**rec, "seq": 1, "episode": 2}]).drops == [("transitions", "outside_run")]
-    assert _feed(core, [{**rec, "seq": 1, "mask2": [False] * SC.n_actions}]).rejects[0][:2] == ("transitions", "range")
+    assert _feed(core, [{**rec, "seq": 1, "episode": 4}]).drops == [("transitions", "outside_run")]
+    for bad in (
+        {"r": rec["r"][:1]},
+        {"k2": rec["k2"] * 2},
+        {"mask2": rec["mask2"][:1]},
+        {"a": rec["a"] * 2, "r": rec["r"] * 2, "k": rec["k"] * 2, "k2": rec["k2"] * 2, "mask2": rec["mask2"] * 2},
+    ):
+        rejects = _feed(core, [{**rec, "seq": 1, **bad}]).rejects
+        assert [x[:2] for x in rejects] == [("transitions", "length")], bad  # the last: more rows than the batch
+    no_action = [[False] * SC.n_actions, rec["mask2"][1]]
+    assert _feed(core, [{**rec, "seq": 1, "mask2": no_action}]).rejects[0][:2] == ("transitions", "range")
     acks = core.flush().acks
     assert acks == [{"agent": 0, "session": rec["session"], "upto": 0}]  # the duplicate asks for an ack again
-    assert core.on_metrics(_metrics(5)).drops == [("episode_metrics", "outside_run")]
+    assert core.on_metrics({"episode": 5, "completion": 30, "failed": True, "absent": [0] * N}).drops == [
+        ("episode_metrics", "outside_run")
+    ]
+    assert core.on_step({"episode": 4, "size": 2, "step": 1, "phase": "step", "acted": []}, 1.0).progress == []
+    assert core.store is not None and core.store.count == 2  # one record of two rows
 
 
 def test_the_run_stopping_another_layout_and_recording_only(tmp_path: Path) -> None:
@@ -180,42 +301,90 @@ def test_the_run_stopping_another_layout_and_recording_only(tmp_path: Path) -> N
     assert core.on_scenario(bad, 11.0).rejects[0][:2] == ("scenario", "layout")
     rec_only = _core(tmp_path / "b", mode="evaluate")
     assert rec_only.learner is None and rec_only.store is not None
-    _feed(rec_only, _transitions(10))
-    assert rec_only.train(lambda: 0.0).counters == {} and rec_only.on_metrics(_metrics(0)).weights == []
-    assert len((tmp_path / "b" / "train_log.jsonl").read_text().splitlines()) == 1
+    eff = _feed(rec_only, _steps(0, 3))
+    assert eff.progress == [] and eff.weights == [] and rec_only.tick(100.0).progress == []
+    rec_only.flush()
+    assert rec_only.store.count == 3 * N * 2
+    assert len((tmp_path / "b" / "train_log.jsonl").read_text().splitlines()) == 0
+
+
+# validated and selected after the first batch, so that the checkpoint records a best score (see the xfail below)
+SELECTING = {**LEARNER, "envs": 2, "episodes": 4, "validate_every": 2, "validate_episodes": 2}
 
 
 def test_resume_from_the_checkpoint_and_the_later_records(tmp_path: Path) -> None:
-    core = _core(tmp_path, Schedule(train_every=5, train_budget=1e9, checkpoint_every=1))
-    _feed(core, _transitions(40))
-    core.train(lambda: 0.0)
-    eff = core.on_metrics(_metrics(0))
+    sched = Schedule(weights_every=1, round_deadline=5.0, checkpoint_every=2)
+    core = TrainerCore(tmp_path, sched, SELECTING, "test")
+    core.on_scenario(_scenario(), 0.0)
+    eff = _feed(core, _steps(0, H))
     assert eff.counters["checkpoints"] == 1
-    at_checkpoint = (core.updates, [core.learner.agent_weights(i) for i in range(N)])
-    later = _transitions(15, episode=1, seed=3, start=8)  # stored after the checkpoint, never trained on
+    at_checkpoint = (core.updates, _weights(core))
+    later = _steps(H, H + 10)  # stored and trained after the checkpoint
     _feed(core, later)
     core.flush()
+    assert core.trained == H + 10
     del core  # killed: no shutdown, no final checkpoint
 
-    again = TrainerCore(tmp_path, EVERY, dict(LEARNER), "test")
+    again = TrainerCore(tmp_path, sched, SELECTING, "test")
     assert again.epoch == 2
     eff = again.on_scenario(_scenario(), 0.0)
     assert eff.fatal is None
-    assert any(text.startswith("resumed from") and "1 episodes" in text for _, text in eff.log), eff.log
-    assert any("55 transitions" in text and "15 fed to the learner" in text for _, text in eff.log), eff.log
-    assert (again.updates, [again.learner.agent_weights(i) for i in range(N)]) == at_checkpoint
-    assert again.episodes_seen == 1 and again.episodes_stored == {0, 1}
-    assert int(again.learner.replay.size.sum()) == 55
-    assert all(w["version"] == 2 * 2**32 + 1 for w in eff.weights)  # versions grow across restarts
+    assert any(text.startswith("resumed from") and "2 episodes" in text for _, text in eff.log), eff.log
+    rows = (H + 10) * N * 2
+    assert any(f"{rows} transitions" in text and f"{10 * N * 2} fed to the learner" in text for _, text in eff.log)
+    # what the store holds counts as trained: the world goes on from step H + 10
+    assert again.trained == H + 10 and eff.progress == [{"run": "r1", "trained": H + 10, "updates": at_checkpoint[0]}]
+    assert (again.updates, _weights(again)) == at_checkpoint
+    assert again.episodes_seen == 2 and int(again.learner.replay.size.sum()) == rows
+    assert again.selection.episode == 2 and again.selection.flat is not None
+    assert all(w["version"] == 2 * 2**32 + 1 and w["trained"] == H + 10 for w in eff.weights)  # versions grow
     # an agent resending what was stored before the kill gets its acknowledgement, nothing is stored twice
-    assert _feed(again, later[:1]).drops == [("transitions", "duplicate")]
-    assert again.flush().acks == [{"agent": 0, "session": later[0]["session"], "upto": 10}]
-    again.shutdown(lambda: 0.0)
-    assert again.store is None
+    assert _feed(again, later[-1:]).drops == [("transitions", "duplicate")]
+    assert again.flush().acks == [{"agent": N - 1, "session": later[-1]["session"], "upto": H + 9}]
+    eff = _feed(again, _step(H + 10))
+    assert [p["trained"] for p in eff.progress] == [H + 11] and again.updates > at_checkpoint[0]
+    eff = again.shutdown(lambda: 0.0)
+    assert eff.counters["checkpoints"] == 1 and again.store is None
 
-    fresh = TrainerCore(tmp_path, EVERY, dict(LEARNER), "test", resume=False)
+    fresh = TrainerCore(tmp_path, sched, {**LEARNER, "envs": 2}, "test", resume=False)
     eff = fresh.on_scenario(_scenario(), 0.0)
     assert eff.fatal is not None and "resume is off" in eff.fatal and fresh.fatal == eff.fatal
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=TypeError,
+    reason="src bug: a checkpoint written before any validation records best_score None (Selection.info), and "
+    "Selection.__init__ (experiments/train.py) does float(None) on resume",
+)
+def test_resume_from_a_checkpoint_before_any_validation(tmp_path: Path) -> None:
+    sched = Schedule(weights_every=1, round_deadline=5.0, checkpoint_every=2)
+    core = _core(tmp_path, sched)  # validate_every 0
+    assert _feed(core, _steps(0, H)).counters["checkpoints"] == 1
+    del core
+    again = TrainerCore(tmp_path, sched, {**LEARNER, "envs": 2}, "test")
+    eff = again.on_scenario(_scenario(), 0.0)
+    assert eff.fatal is None and again.episodes_seen == 2
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="src bug: a checkpoint records store_records = store.count, which counts records of steps whose round "
+    "has not run yet (gathered, not in the replay memory); on resume they are skipped and never reach the memory",
+)
+def test_resume_keeps_records_gathered_for_a_later_round_at_the_checkpoint(tmp_path: Path) -> None:
+    sched = Schedule(weights_every=1, round_deadline=5.0, checkpoint_every=2)
+    core = TrainerCore(tmp_path, sched, SELECTING, "test")
+    core.on_scenario(_scenario(), 0.0)
+    last = _step(H - 1)
+    _feed(core, _steps(0, H - 1) + last[:-1] + _step(H))  # step H + 1 arrives before agent 4's step H
+    eff = _feed(core, last[-1:])  # round H - 1 ends the batch and checkpoints; round H runs after it
+    assert eff.counters["checkpoints"] == 1 and core.trained == H + 1
+    core.flush()
+    del core
+    again = TrainerCore(tmp_path, sched, SELECTING, "test")
+    assert again.on_scenario(_scenario(), 0.0).fatal is None
+    assert int(again.learner.replay.size.sum()) == (H + 1) * N * 2
 
 
 def test_learner_data_from_a_file_and_json(tmp_path: Path) -> None:
@@ -223,12 +392,15 @@ def test_learner_data_from_a_file_and_json(tmp_path: Path) -> None:
     f.write_text("learning_starts: 9\nhidden: [8]\n")
     data = load_learner_data(str(f), '{"learning_starts": 11}')
     assert data == {"learning_starts": 11, "hidden": [8]}
-    core = TrainerCore(tmp_path / "run", EVERY, data, str(f))
+    core = TrainerCore(tmp_path / "run", SCHED, data, str(f))
     assert core.learner_settings(3).seed == 3 and core.learner_settings(3).learning_starts == 11
     with pytest.raises(ValueError, match="settings_json"):
         load_learner_data("", "[1]")
-    with pytest.raises(ValueError, match="cannot read"):
+    with pytest.raises(ValueError, match=re.escape(f"{tmp_path / 'missing.json'}: cannot read")):
         load_learner_data(str(tmp_path / "missing.json"), "")
     f.write_text("a: [1\n")
-    with pytest.raises(ValueError, match="not YAML"):
+    with pytest.raises(ValueError, match=re.escape(f"{f}: not YAML")):
         load_learner_data(str(f), "")
+    bad = TrainerCore(tmp_path / "run2", SCHED, {"hidden": [16], "memory": 0}, str(f))
+    eff = bad.on_scenario(_scenario(), 0.0)
+    assert eff.fatal is not None and str(f) in eff.fatal and "memory" in eff.fatal
