@@ -308,7 +308,7 @@ def test_the_run_stopping_another_layout_and_recording_only(tmp_path: Path) -> N
     assert len((tmp_path / "b" / "train_log.jsonl").read_text().splitlines()) == 0
 
 
-# validated and selected after the first batch, so that the checkpoint records a best score (see the xfail below)
+# validated and selected after the first batch, so that the checkpoint records a best score (an unvalidated checkpoint resumes too: see below)
 SELECTING = {**LEARNER, "envs": 2, "episodes": 4, "validate_every": 2, "validate_episodes": 2}
 
 
@@ -351,12 +351,6 @@ def test_resume_from_the_checkpoint_and_the_later_records(tmp_path: Path) -> Non
     assert eff.fatal is not None and "resume is off" in eff.fatal and fresh.fatal == eff.fatal
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=TypeError,
-    reason="src bug: a checkpoint written before any validation records best_score None (Selection.info), and "
-    "Selection.__init__ (experiments/train.py) does float(None) on resume",
-)
 def test_resume_from_a_checkpoint_before_any_validation(tmp_path: Path) -> None:
     sched = Schedule(weights_every=1, round_deadline=5.0, checkpoint_every=2)
     core = _core(tmp_path, sched)  # validate_every 0
@@ -367,11 +361,6 @@ def test_resume_from_a_checkpoint_before_any_validation(tmp_path: Path) -> None:
     assert eff.fatal is None and again.episodes_seen == 2
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="src bug: a checkpoint records store_records = store.count, which counts records of steps whose round "
-    "has not run yet (gathered, not in the replay memory); on resume they are skipped and never reach the memory",
-)
 def test_resume_keeps_records_gathered_for_a_later_round_at_the_checkpoint(tmp_path: Path) -> None:
     sched = Schedule(weights_every=1, round_deadline=5.0, checkpoint_every=2)
     core = TrainerCore(tmp_path, sched, SELECTING, "test")

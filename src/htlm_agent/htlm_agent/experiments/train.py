@@ -186,7 +186,8 @@ class Selection:
     def __init__(self, learner: Learner, info: dict[str, Any]) -> None:
         """Start from the best recorded in a checkpoint's `info` (none for a fresh run)."""
         self.learner = learner
-        self.score: float = float(info.get("best_score", math.inf))
+        best = info.get("best_score")
+        self.score: float = math.inf if best is None else float(best)  # None: no validation counted yet
         self.episode: int = int(info.get("best_episode", -1))
         self.flat: torch.Tensor | None = None
 

@@ -298,10 +298,12 @@ class TrainerCore:
             self.selection.restore(ckpt)
         self.last_val = self.last_ckpt = self.episodes_seen
         replayed = 0
+        pending = {(int(a), str(sess), int(q)) for a, sess, q in info.get("pending_records", [])}
         for i, r in enumerate(self.store.records(0)):
             g = self.global_step(int(r["episode"]) - int(r["row"]), int(r["step"]))
             self.trained = max(self.trained, g + 1)  # what the store holds counts as trained (a restart goes on)
-            if i < fed:  # already in the checkpoint's replay memory
+            key = (int(r["agent"]), r["session"].decode(), int(r["seq"]))
+            if i < fed and key not in pending:  # already in the checkpoint's replay memory
                 continue
             self.learner.store(
                 int(r["agent"]), r["k"], int(r["a"]), float(r["r"]), r["k2"], r["mask2"].astype(bool), bool(r["done"])
@@ -407,7 +409,7 @@ class TrainerCore:
         assert self.scenario is not None
         if len(rnd.records) == self.scenario.n_agents:
             return True
-        if rnd.acted is not None and rnd.records and rnd.acted <= rnd.records.keys():
+        if rnd.acted is not None and rnd.acted <= rnd.records.keys():
             return True
         return rnd.since is not None and now - rnd.since > self.schedule.round_deadline
 
@@ -581,7 +583,12 @@ class TrainerCore:
         t0 = time.monotonic()
         s = self.learner.settings
         policy = self.selection.flat if (s.select_best and self.selection is not None) else None
-        extra = {"store_records": self.store.count, "run": self.run}
+        pending = [
+            [int(r["agent"]), str(r["session"]), int(r["seq"])]
+            for rnd in self.rounds.values()
+            for r in rnd.records.values()
+        ]
+        extra = {"store_records": self.store.count, "pending_records": pending, "run": self.run}
         if self.selection is not None:
             extra.update(self.selection.info())
         path = self.learner.save(self.dir / "checkpoint", replay=s.keep_replay, extra=extra, policy_flat=policy)

@@ -99,6 +99,7 @@ class AgentNode(Node):
         self.stopping = False
         self.stop_deadline = 0.0
         self.last_accept = time.monotonic()
+        self.world_ahead = (-1, -1)  # (episode, step) of the newest step record the world sent
         self.scenario_at = 0.0
         self.last_site = -1
         self.seq = 0
@@ -283,15 +284,30 @@ class AgentNode(Node):
                 self.mind = AgentMind(
                     self.scenario, self.index, self.seed, self.policy, self.model, self.batch, self.mode, gate
                 )
-            force = self.mind.episode is not None and time.monotonic() - self.last_accept > self.settings.resync_timeout
+            m = self.mind
+            force = m.episode is not None and time.monotonic() - self.last_accept > self.settings.resync_timeout
+            # the world applied steps of our batch that we never observed (an observation lost while a restarted
+            # agent's subscriptions were still being matched) and now begins the next batch: we cannot finish ours,
+            # so rejoin at once instead of waiting resync_timeout
+            force = force or (
+                m.episode is not None
+                and e == m.episode + m.size
+                and m.current < m.h
+                and self.world_ahead[0] == m.episode
+                and self.world_ahead[1] > m.current + 1
+            )
             size = rec["size"]
             if size > self.batch:
                 self.health.reject("step", "length", f"batch of {size} episodes > the run's batch {self.batch}")
                 return
             eff = self.mind.begin(e, self._epsilon(e, size), force=force, size=size)
-        elif self.mind is None or phase == "step":
+        elif self.mind is None:
+            return
+        elif phase == "step":
+            self.world_ahead = max(self.world_ahead, (e, t))
             return
         else:
+            self.world_ahead = max(self.world_ahead, (e, t))
             eff = self.mind.end(e, t)
         if eff.drop is None:
             self.last_accept = time.monotonic()
