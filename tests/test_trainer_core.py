@@ -308,7 +308,7 @@ def test_the_run_stopping_another_layout_and_recording_only(tmp_path: Path) -> N
     assert len((tmp_path / "b" / "train_log.jsonl").read_text().splitlines()) == 0
 
 
-# validated and selected after the first batch, so that the checkpoint records a best score (an unvalidated checkpoint resumes too: see below)
+# validated and selected after the first batch, so that the checkpoint records a best score
 SELECTING = {**LEARNER, "envs": 2, "episodes": 4, "validate_every": 2, "validate_episodes": 2}
 
 

@@ -135,32 +135,45 @@ def ros_team(tmp_path: Path) -> Iterator[Callable[..., RosTeam]]:
         t.cleanup()
 
 
-def in_process(scenario: Scenario, seed: int, episode: int, policy: str) -> Any:
-    """The in-process Team's trajectory of one episode (batch 1) with per-agent built-in policies."""
+def in_process(scenario: Scenario, seed: int, b: int, policy: str, batch: int = 1) -> Any:
+    """The in-process Team's trajectory of batch b (B = `batch` episodes b*B..b*B+B-1; with batch 1, episode b) with
+    per-agent built-in policies: Team(scenario, B, seed, episode=b) and DecentralizedPolicy.begin(b)."""
     pols = [builtin_policy(scenario, policy, i) for i in range(scenario.n_agents)]
     dp = DecentralizedPolicy([p for p, _ in pols], seed, pols[0][1])
-    dp.begin(episode)
-    return rollout(Team(scenario, 1, seed, episode=episode), dp)
+    dp.begin(b)
+    return rollout(Team(scenario, batch, seed, episode=b), dp)
 
 
 def assert_same_as_in_process(team: RosTeam, seed: int, policy: str | Callable[[int], Any]) -> int:
-    """Every episode the world logged equals the in-process rollout: levels, assignments and observations (world
-    log), and each agent's assignments, broadcast levels and rewards (agent logs). Returns the episodes compared."""
+    """Every episode the world logged equals the in-process rollout of its batch (B = the launch's batch; episode
+    e is entry e % B of batch e // B): levels, assignments and observations (world log), and each agent's
+    assignments, broadcast levels and rewards (agent logs; in train mode agents log only the first episode of each
+    batch). `policy` is a built-in policy's name or a function of the batch index b returning the trajectory of
+    Team(scenario, B, seed, b). Returns the episodes compared."""
     sc = team.cfg.scenario
+    B = max(1, team.cfg.batch)
     agents = {a.name: {x["episode"]: x for x in team.agent_episodes(a.name)} for a in sc.agents}
     episodes = team.world_episodes()
     assert episodes, "no episode finished"
+    assert len({w["metrics"]["episode"] for w in episodes}) == len(episodes), "an episode logged twice"
+    cache: dict[int, Any] = {}
     for w in episodes:
         e = w["metrics"]["episode"]
-        tr = policy(e) if callable(policy) else in_process(sc, seed, e, policy)
-        assert np.array_equal(tr.levels[:, 0], w["levels"]), f"episode {e}: levels differ"
-        assert np.array_equal(tr.actions[:, 0], w["actions"]), f"episode {e}: assignments differ"
-        assert np.array_equal(tr.observations[:, 0], w["observations"]), f"episode {e}: observations differ"
-        for i, a in enumerate(sc.agents):
-            rec = agents[a.name][e]
-            assert rec["actions"] == tr.actions[:, 0, i].tolist(), f"episode {e} {a.name}: actions differ"
-            assert rec["messages"] == tr.messages[:, 0, i].tolist(), f"episode {e} {a.name}: broadcasts differ"
-            assert rec["rewards"] == tr.rewards[:, 0, i].tolist(), f"episode {e} {a.name}: rewards differ"
+        b, i = divmod(e, B)
+        if b not in cache:
+            cache[b] = policy(b) if callable(policy) else in_process(sc, seed, b, policy, B)
+        tr = cache[b]
+        assert np.array_equal(tr.levels[:, i], w["levels"]), f"episode {e}: levels differ"
+        assert np.array_equal(tr.actions[:, i], w["actions"]), f"episode {e}: assignments differ"
+        assert np.array_equal(tr.observations[:, i], w["observations"]), f"episode {e}: observations differ"
+        for k, a in enumerate(sc.agents):
+            rec = agents[a.name].get(e)
+            if rec is None and team.cfg.mode == "train" and i > 0:
+                continue
+            assert rec is not None, f"episode {e}: {a.name} logged no record"
+            assert rec["actions"] == tr.actions[:, i, k].tolist(), f"episode {e} {a.name}: actions differ"
+            assert rec["messages"] == tr.messages[:, i, k].tolist(), f"episode {e} {a.name}: broadcasts differ"
+            assert rec["rewards"] == tr.rewards[:, i, k].tolist(), f"episode {e} {a.name}: rewards differ"
     return len(episodes)
 
 

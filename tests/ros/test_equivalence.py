@@ -1,5 +1,7 @@
 """With the same seed and policies, an evaluation over ROS (7 processes, real DDS) gives exactly the trajectories of
-the in-process runtime (team.rollout on Team(scenario, 1, seed, episode=e)), episode by episode."""
+the in-process runtime, episode by episode: with batch 1, team.rollout on Team(scenario, 1, seed, episode=e); with a
+batch of B episodes at once (world parameter `batch`), Team(scenario, B, seed, episode=b) and
+DecentralizedPolicy.begin(b) for batch b (episodes b*B..b*B+B-1)."""
 
 from __future__ import annotations
 
@@ -28,14 +30,34 @@ def test_ros_evaluation_equals_in_process(ros_team: Any, policy: str, seed: int,
     assert all(sum(w["metrics"]["absent"]) == 0 for w in team.world_episodes())
 
 
-def test_ros_evaluation_of_a_checkpoint_equals_in_process(ros_team: Any, tmp_path: Path) -> None:
+@pytest.mark.parametrize(("policy", "seed", "first"), [("greedy", 11, 0), ("random", 5, 16)])
+def test_ros_evaluation_of_a_batch_of_16_equals_team_of_that_batch(
+    ros_team: Any, policy: str, seed: int, first: int
+) -> None:
+    """16 episodes at once: every agent process keeps 16 beliefs and acts for all of them with one call; the run
+    equals Team(scenario, 16, seed, b) + DecentralizedPolicy.begin(b) of batch b = first / 16 bit for bit."""
+    team = ros_team(policy=policy, seed=seed, episodes=16, first_episode=first, batch=16)
+    team.start()
+    assert team.wait("world", 60) == 0
+    codes = team.wait_all(30)
+    assert codes == dict.fromkeys(codes, 0), codes
+    assert assert_same_as_in_process(team, seed, policy) == 16
+    eps = team.world_episodes()
+    assert sorted(w["metrics"]["episode"] for w in eps) == list(range(first, first + 16))
+    assert all(sum(w["metrics"]["absent"]) == 0 for w in eps)
+
+
+@pytest.mark.parametrize(("batch", "episodes", "first"), [(1, 2, 7), (16, 16, 32)])
+def test_ros_evaluation_of_a_checkpoint_equals_in_process(
+    ros_team: Any, tmp_path: Path, batch: int, episodes: int, first: int
+) -> None:
     """Agents load their own Q-networks (AgentQ) from a checkpoint of the learner, as `htlm evaluate` does."""
     from htlm_agent.learning.checkpoint import load_checkpoint
     from htlm_agent.learning.dqn import Learner
     from htlm_agent.learning.qnet import AgentQ
     from htlm_agent.learning.settings import Settings
 
-    team = ros_team(policy="checkpoint", seed=3, episodes=2, first_episode=7)
+    team = ros_team(policy="checkpoint", seed=3, episodes=episodes, first_episode=first, batch=batch)
     sc = team.cfg.scenario
     learner = Learner(sc, Settings(memory=1000, envs=1), seed=42)
     with np.errstate(all="ignore"):
@@ -47,12 +69,12 @@ def test_ros_evaluation_of_a_checkpoint_equals_in_process(ros_team: Any, tmp_pat
     ck = load_checkpoint(ckpt)
     nets = [AgentQ.from_checkpoint(ck, i) for i in range(sc.n_agents)]
 
-    def reference(e: int) -> Any:
+    def reference(b: int) -> Any:
         dp = DecentralizedPolicy(nets, 3, 0.0)  # type: ignore[arg-type]
-        dp.begin(e)
-        return rollout(Team(sc, 1, 3, episode=e), dp)
+        dp.begin(b)
+        return rollout(Team(sc, batch, 3, episode=b), dp)
 
-    assert assert_same_as_in_process(team, 3, reference) == 2
+    assert assert_same_as_in_process(team, 3, reference) == episodes
 
 
 def test_free_running_clock_equals_in_process(ros_team: Any) -> None:
