@@ -3,7 +3,8 @@
 - diag: record the latest /diagnostics status of every node into a JSON file, rewritten every 0.3 s;
 - fuzz: publish malformed records on every subscribed topic of a team, then write how many went out per topic;
 - rogue: a stranger without the team key publishing plausible, well-formed forged observations, broadcasts and
-  actions for every step of the episodes it sees begin;
+  actions (v2: one value per episode of the batch it sees) for every step of the batch in progress; with
+  --wrong-lengths, arrays of the wrong length instead;
 - setparam: set a parameter of a running node (what `ros2 param set` does);
 - describe: list and describe every parameter of running nodes (what `ros2 param describe` shows).
 """
@@ -197,18 +198,24 @@ def rogue(args: argparse.Namespace) -> None:
         **{a: node.create_publisher(String, topics.observation(a), EVENTS) for a in AGENTS},
     }
     seen: list[int] = []
+    sizes: dict[int, int] = {}  # episode -> episodes in its batch
 
-    def on_record(msg: String) -> None:  # anything of the team tells the episode in progress
+    def on_record(msg: String) -> None:  # anything of the team tells the batch in progress and its size
         try:
-            e = json.loads(msg.data).get("episode")
-        except (ValueError, AttributeError):
+            rec = json.loads(msg.data)
+            e = rec.get("episode")
+            size = rec.get("size", len(rec.get("levels", [])))
+        except (ValueError, AttributeError, TypeError):
             return
-        if isinstance(e, int) and e not in seen:
-            seen.append(e)
+        if isinstance(e, int) and isinstance(size, int) and size > 0:
+            sizes.setdefault(e, size)
+            if e not in seen:
+                seen.append(e)
 
     node.create_subscription(String, topics.STEP, on_record, EVENTS)
     for a in AGENTS:
         node.create_subscription(String, topics.observation(a), on_record, EVENTS)
+    kinds = set(args.kinds.split(","))
     rng = random.Random(args.seed)
     count = 0
     stop = []
@@ -219,29 +226,51 @@ def rogue(args: argparse.Namespace) -> None:
         if not seen:
             continue
         e = seen[-1]
+        b = sizes[e]
+        # plausible records of the batch: one value per episode; --wrong-lengths: an action record with B - 1
+        # actions, a broadcast and an observation with B + 1 levels (everything else well-formed)
+        na, nl = (b - 1, b + 1) if args.wrong_lengths else (b, b)
+        if na < 1:
+            na = b + 1
         for t in range(1, args.horizon + 1):
             k = rng.randrange(5)
-            lvl = rng.randrange(5)
             recs = [
                 (
                     "broadcast",
                     S.BROADCAST,
-                    {"agent": k, "episode": e, "step": t, "action": rng.randrange(4), "level": lvl},
+                    {
+                        "agent": k,
+                        "episode": e,
+                        "step": t,
+                        "actions": [rng.randrange(4) for _ in range(b)],
+                        "levels": [rng.randrange(5) for _ in range(nl)],
+                    },
                 ),
-                ("action", S.ACTION, {"agent": k, "episode": e, "step": t, "action": rng.randrange(4)}),
+                (
+                    "action",
+                    S.ACTION,
+                    {"agent": k, "episode": e, "step": t, "actions": [rng.randrange(4) for _ in range(na)]},
+                ),
                 (
                     AGENTS[k],
                     S.OBSERVATION,
-                    {"agent": k, "episode": e, "step": t, "task": 0, "level": lvl, "acted": [0, 1, 2, 3, 4]},
+                    {
+                        "agent": k,
+                        "episode": e,
+                        "step": t,
+                        "tasks": [0] * nl,
+                        "levels": [rng.randrange(5) for _ in range(nl)],
+                        "acted": [0, 1, 2, 3, 4],
+                    },
                 ),
             ]
             for topic, schema, fields in recs:
-                if args.kinds != "all" and schema.name != f"htlm/{args.kinds}":
+                if "all" not in kinds and schema.name.removeprefix("htlm/") not in kinds:
                     continue
                 pubs[topic].publish(string(S.encode(schema, fields, signer)))
                 count += 1
         _spin_for(node, args.pause)
-    Path(args.out).write_text(json.dumps({"sent": count, "episodes": seen}))
+    Path(args.out).write_text(json.dumps({"sent": count, "episodes": seen, "sizes": sizes}))
 
 
 def setparam(args: argparse.Namespace) -> None:
@@ -317,7 +346,8 @@ def main() -> None:
     r.add_argument("--horizon", type=int, default=30)
     r.add_argument("--seconds", type=float, default=60.0)
     r.add_argument("--pause", type=float, default=0.05)
-    r.add_argument("--kinds", default="all", help="all, broadcast, action or observation")
+    r.add_argument("--kinds", default="all", help="all, or a comma-separated list of broadcast, action, observation")
+    r.add_argument("--wrong-lengths", action="store_true", help="arrays one too short (actions) or long (levels)")
     r.add_argument("--seed", type=int, default=0)
     sp = sub.add_parser("setparam")
     sp.add_argument("--out", required=True)

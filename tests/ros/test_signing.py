@@ -1,6 +1,7 @@
 """Message authentication: with a team key, a stranger on the same ROS domain publishing forged observations,
 broadcasts and assignments changes nothing (the run equals the in-process one); without a key, the same stranger
-does change the run (the control that shows the forgeries are effective)."""
+does change the run (the control that shows the forgeries are effective). The team runs its episodes in batches of
+4 at once; the forgeries carry one value per episode of the batch, as the team's records do."""
 
 from __future__ import annotations
 
@@ -15,11 +16,19 @@ from .conftest import assert_same_as_in_process, read_json
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 
-SEED, EPISODES, FIRST = 8, 12, 0
+SEED, EPISODES, FIRST, BATCH = 8, 16, 0, 4
 
 
 def _run(ros_team: Any, key: bool, episodes: int = EPISODES, kinds: str = "all") -> tuple[Any, dict[str, Any]]:
-    team = ros_team(policy="greedy", seed=SEED, episodes=episodes, first_episode=FIRST)
+    team = ros_team(
+        policy="greedy",
+        seed=SEED,
+        episodes=episodes,
+        first_episode=FIRST,
+        batch=BATCH,
+        world_params={"diagnostics_period": 0.2},
+        agent_params={"diagnostics_period": 0.2},  # a short run: every node's counters reach the listener
+    )
     if key:
         kf = team.tmp / "team.key"
         kf.write_text("a-team-key-only-the-team-knows-0123\n")
