@@ -1,0 +1,48 @@
+"""Training over ROS equals `htlm train` bit for bit: with the same settings and seed, the trainer process of a
+launched team (world, five agents, trainer over real DDS; the world paces steps by the trainer's progress and the
+agents act with the trainer's weights on the cadence) ends with exactly the Q-networks of the in-process
+htlm_agent.experiments.train.train(), 96 episodes in batches of 32."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from htlm_agent.learning.checkpoint import load_checkpoint
+from htlm_agent.learning.settings import Settings
+from htlm_world.scenario import builtin
+
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(240)]
+
+LEARNER = {"envs": 32, "learning_starts": 300, "batch_size": 32, "validate_every": 0, "select_best": False}
+EPISODES, SEED = 96, 0
+
+
+def test_training_over_ros_equals_htlm_train(ros_team: Any, tmp_path: Path) -> None:
+    from htlm_agent.experiments.train import train
+
+    sc = builtin()
+    settings = Settings.from_dict({**LEARNER, "episodes": EPISODES, "seed": SEED, "eval_episodes": 0})
+    train(sc, settings, tmp_path / "inproc", progress=False, tensorboard=False, evaluate_at_end=False)
+    ref = load_checkpoint(tmp_path / "inproc" / "checkpoint")
+
+    team = ros_team(
+        scenario=sc, mode="train", policy="auto", episodes=EPISODES, batch=LEARNER["envs"], seed=SEED, learner=LEARNER
+    )
+    team.start()
+    assert team.wait("world", 150) == 0
+    codes = team.wait_all(60)
+    assert codes == dict.fromkeys(codes, 0), codes
+    eps = team.world_episodes()
+    assert sorted(w["metrics"]["episode"] for w in eps) == list(range(EPISODES))
+    assert all(sum(w["metrics"]["absent"]) == 0 for w in eps), "every agent acted in every step"
+    got = load_checkpoint(team.run_dir / "trainer" / "checkpoint")
+    assert got.episodes_done == ref.episodes_done == EPISODES
+    assert len(got.weights) == len(ref.weights) == sc.n_agents
+    for i, (a, b) in enumerate(zip(ref.weights, got.weights, strict=True)):
+        assert len(a) == len(b)
+        for j, (x, y) in enumerate(zip(a, b, strict=True)):
+            assert np.array_equal(np.asarray(x), np.asarray(y)), f"agent {i} tensor {j} differs"
