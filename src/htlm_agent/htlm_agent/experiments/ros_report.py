@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from htlm_agent.baselines.registry import make_baseline
+from htlm_agent.experiments.evaluate import evaluate_run
 from htlm_world.metrics import mean_se
 from htlm_world.scenario import Scenario
 
@@ -71,9 +73,6 @@ def learned_row(world_log: Path, name: str = "learned (HTLM DQN)") -> dict[str, 
 
 def baseline_rows(scenario: Scenario, episodes: int, seed: int) -> list[dict[str, Any]]:
     """random, greedy and the optimum, evaluated in process on `episodes` episodes of master seed `seed`."""
-    from htlm_agent.baselines.registry import make_baseline
-    from htlm_agent.experiments.evaluate import evaluate_run
-
     rows = []
     for name in BASELINES:
         policy, sc = make_baseline(name, scenario, seed=seed)
