@@ -156,5 +156,6 @@ def test_records_of_the_wrong_length_are_rejected_and_change_nothing(ros_team: A
     assert world_len > 0, status["world"]
     assert all(n > 0 for n in agent_len.values()), agent_len
     print(
-        f"{sent['sent']} records of the wrong length; world rejected {world_len} actions, agents rejected {agent_len} broadcasts"
+        f"{sent['sent']} records of the wrong length; world rejected {world_len} actions, "
+        f"agents rejected {agent_len} broadcasts"
     )
