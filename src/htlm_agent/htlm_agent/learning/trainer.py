@@ -298,6 +298,7 @@ class TrainerCore:
             self.selection.restore(ckpt)
         self.last_val = self.last_ckpt = self.episodes_seen
         replayed = 0
+        finished: set[int] = set()  # episodes whose last step the store holds beyond the checkpoint
         pending = {(int(a), str(sess), int(q)) for a, sess, q in info.get("pending_records", [])}
         for i, r in enumerate(self.store.records(0)):
             g = self.global_step(int(r["episode"]) - int(r["row"]), int(r["step"]))
@@ -309,6 +310,12 @@ class TrainerCore:
                 int(r["agent"]), r["k"], int(r["a"]), float(r["r"]), r["k2"], r["mask2"].astype(bool), bool(r["done"])
             )
             replayed += 1
+            if int(r["step"]) == sc.horizon:
+                finished.add(int(r["episode"]))
+        if finished:  # batches finished after the checkpoint count as trained episodes (their updates are not redone)
+            self.learner.episodes_done += len(finished)
+            self.episodes_seen = int(self.learner.episodes_done)
+            self.last_val = self.last_ckpt = self.episodes_seen
         (self.dir / "settings.json").write_text(json.dumps(settings.to_dict(), indent=1) + "\n")
         self._announce(out, force_weights=True)
         out.log.append(
