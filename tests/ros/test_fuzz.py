@@ -21,6 +21,7 @@ import pytest
 
 from htlm_agent.learning.transition_store import read_store
 from htlm_msgs_py import schema as S
+from htlm_world import seeds
 
 from .conftest import RosTeam, assert_same_as_in_process, read_json
 from .ros_tools import SUBSCRIBERS, subscribed_topics
@@ -146,10 +147,13 @@ def _initial_networks(team: RosTeam) -> Callable[[int], Any]:
         net.set_weights(learner.agent_weights(i))
         nets.append(net)
 
-    def run(e: int) -> Any:
+    def run(e: int) -> Any:  # train mode: the training streams of batch e (batch 1), as htlm train draws them
         dp = DecentralizedPolicy(nets, SEED, 0.0)  # type: ignore[arg-type]
-        dp.begin(e)
-        return rollout(Team(sc, 1, SEED, episode=e), dp)
+        dp.rngs = [seeds.train_explore(SEED, i, e) for i in range(sc.n_agents)]
+        t = Team(sc, 1, SEED, episode=e)
+        t.sim.rng = seeds.train_world(SEED, e)
+        t.sim.channel_rngs = [seeds.train_channel(SEED, i, e) for i in range(sc.n_agents)]
+        return rollout(t, dp)
 
     return run
 
@@ -161,7 +165,8 @@ def test_fuzzing_the_training_topics(ros_team: Any) -> None:
         seed=SEED,
         episodes=LONG,
         first_episode=FIRST,
-        trainer_params={"train_every": 0, "diagnostics_period": 0.2},
+        # the networks never change (no update before 10**9 stored transitions): the run equals the initial networks'
+        trainer_params={"settings_json": '{"learning_starts": 1000000000}', "diagnostics_period": 0.2},
         agent_params={"epsilon": 0.0, "diagnostics_period": 0.2},
         world_params={"diagnostics_period": 0.2},
     )

@@ -60,7 +60,7 @@ def test_team_script_runs_an_evaluation(repo_root: Path, tmp_path: Path) -> None
     assert summary["episodes"] == 2 and summary["exit_code"] == 0 and summary["absent_agent_steps"] == 0
     logs = sorted(p.name for p in (run / "logs").iterdir())
     assert logs == ["agent1.log", "agent2.log", "agent3.log", "agent4.log", "agent5.log", "trainer.log", "world.log"]
-    assert "episode 1:" in (run / "logs" / "world.log").read_text()
+    assert "episodes 0..1:" in (run / "logs" / "world.log").read_text()  # one batch of the two episodes
     assert _alive_with(str(run)) == []
 
 

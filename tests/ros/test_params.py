@@ -61,7 +61,8 @@ def test_parameters_carry_their_types_ranges_and_read_only_flags(ros_team: Any) 
     assert world["seed"]["integer_range"] == [[0, 2**63 - 1, 0]] and world["seed"]["read_only"]
     assert world["mode"]["additional_constraints"] == "one of: train, evaluate, deploy"
     assert described["/htlm_agent1"]["epsilon"]["floating_point_range"] == [[-1.0, 1.0, 0.0]]
-    assert not described["/htlm_trainer"]["train_every"]["read_only"]
+    assert not described["/htlm_trainer"]["round_deadline"]["read_only"]
+    assert described["/htlm_world"]["batch"]["integer_range"] == [[1, 4096, 0]] and world["batch"]["read_only"]
 
     def setparam(name: str, value: str) -> dict[str, Any]:
         res = team.tmp / f"set-{name}-{value}.json"

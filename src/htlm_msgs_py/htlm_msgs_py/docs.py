@@ -75,3 +75,26 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def params_markdown(cls: type) -> str:
+    """The parameter table of a node's settings dataclass (type, default, range or choices, tunable, meaning)."""
+    import dataclasses
+
+    from .params import constraint, field_docs
+
+    names = {bool: "bool", int: "integer", float: "double", str: "string"}
+    docs = field_docs(cls)
+    lines = [
+        "| parameter | type | default | range or choices | at run time | meaning |",
+        "|---|---|---|---|---|---|",
+    ]
+    for f in dataclasses.fields(cls):
+        c = constraint(f)
+        rng = ", ".join(c.choices) if c.choices else (c.describe().removeprefix("one of: ") or "-")
+        kind = names.get(type(f.default), "string")
+        lines.append(
+            f"| `{f.name}` | {kind} | `{f.default!r}` | {rng} | {'tunable' if c.tunable else 'read-only'} | "
+            f"{docs.get(f.name, '')} |"
+        )
+    return "\n".join(lines)
