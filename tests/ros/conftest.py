@@ -157,11 +157,14 @@ def assert_same_as_in_process(team: RosTeam, seed: int, policy: str | Callable[[
     assert episodes, "no episode finished"
     assert len({w["metrics"]["episode"] for w in episodes}) == len(episodes), "an episode logged twice"
     cache: dict[int, Any] = {}
+    sizes: dict[int, int] = {}  # a run's last batch is shorter when its episodes are not a multiple of B
+    for w in episodes:
+        sizes[w["metrics"]["episode"] // B] = sizes.get(w["metrics"]["episode"] // B, 0) + 1
     for w in episodes:
         e = w["metrics"]["episode"]
         b, i = divmod(e, B)
         if b not in cache:
-            cache[b] = policy(b) if callable(policy) else in_process(sc, seed, b, policy, B)
+            cache[b] = policy(b) if callable(policy) else in_process(sc, seed, b, policy, sizes[b])
         tr = cache[b]
         assert np.array_equal(tr.levels[:, i], w["levels"]), f"episode {e}: levels differ"
         assert np.array_equal(tr.actions[:, i], w["actions"]), f"episode {e}: assignments differ"

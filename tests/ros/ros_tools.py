@@ -108,7 +108,7 @@ def fuzz(args: argparse.Namespace) -> None:
     from wire_fuzz import malformed
 
     node = Node("test_fuzzer")
-    lim = S.limits(5, 4, 6, 5, args.horizon)
+    lim = S.limits(5, 4, 6, 5, args.horizon, 1)  # the fuzzed team runs batches of 1
     targets = subscribed_topics(args.mode)
     if args.topics:
         keep = args.topics.split(",")

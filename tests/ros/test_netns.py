@@ -101,6 +101,8 @@ def test_world_trainer_and_agents_in_separate_network_namespaces(net: Net, repo_
             str(seed),
             "--episodes",
             str(episodes),
+            "--batch",
+            "2",
             "--only",
             name,
             "--discovery",
@@ -123,7 +125,7 @@ def test_world_trainer_and_agents_in_separate_network_namespaces(net: Net, repo_
     outs = {name: p.stdout.read().decode() if p.stdout else "" for name, p in procs.items()}
     world_log = (run / "logs" / "world.log").read_text() if (run / "logs" / "world.log").exists() else ""
     assert codes == dict.fromkeys(NAMES, 0), (codes, outs["world"], world_log[-2000:])
-    team = RosTeam(tmp_path, LaunchConfig(mode="evaluate", scenario=builtin(), run_dir=run, seed=seed))
+    team = RosTeam(tmp_path, LaunchConfig(mode="evaluate", scenario=builtin(), run_dir=run, seed=seed, batch=2))
     assert assert_same_as_in_process(team, seed, "greedy") == episodes
     assert all(sum(w["metrics"]["absent"]) == 0 for w in team.world_episodes())
     sent = bridged() - before

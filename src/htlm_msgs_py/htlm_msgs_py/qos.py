@@ -37,8 +37,9 @@ to a restarted trainer, a flood of bad records) so that a slow reader does not l
 record the protocol no longer needs is dropped (and counted) when read, never silently overwritten."""
 
 WEIGHTS = QosSpec("WEIGHTS", "reliable", "transient_local", 8)
-"""Weights: like STATE, but the writer keeps the last 8 versions, so an agent that acts with the weights of an
-earlier step than the newest (the trainer's lag) still receives every version on the cadence."""
+"""Weights (the trainer's writer): like STATE, but the writer keeps the last 8 versions, so an agent that joins or
+acts with the weights of an earlier step than the newest (the trainer's lag) still receives every version on the
+cadence; agents read with STATE_READER, so a burst of other records never overwrites a version unread."""
 
 DIAGNOSTICS = QosSpec("DIAGNOSTICS", "reliable", "volatile", 10)
 """/diagnostics, as the ROS diagnostics tools expect it."""

@@ -31,7 +31,6 @@ from htlm_msgs_py.ros import (
     EVENTS,
     STATE,
     STATE_READER,
-    WEIGHTS,
     Health,
     PoseStamped,
     SettingsError,
@@ -203,7 +202,7 @@ class AgentNode(Node):
             self.policy = None
             if self.sub_weights is None:
                 self.sub_weights = self.create_subscription(
-                    String, topics.weights(self.name), self._on_weights, WEIGHTS
+                    String, topics.weights(self.name), self._on_weights, STATE_READER
                 )
 
     def _fail(self, why: str) -> None:
