@@ -236,16 +236,20 @@ class _Tail:
     def __init__(self, path: Path, words: tuple[str, ...], prefix: str) -> None:
         self.path, self.words, self.prefix, self.pos = path, words, prefix, 0
 
-    def poll(self) -> None:
+    def lines(self) -> list[str]:
+        """The whole lines written since the last call."""
         try:
             with open(self.path, "rb") as f:
                 f.seek(self.pos)
                 data = f.read()
         except OSError:
-            return
+            return []
         cut = data.rfind(b"\n") + 1
         self.pos += cut
-        for line in data[:cut].decode(errors="replace").splitlines():
+        return data[:cut].decode(errors="replace").splitlines()
+
+    def poll(self) -> None:
+        for line in self.lines():
             if any(w in line for w in self.words):
                 print(f"{self.prefix}{line.split(']: ', 1)[-1]}", flush=True)
 
@@ -266,15 +270,7 @@ class _ProgressTail(_Tail):
         self.failed = 0
 
     def poll(self) -> None:
-        try:
-            with open(self.path, "rb") as f:
-                f.seek(self.pos)
-                data = f.read()
-        except OSError:
-            return
-        cut = data.rfind(b"\n") + 1
-        self.pos += cut
-        for line in data[:cut].decode(errors="replace").splitlines():
+        for line in self.lines():
             m = self.PATTERN.search(line)
             if m is None:
                 continue
