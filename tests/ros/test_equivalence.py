@@ -19,7 +19,10 @@ from .conftest import assert_same_as_in_process
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 
 
-@pytest.mark.parametrize(("policy", "seed", "first"), [("greedy", 11, 0), ("random", 5, 40)])
+@pytest.mark.parametrize(
+    ("policy", "seed", "first"),
+    [("greedy", 11, 0), pytest.param("random", 5, 40, marks=pytest.mark.slow)],  # random at B=1: -m slow
+)
 def test_ros_evaluation_equals_in_process(ros_team: Any, policy: str, seed: int, first: int) -> None:
     team = ros_team(policy=policy, seed=seed, episodes=3, first_episode=first)
     team.start()
@@ -30,7 +33,10 @@ def test_ros_evaluation_equals_in_process(ros_team: Any, policy: str, seed: int,
     assert all(sum(w["metrics"]["absent"]) == 0 for w in team.world_episodes())
 
 
-@pytest.mark.parametrize(("policy", "seed", "first"), [("greedy", 11, 0), ("random", 5, 16)])
+@pytest.mark.parametrize(
+    ("policy", "seed", "first"),
+    [pytest.param("greedy", 11, 0, marks=pytest.mark.slow), ("random", 5, 16)],  # greedy at B=16: -m slow
+)
 def test_ros_evaluation_of_a_batch_of_16_equals_team_of_that_batch(
     ros_team: Any, policy: str, seed: int, first: int
 ) -> None:

@@ -1,4 +1,4 @@
-"""Bad input of a real deployment: 1000 malformed records on every topic a node of the team subscribes to, while
+"""Bad input of a real deployment: 500 malformed records on every topic a node of the team subscribes to, while
 the team runs. No node crashes, no state changes (the run still equals the in-process runtime, the trainer's store
 holds exactly the team's transitions), every rejection is counted in /diagnostics by every subscriber, and the
 episodes in progress finish.
@@ -28,7 +28,7 @@ from .ros_tools import SUBSCRIBERS, subscribed_topics
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
 
-COUNT = 1000
+COUNT = 500
 FIRST, LONG, SEED = 100, 1000, 6
 AGENTS = [f"agent{i}" for i in range(1, 6)]
 

@@ -77,7 +77,7 @@ def net() -> Iterator[Net]:
 
 
 def test_world_trainer_and_agents_in_separate_network_namespaces(net: Net, repo_root: Path, tmp_path: Path) -> None:
-    domain, seed, episodes = net.tag, 3, 2
+    domain, seed, episodes = net.tag, 3, 4  # two batches of 2: time for every process to discover the world
     run = tmp_path / "run"
     script = str(repo_root / "launch_scripts" / "team.sh")
     env = {**os.environ, "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}

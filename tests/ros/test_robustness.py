@@ -17,7 +17,8 @@ from htlm_world.scenario import builtin
 
 from .conftest import read_json
 
-pytestmark = [pytest.mark.ros, pytest.mark.timeout(150)]
+# batch 1: the same faults run by default with batches of 8 (test_robustness_batch.py); these with -m slow
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(150), pytest.mark.slow]
 
 FAST = {"act_deadline": 2.0, "update_deadline": 2.0, "begin_deadline": 2.0}
 

@@ -3,9 +3,11 @@ tables of docs/ros.md (`python -m htlm_msgs_py.docs topics|records`), so the doc
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 from . import qos
+from .params import constraint, field_docs
 from .schema import SCHEMAS, Bool, BoolList, Field, Float, FloatList, Int, IntList, Object, OneOf, Rows, Schema, Text
 from .topics import TOPICS
 
@@ -79,10 +81,6 @@ if __name__ == "__main__":
 
 def params_markdown(cls: type) -> str:
     """The parameter table of a node's settings dataclass (type, default, range or choices, tunable, meaning)."""
-    import dataclasses
-
-    from .params import constraint, field_docs
-
     names = {bool: "bool", int: "integer", float: "double", str: "string"}
     docs = field_docs(cls)
     lines = [

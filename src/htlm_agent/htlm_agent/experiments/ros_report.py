@@ -112,6 +112,11 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
     ax2.bar(x, [100 * r["failure_rate"] for r in rows], color=colors)
     ax2.set_xticks(x, names, rotation=15)
     ax2.set_ylabel("failed episodes (%)")
+    for i, r in enumerate(rows):  # the numbers on the bars
+        ax1.annotate(f"{r['completion_mean']:.2f}", (i, r["completion_mean"]), ha="center", va="bottom", fontsize=9)
+        ax2.annotate(
+            f"{100 * r['failure_rate']:.1f}", (i, 100 * r["failure_rate"]), ha="center", va="bottom", fontsize=9
+        )
     for ax in (ax1, ax2):
         ax.grid(axis="y", alpha=0.3)
     fig.suptitle(title)

@@ -1,0 +1,52 @@
+"""The main job's result: the learned team's row comes from the world's episode log, the baselines are evaluated,
+and the table, CSV, JSON and PNG hold those numbers."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from htlm_agent.experiments.ros_report import ReportError, baseline_rows, learned_row, table, write_report
+from htlm_world.scenario import builtin
+
+
+def _world_log(path: Path, completions: list[int]) -> Path:
+    lines = [
+        json.dumps(
+            {
+                "run": "r",
+                "metrics": {"episode": i, "completion": c, "failed": c >= 30, "unused_fraction": 0.5 + i / 100},
+            }
+        )
+        for i, c in enumerate(completions)
+    ]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_report_rows_come_from_the_logged_episodes_and_the_evaluated_baselines(tmp_path: Path) -> None:
+    row = learned_row(_world_log(tmp_path / "world.jsonl", [8, 10, 30, 12]))
+    assert row["episodes"] == 4 and row["completion_mean"] == 15.0 and row["failure_rate"] == 0.25
+    assert row["unused_fraction"] == pytest.approx(0.515) and row["completion_se"] > 0
+    base = baseline_rows(builtin(), 20, seed=3)
+    assert [r["policy"] for r in base] == ["random", "greedy", "optimal"]
+    assert base[2]["completion_mean"] < base[1]["completion_mean"] < base[0]["completion_mean"]
+    doc = write_report(tmp_path, [row, *base], {"team": "heterogeneous", "seed": 3, "train_episodes": 4})
+    with (tmp_path / "result.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [r["policy"] for r in rows] == [r["policy"] for r in doc["rows"]]
+    assert float(rows[0]["completion_mean"]) == 15.0
+    assert json.loads((tmp_path / "result.json").read_text())["rows"][1] == base[0]
+    assert (tmp_path / "result.png").stat().st_size > 10_000
+    assert "15.00 ±" in table(doc["rows"]).splitlines()[2]
+
+
+def test_report_without_episodes_names_the_file(tmp_path: Path) -> None:
+    with pytest.raises(ReportError, match=r"world\.jsonl: no episode log"):
+        learned_row(tmp_path / "world.jsonl")
+    (tmp_path / "world.jsonl").write_text("\n")
+    with pytest.raises(ReportError, match="no finished episode"):
+        learned_row(tmp_path / "world.jsonl")
