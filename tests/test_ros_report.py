@@ -50,3 +50,13 @@ def test_report_without_episodes_names_the_file(tmp_path: Path) -> None:
     (tmp_path / "world.jsonl").write_text("\n")
     with pytest.raises(ReportError, match="no finished episode"):
         learned_row(tmp_path / "world.jsonl")
+
+
+def test_launch_refuses_what_training_over_ros_cannot_do(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from htlm_agent.cli import main
+
+    assert main(["launch", "train", "--set", "dropout=0.1", "--run-dir", str(tmp_path / "r")]) == 2
+    assert "dropout=0.1" in capsys.readouterr().out
+    assert main(["launch", "evaluate", "--policy", "greedy", "--batch", "3", "--first-episode", "4"]) == 2
+    assert "--batch 3" in capsys.readouterr().out
+    assert not (tmp_path / "r").exists()  # nothing started

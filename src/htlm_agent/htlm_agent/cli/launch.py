@@ -128,6 +128,9 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"htlm launch: {e}")
         return 2
+    if args.mode == "train" and learner.dropout > 0:
+        print(f"htlm launch train: --set dropout={learner.dropout!r}: training for resilience runs in process only")
+        return 2
     default_episodes = {"train": learner.episodes, "evaluate": 500, "deploy": 0}[args.mode]
     episodes = args.episodes if args.episodes is not None else default_episodes
     batch = args.batch if args.batch is not None else {"train": learner.envs, "evaluate": 128, "deploy": 1}[args.mode]
