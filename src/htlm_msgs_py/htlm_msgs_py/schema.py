@@ -286,11 +286,6 @@ _KNOWLEDGE = FloatList(-1e6, 1e6, length="knowledge")
 _BATCH_SIZE = Int(1, "batch")
 
 
-def _per_episode(item: Field) -> Rows:
-    """One value per episode of the batch (1..B entries; the receiver checks the batch's own size)."""
-    return Rows(item)
-
-
 SCENARIO = Schema(
     "htlm/scenario",
     2,
@@ -328,7 +323,7 @@ STEP = Schema(
 ACTION = Schema(
     "htlm/action",
     2,
-    {"agent": _AGENT, "episode": _EPISODE, "step": Int(1, "step"), "actions": _per_episode(Int(0, "action"))},
+    {"agent": _AGENT, "episode": _EPISODE, "step": Int(1, "step"), "actions": Rows(Int(0, "action"))},
     doc="The agent's assignments for step t in every episode of the batch, indices into G-bar; sent after its "
     "update of step t - 1 (so they also tell the world the agent is ready).",
 )
@@ -339,8 +334,8 @@ OBSERVATION = Schema(
         "agent": _AGENT,
         "episode": _EPISODE,
         "step": Int(1, "step"),
-        "tasks": _per_episode(Int(-1, "task")),
-        "levels": _per_episode(Int(-1, "level")),
+        "tasks": Rows(Int(-1, "task")),
+        "levels": Rows(Int(-1, "level")),
         "acted": IntList(0, "agent", max_len="agents", unique=True),
     },
     doc="Per episode of the batch, the agent's task and its observed level after the transition (-1 and -1 when "
@@ -353,8 +348,8 @@ BROADCAST = Schema(
         "agent": _AGENT,
         "episode": _EPISODE,
         "step": Int(1, "step"),
-        "actions": _per_episode(Int(0, "action")),
-        "levels": _per_episode(Int(-1, "level")),
+        "actions": Rows(Int(0, "action")),
+        "levels": Rows(Int(-1, "level")),
     },
     doc="Per episode of the batch, the sender's assignment and its observation after the sender's (simulated) "
     "channel, -1 when idle.",
@@ -374,11 +369,11 @@ TRANSITION = Schema(
         "seq": Int(0, SEQ_MAX),
         "episode": _EPISODE,
         "step": Int(1, "step"),
-        "k": _per_episode(_KNOWLEDGE),
-        "a": _per_episode(Int(0, "action")),
-        "r": _per_episode(Float(-1e6, 1e6)),
-        "k2": _per_episode(_KNOWLEDGE),
-        "mask2": _per_episode(BoolList("actions")),
+        "k": Rows(_KNOWLEDGE),
+        "a": Rows(Int(0, "action")),
+        "r": Rows(Float(-1e6, 1e6)),
+        "k2": Rows(_KNOWLEDGE),
+        "mask2": Rows(BoolList("actions")),
         "done": Bool(),
     },
     max_bytes=16 * 1024 * 1024,
@@ -437,8 +432,8 @@ GROUND_TRUTH = Schema(
     {
         "episode": _EPISODE,
         "step": Int(0, "step"),
-        "levels": _per_episode(IntList(0, "level", length="tasks")),
-        "actions": _per_episode(IntList(-1, "action", length="agents")),
+        "levels": Rows(IntList(0, "level", length="tasks")),
+        "actions": Rows(IntList(-1, "action", length="agents")),
     },
     max_bytes=4 * 1024 * 1024,
     doc="Per episode of the batch from `episode` on, the true levels after step t and the joint assignment the world "

@@ -27,6 +27,7 @@ import numpy as np
 
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
+from htlm_world.protocol import global_step
 from htlm_world.scenario import Scenario, ScenarioError, from_dict
 
 
@@ -190,9 +191,9 @@ class TrainerCore:
         return self.epoch * 2**32 + self.version
 
     def global_step(self, episode: int, t: int) -> int:
-        """The global index of step t of the batch from `episode` on."""
+        """The global index of step t of the batch from `episode` on (`htlm_world.protocol.global_step`)."""
         assert self.scenario is not None
-        return (episode // self.batch) * self.scenario.horizon + t - 1
+        return global_step(episode, self.batch, t, self.scenario.horizon)
 
     # ----- the run ------------------------------------------------------------------------------------------------
     def on_scenario(self, rec: dict[str, Any], now: float) -> TrainerEffects:

@@ -84,7 +84,6 @@ class AgentNode(Node):
         self.policy: AgentPolicy | None = None
         self.policy_kind = ""
         self.policy_epsilon = 0.0
-        self.net: Any = None
         self.learner_settings: Any = None
         self.weights_version = -1
         self.versions: dict[int, Any] = {}  # trained -> AgentQ: the weights the trainer took after that step
@@ -302,11 +301,10 @@ class AgentNode(Node):
             eff = self.mind.begin(e, self._epsilon(e, size), force=force, size=size)
         elif self.mind is None:
             return
-        elif phase == "step":
-            self.world_ahead = max(self.world_ahead, (e, t))
-            return
         else:
             self.world_ahead = max(self.world_ahead, (e, t))
+            if phase == "step":
+                return
             eff = self.mind.end(e, t)
         if eff.drop is None:
             self.last_accept = time.monotonic()
@@ -397,7 +395,6 @@ class AgentNode(Node):
         except ValueError as e:
             self.health.reject("weights", "data", str(e))
             return
-        self.net = net
         self.learner_settings = ls
         self.weights_version = rec["version"]
         self.weights_every = rec["every"]
