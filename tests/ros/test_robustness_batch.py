@@ -29,7 +29,7 @@ FAST = {"act_deadline": 2.0, "update_deadline": 2.0, "begin_deadline": 2.0}
 def test_agent_killed_mid_batch_is_idle_in_every_episode_then_rejoins(ros_team: Any) -> None:
     sc = builtin().replace(horizon=150)  # long batches: the kill lands mid-batch
     team = ros_team(
-        scenario=sc, episodes=4 * B, batch=B, seed=2, world_params=FAST, agent_params={"broadcast_timeout": 0.5}
+        scenario=sc, episodes=6 * B, batch=B, seed=2, world_params=FAST, agent_params={"broadcast_timeout": 0.5}
     )
     scen = team.tmp / "long.yaml"
     scen.write_text("horizon: 150\n")
@@ -40,12 +40,14 @@ def test_agent_killed_mid_batch_is_idle_in_every_episode_then_rejoins(ros_team: 
     team.kill("agent3", signal.SIGKILL)
     killed_in = len(team.world_episodes())
     team.wait_for(lambda: len(team.world_episodes()) > killed_in, 60, "the batch of the kill to finish")
-    team.start("agent3")  # restarted: it rejoins at the begin of a later batch
+    # restarted: it rejoins at the begin of a later batch; a restart takes 2-4 s under load (imports, discovery), about
+    # one batch: the run leaves it four batch begins to rejoin at (a begin it answers too late, it plays in part)
+    team.start("agent3")
     assert team.wait("world", 120) == 0
     codes = team.wait_all(30)
     assert codes == dict.fromkeys(codes, 0), codes
     eps = {w["metrics"]["episode"]: w for w in team.world_episodes()}
-    assert sorted(eps) == list(range(4 * B)), "every episode ran"
+    assert sorted(eps) == list(range(6 * B)), "every episode ran"
     hit = [eps[e] for e in range(killed_in, killed_in + B)]
     absent = hit[0]["metrics"]["absent"]
     assert all(w["metrics"]["absent"] == absent for w in hit), "one absence count for the whole batch"
@@ -61,8 +63,8 @@ def test_agent_killed_mid_batch_is_idle_in_every_episode_then_rejoins(ros_team: 
         # in every episode of the batch, the missed steps are its idle action at the site of its last assignment
         assert (acts[first:] == idle).all(), (w["metrics"]["episode"], acts[first:].tolist(), idle)
     rejoined = [e for e in sorted(eps) if e >= killed_in + B and eps[e]["metrics"]["absent"][2] == 0]
-    assert rejoined, f"agent3 never rejoined: {[eps[e]['metrics']['absent'] for e in range(0, 4 * B, B)]}"
-    assert rejoined[0] % B == 0 and set(range(rejoined[0], 4 * B)) <= set(rejoined), "rejoined whole batches"
+    assert rejoined, f"agent3 never rejoined: {[eps[e]['metrics']['absent'] for e in range(0, 6 * B, B)]}"
+    assert rejoined[0] % B == 0 and set(range(rejoined[0], 6 * B)) <= set(rejoined), "rejoined whole batches"
     assert {x["episode"] for x in team.agent_episodes("agent3")} >= set(rejoined)
     print(f"killed in batch {killed_in // B} after {sc.horizon - missed} steps; rejoined at episode {rejoined[0]}")
 
