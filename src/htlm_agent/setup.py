@@ -21,7 +21,8 @@ setup(
     install_requires=[
         "numpy>=1.26,<3",  # everywhere
         "pyyaml>=6",  # learner settings files, run files (scenario.yaml), evaluation reports
-        "matplotlib>=3.8",  # evaluation histograms, reproduction figures
+        "matplotlib>=3.8",  # evaluation histograms, reproduction figures, episode pictures
+        "rich>=13",  # progress displays, `htlm watch`
         "tensorboard>=2.15",  # torch.utils.tensorboard in `htlm train`
         "pettingzoo>=1.24",  # runtime/pz_env.py, the PettingZoo ParallelEnv
         "gymnasium>=0.29",  # its observation and action spaces

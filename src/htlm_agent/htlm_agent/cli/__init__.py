@@ -16,6 +16,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("htlm_agent.cli.bench", "measure simulator, learner and ROS runtime speed"),
     "reproduce": ("htlm_agent.cli.reproduce", "regenerate the paper's results"),
     "launch": ("htlm_agent.cli.launch", "start a team over ROS 2 (world + one process per agent + trainer)"),
+    "watch": ("htlm_agent.cli.watch", "live terminal view of a running team (ROS 2)"),
+    "show": ("htlm_agent.cli.show", "picture of one episode of a run: true severities and every agent's decisions"),
 }
 
 
