@@ -1,24 +1,43 @@
-"""A small progress display on stderr with rate and ETA, no dependency.
+"""The progress display of long jobs (`htlm train`, `htlm reproduce`, `htlm launch`): rate, ETA and a few fields.
 
-On a terminal it redraws one line (``\\r``) at most every `interval` seconds; elsewhere (logs, pipes, CI) it prints a
-plain line every `log_interval` seconds, so captured output stays short.
+On a terminal it is a rich progress bar, redrawn in place at most every `interval` seconds (whatever else the job
+prints goes above it); elsewhere (logs, pipes, CI) it writes the plain `line()` every `log_interval` seconds, so
+captured output stays short and greppable. The rate and the ETA are measured here, the same in both cases.
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Iterable
 from typing import IO
+
+from rich.console import Console, RenderableType
+from rich.progress import BarColumn, TextColumn
+from rich.progress import Progress as RichProgress
+from rich.text import Text
 
 
 def format_duration(seconds: float) -> str:
-    """Seconds as m:ss or h:mm:ss."""
+    """Seconds as m:ss or h:mm:ss ("?" when unknown: NaN or infinite)."""
     if seconds != seconds or seconds == float("inf"):  # NaN or infinite
         return "?"
     s = round(seconds)
     h, rem = divmod(s, 3600)
     m, sec = divmod(rem, 60)
     return f"{h}:{m:02d}:{sec:02d}" if h else f"{m}:{sec:02d}"
+
+
+class _Bar(RichProgress):
+    """A rich progress bar with the job's fields on a line of their own below it (they may be long)."""
+
+    extra = ""
+
+    def get_renderables(self) -> Iterable[RenderableType]:
+        """The bar's line, then the fields."""
+        yield self.make_tasks_table(self.tasks)
+        if self.extra:
+            yield Text(self.extra, style="dim")
 
 
 class Progress:
@@ -55,7 +74,8 @@ class Progress:
         self.t0 = time.perf_counter()
         self.last_draw = -1e9
         self.fields: dict[str, str] = {}
-        self._drawn = False
+        self._bar: RichProgress | None = None
+        self._task = 0
 
     @property
     def elapsed(self) -> float:
@@ -64,27 +84,33 @@ class Progress:
 
     @property
     def rate(self) -> float:
-        """Units per second since start."""
+        """Units per second since start (only what was done since start counts)."""
         el = self.elapsed
         return (self.done - self.initial) / el if el > 0 else 0.0
 
     @property
     def eta(self) -> float:
-        """Estimated seconds left."""
+        """Estimated seconds left at the current rate (infinite before any progress)."""
         r = self.rate
         return (self.total - self.done) / r if r > 0 else float("inf")
 
-    def line(self) -> str:
-        """The current status line."""
-        frac = min(self.done / self.total, 1.0)
-        fill = round(frac * self.width)
-        bar = "#" * fill + "-" * (self.width - fill)
-        extra = " ".join(f"{k} {v}" for k, v in self.fields.items())
+    def _stats(self) -> str:
+        r = self.rate
+        rate = f"{r:.0f}" if r >= 10 else f"{r:.1f}" if r >= 1 else f"{r:.2f}"  # two digits at least
         return (
-            f"[{bar}] {self.done}/{self.total} {frac:4.0%} {self.rate:.0f} {self.unit}/s "
+            f"{self.done}/{self.total} {min(self.done / self.total, 1.0):4.0%} {rate} {self.unit}/s "
             f"elapsed {format_duration(self.elapsed)} ETA {format_duration(self.eta)}"
-            + (f" | {extra}" if extra else "")
         )
+
+    def _extra(self) -> str:
+        return " ".join(f"{k} {v}" for k, v in self.fields.items())
+
+    def line(self) -> str:
+        """The current status as one plain line (what is logged when not on a terminal)."""
+        fill = round(min(self.done / self.total, 1.0) * self.width)
+        bar = "#" * fill + "-" * (self.width - fill)
+        extra = self._extra()
+        return f"[{bar}] {self._stats()}" + (f" | {extra}" if extra else "")
 
     def update(self, done: int, **fields: object) -> None:
         """Record progress `done` (absolute) and the fields to show, redrawing when due."""
@@ -96,15 +122,29 @@ class Progress:
             self._draw()
 
     def _draw(self) -> None:
-        if self.tty:
-            self.stream.write("\r" + self.line() + "\x1b[K")
-        else:
+        if not self.tty:
             self.stream.write(self.line() + "\n")
-        self.stream.flush()
-        self._drawn = True
+            self.stream.flush()
+            return
+        if self._bar is None:
+            console = Console(file=self.stream, force_terminal=True)
+            self._bar = _Bar(
+                BarColumn(bar_width=self.width),
+                TextColumn("{task.fields[stats]}", markup=False),
+                console=console,
+                auto_refresh=False,  # redrawn here, every `interval` at most: no thread
+            )
+            self._task = self._bar.add_task("", total=self.total, stats="")
+        self._bar.extra = self._extra()  # plain text: fields may hold "[...]"
+        self._bar.update(self._task, completed=min(self.done, self.total), stats=self._stats())
+        if not self._bar.live.is_started:
+            self._bar.start()  # draws
+        else:
+            self._bar.refresh()
 
     def close(self) -> None:
-        """Finish the line."""
-        if self.enabled and self.tty and self._drawn:
-            self.stream.write("\n")
-            self.stream.flush()
+        """Finish the display (the bar stays on screen with its last values)."""
+        if self._bar is not None:
+            self._draw()
+            self._bar.stop()
+            self._bar = None
