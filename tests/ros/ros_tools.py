@@ -6,12 +6,15 @@
   actions (v2: one value per episode of the batch it sees) for every step of the batch in progress; with
   --wrong-lengths, arrays of the wrong length instead;
 - setparam: set a parameter of a running node (what `ros2 param set` does);
-- describe: list and describe every parameter of running nodes (what `ros2 param describe` shows).
+- describe: list and describe every parameter of running nodes (what `ros2 param describe` shows);
+- markers: record every visualization_msgs/MarkerArray of /htlm/markers (frame, stamp, plain markers) into a JSON
+  file, rewritten after every message.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import faulthandler
 import json
 import random
@@ -324,6 +327,42 @@ def describe(args: argparse.Namespace) -> None:
     Path(args.out).write_text(json.dumps(out))
 
 
+def markers(args: argparse.Namespace) -> None:
+    from visualization_msgs.msg import MarkerArray
+
+    from htlm_msgs_py.ros import STATE_READER
+    from htlm_world.ros.markers import from_msg
+
+    node = Node("test_markers")
+    got: list[dict[str, Any]] = []
+    out = Path(args.out)
+
+    def write() -> None:
+        tmp = out.with_suffix(".tmp")
+        tmp.write_text(json.dumps(got))
+        tmp.replace(out)
+
+    def on_markers(msg: MarkerArray) -> None:
+        got.append(
+            {
+                "frames": sorted({k.header.frame_id for k in msg.markers}),
+                "stamps": sorted({k.header.stamp.sec + 1e-9 * k.header.stamp.nanosec for k in msg.markers}),
+                "lifetimes": sorted({k.lifetime.sec + 1e-9 * k.lifetime.nanosec for k in msg.markers}),
+                "marks": [dataclasses.asdict(m) for m in from_msg(msg)],
+            }
+        )
+        write()
+
+    node.create_subscription(MarkerArray, topics.MARKERS, on_markers, STATE_READER)
+    write()  # the subscription exists: the file tells the test so
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    write()
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -357,11 +396,21 @@ def main() -> None:
     ds = sub.add_parser("describe")
     ds.add_argument("--out", required=True)
     ds.add_argument("--nodes", required=True, help="comma-separated node names, e.g. /htlm_world,/htlm_trainer")
+    mk = sub.add_parser("markers")
+    mk.add_argument("--out", required=True)
     args = p.parse_args()
     faulthandler.register(signal.SIGUSR1)
     rclpy.init()
     try:
-        {"diag": diag, "fuzz": fuzz, "rogue": rogue, "setparam": setparam, "describe": describe}[args.cmd](args)
+        cmds = {
+            "diag": diag,
+            "fuzz": fuzz,
+            "rogue": rogue,
+            "setparam": setparam,
+            "describe": describe,
+            "markers": markers,
+        }
+        cmds[args.cmd](args)
     finally:
         rclpy.try_shutdown()
 

@@ -25,7 +25,8 @@ class QosSpec:
 
 
 STATE = QosSpec("STATE", "reliable", "transient_local", 1)
-"""State topics (scenario, weights, beliefs, goal poses): a late joiner gets the latest value."""
+"""State topics (scenario, weights, beliefs, goal poses, the world's markers): a late joiner gets the latest value.
+RViz2 and Foxglove subscribe to markers with reliable, volatile readers, which match this writer."""
 
 STATE_READER = QosSpec("STATE_READER", "reliable", "transient_local", 1000)
 """How nodes subscribe to state topics: the writer keeps only the latest value (STATE), the reader queues a burst

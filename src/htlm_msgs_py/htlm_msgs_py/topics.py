@@ -31,6 +31,8 @@ GROUND_TRUTH = f"{NAMESPACE}/ground_truth"
 """World -> monitoring tools: true levels and the joint assignment applied (agents never read it)."""
 EPISODE_METRICS = f"{NAMESPACE}/episode_metrics"
 """World -> trainer and monitoring tools: the metrics of docs/model.md of every finished episode."""
+MARKERS = f"{NAMESPACE}/markers"
+"""World -> RViz2 / Foxglove: visualization_msgs/MarkerArray of one episode (sites, task levels, agents), frame map."""
 DIAGNOSTICS = "/diagnostics"
 """Every node: health and counters (diagnostic_msgs/DiagnosticArray), the ROS convention."""
 
@@ -88,6 +90,7 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(goal_pose("<agent>"), "geometry_msgs/msg/PoseStamped", "STATE", None, "<agent>", "navigation"),
     TopicSpec(GROUND_TRUTH, "std_msgs/msg/String", "EVENTS", "htlm/ground_truth", "world", "monitoring"),
     TopicSpec(EPISODE_METRICS, "std_msgs/msg/String", "EVENTS", "htlm/episode_metrics", "world", "trainer"),
+    TopicSpec(MARKERS, "visualization_msgs/msg/MarkerArray", "STATE", None, "world", "RViz2, Foxglove"),
     TopicSpec(DIAGNOSTICS, "diagnostic_msgs/msg/DiagnosticArray", "DIAGNOSTICS", None, "every node", "monitoring"),
 )
 """The topic table of the README."""

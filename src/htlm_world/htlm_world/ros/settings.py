@@ -65,6 +65,11 @@ class WorldSettings:
     """k of the rate limiter: step g waits until the trainer has done the updates of every step before g - k."""
     trainer_deadline: float = setting(30.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
     """Longest wait for the trainer's progress, seconds; then the world goes on without it until it is heard."""
+    markers: bool = setting(True)
+    """Publish the operation on /htlm/markers (visualization_msgs/MarkerArray, frame map) for RViz2 and Foxglove."""
+    marker_episode: int = setting(0, lo=0, hi=4095, tunable=True)
+    """Which episode of a batch the markers show (its index in the batch; the batch's last when the batch is
+    smaller)."""
 
     def lockstep(self, run_id: str) -> LockstepSettings:
         """What the world's side of the protocol takes from these settings, for the run `run_id`."""

@@ -25,6 +25,7 @@ from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
 from htlm_world.protocol import WorldEffects, WorldProtocol
+from htlm_world.ros.markers import MarkerPublisher
 from htlm_world.ros.settings import WorldSettings, load_scenario, validate_world_settings
 from htlm_world.scenario import ScenarioError
 
@@ -77,6 +78,9 @@ class WorldNode(Node):
         self.protocol = WorldProtocol(
             sc, s.lockstep(self.run_id), Model.build(sc), lambda k: self.pub_obs[k].get_subscription_count() > 0
         )
+        self.markers = (  # /htlm/markers, for RViz2 and Foxglove
+            MarkerPublisher(self, sc, self.protocol.model, lambda: self.settings.marker_episode) if s.markers else None
+        )
         # subscriptions
         self.create_subscription(String, topics.ACTION, self._on_action, EVENTS)
         self.create_subscription(String, topics.READY, self._on_ready, EVENTS)
@@ -117,6 +121,8 @@ class WorldNode(Node):
             h.reject(topic, reason, detail)
         h.counters.update(eff.counters)
         for kind, fields in eff.publish:
+            if self.markers is not None:  # every record, also ground truth that nobody subscribes to
+                self.markers.on_record(kind, fields)
             if kind == "observation":
                 pub = self.pub_obs[fields["agent"]]
             else:
@@ -168,6 +174,8 @@ class WorldNode(Node):
                 self._apply(proto.tick(time.monotonic()))
         if self.stop_signal:
             self._apply(proto.stop(time.monotonic()))
+        if self.markers is not None:
+            self.markers.close()  # the DELETEALL of the end reaches RViz before the node goes away
         if self.log_file is not None:
             self.log_file.close()
         return 128 + self.stop_signal if self.stop_signal else 0

@@ -1,0 +1,338 @@
+"""What the operation looks like in RViz2 or Foxglove, without ROS: the world's state of one episode as a plain list
+of markers (`Mark`), which htlm_world.ros.markers turns into a visualization_msgs/MarkerArray on /htlm/markers.
+
+One update describes the whole scene, with a stable id per namespace, so each update replaces the previous one:
+
+- `sites`, `site_labels`: a flat disc at every site's position of the scenario (`site_positions`), with its name;
+- `tasks`, `task_labels`: the fire task (cube) and the rescue task (sphere) of every site, coloured by their true
+  level (green, done, at level 0 through yellow to red at level L-1; grey when unknown), labelled with the level;
+- `agents`, `agent_labels`: every agent (a cylinder) at the site of its assignment, in a column below the site's
+  tasks; opaque blue while working on a task, pale and translucent while idle, labelled with its name and what it
+  does (and "absent" when the world idled it for a missing action);
+- `status`: the episode and step shown.
+
+`MarkerView` follows the world protocol's records (htlm_world.protocol.WorldEffects.publish) and returns the markers
+to publish: the initial state when a batch begins, the state after every step of the chosen episode of the batch,
+and a single DELETEALL when the run stops. Building an update is O(sites + tasks + agents).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from htlm_world.model import Model
+from htlm_world.scenario import TASK_TYPES, Scenario
+
+FRAME = "map"
+"""Fixed frame of every marker: the frame of the scenario's site positions and of the agents' goal poses."""
+
+# Marker types and actions: the values of the visualization_msgs/Marker constants (tests/test_markers.py checks them)
+CUBE = 1
+SPHERE = 2
+CYLINDER = 3
+TEXT = 9  # TEXT_VIEW_FACING
+ADD = 0
+DELETEALL = 3
+
+NAMESPACES = ("sites", "site_labels", "tasks", "task_labels", "agents", "agent_labels", "status")
+"""Every namespace of an update, in the order of its markers."""
+
+Rgba = tuple[float, float, float, float]
+
+WORKING: Rgba = (0.10, 0.35, 0.95, 1.0)
+"""Colour of an agent working on a task."""
+IDLE: Rgba = (0.55, 0.62, 0.75, 0.45)
+"""Colour of an idle agent (translucent)."""
+UNKNOWN: Rgba = (0.6, 0.6, 0.6, 1.0)
+"""Colour of a task whose level is unknown."""
+SITE: Rgba = (0.75, 0.75, 0.75, 0.35)
+TEXT_COLOUR: Rgba = (0.05, 0.05, 0.05, 1.0)
+CHAR_WIDTH = 0.8
+"""Width of a character of a TEXT marker, roughly, in units of its height (to place labels beside shapes)."""
+
+
+@dataclass(frozen=True)
+class Mark:
+    """One marker, in the fields of visualization_msgs/Marker (frame FRAME, lifetime 0, identity orientation)."""
+
+    ns: str
+    """Namespace (one of NAMESPACES)."""
+    id: int
+    """Id within the namespace, stable from update to update (site, task or agent index)."""
+    type: int
+    """CUBE, SPHERE, CYLINDER or TEXT."""
+    x: float = 0.0
+    """Position in the map frame, metres."""
+    y: float = 0.0
+    z: float = 0.0
+    sx: float = 0.0
+    """Scale, metres (TEXT: only sz, the height of a capital letter)."""
+    sy: float = 0.0
+    sz: float = 0.0
+    rgba: Rgba = (1.0, 1.0, 1.0, 1.0)
+    """Colour and opacity, each 0..1."""
+    text: str = ""
+    """Text of a TEXT marker."""
+    action: int = ADD
+    """ADD (add or replace) or DELETEALL (every marker of the topic is removed)."""
+
+
+DELETE_ALL: tuple[Mark, ...] = (Mark("", 0, CUBE, action=DELETEALL),)
+"""The update that removes every marker (the end of a run)."""
+
+
+def level_colour(level: int | None, levels: int) -> Rgba:
+    """Colour of a task at `level` of 0..levels-1: green (done) at 0, through yellow, to red at levels-1; grey when
+    the level is unknown (None or negative)."""
+    if level is None or level < 0:
+        return UNKNOWN
+    f = min(1.0, level / max(1, levels - 1))
+    return (min(1.0, 2.0 * f), min(1.0, 2.0 * (1.0 - f)) * 0.8, 0.1, 1.0)
+
+
+_STATUS = re.compile(r"episode (\d+), step (\d+)")
+
+
+def status_text(episode: int, step: int, horizon: int) -> str:
+    """Text of the `status` marker."""
+    return f"episode {episode}, step {step} of {horizon}"
+
+
+def parse_status(text: str) -> tuple[int, int] | None:
+    """(episode, step) of a `status` marker's text, None if it is not one."""
+    m = _STATUS.match(text)
+    return (int(m.group(1)), int(m.group(2))) if m else None
+
+
+class Layout:
+    """Where everything of a scenario is drawn: sizes follow the distance between the closest two sites."""
+
+    def __init__(self, scenario: Scenario) -> None:
+        """The layout of `scenario`'s sites, tasks and agents."""
+        self.scenario = scenario
+        n = scenario.n_agents
+        pos = scenario.site_positions
+        gaps = [((x1 - x2) ** 2 + (y1 - y2) ** 2) ** 0.5 for i, (x1, y1) in enumerate(pos) for x2, y2 in pos[i + 1 :]]
+        self.radius_units = max(4.0, 2.0 + 0.9 * n)
+        """Radius of a site's disc, in layout units (room for a column of every agent)."""
+        span = min(gaps) if gaps and min(gaps) > 0 else 50.0
+        self.unit = span / (2.0 * self.radius_units + 2.0)
+        """One layout unit, metres."""
+        self.radius = self.radius_units * self.unit
+        """Radius of a site's disc, metres."""
+
+    def site(self, s: int) -> tuple[float, float]:
+        """Centre of site s."""
+        x, y = self.scenario.site_positions[s]
+        return float(x), float(y)
+
+    def task(self, j: int) -> tuple[float, float]:
+        """Centre of task j (fire to the left, rescue to the right, above the site's centre)."""
+        x, y = self.site(j // 2)
+        u = self.unit
+        return x + (-1.8 if j % 2 == 0 else 1.8) * u, y + 1.8 * u
+
+    def agent(self, s: int, slot: int) -> tuple[float, float]:
+        """Centre of the agent in column slot `slot` of site s (slot 0 just below the site's centre)."""
+        x, y = self.site(s)
+        u = self.unit
+        return x - 3.6 * u, y - (0.2 + 0.9 * slot) * u
+
+
+def scene(
+    scenario: Scenario,
+    model: Model,
+    levels: Sequence[int] | None,
+    actions: Sequence[int],
+    acted: Sequence[int],
+    episode: int,
+    step: int,
+    sites: Sequence[int] | None = None,
+    layout: Layout | None = None,
+) -> list[Mark]:
+    """The markers of one episode's state.
+
+    Args:
+        scenario: The scenario (sites, their positions, tasks, agents and their names).
+        model: Its model (`action_site`: the site of every action).
+        levels: (p,) true level of every task; None when unknown (external operation).
+        actions: (N,) the assignment each agent carries out (an index into G-bar; -1: none, HT mode).
+        acted: The agents whose own action was applied (any other agent was idled by the world: absent).
+        episode: The episode shown.
+        step: The step of `levels` (0: the initial state).
+        sites: (N,) site of each agent whose action is -1 (its previous site); None: the first site.
+        layout: Where things go (built from the scenario when None).
+
+    Returns:
+        Every marker of the scene, namespace by namespace in NAMESPACES order, ids from 0 in each.
+    """
+    sc = scenario
+    lay = layout if layout is not None else Layout(sc)
+    u, p, L = lay.unit, sc.n_tasks, sc.levels
+    out: list[Mark] = []
+    for s in range(sc.n_sites):
+        x, y = lay.site(s)
+        out.append(Mark("sites", s, CYLINDER, x, y, -0.05 * u, 2 * lay.radius, 2 * lay.radius, 0.1 * u, SITE))
+    for s, name in enumerate(sc.sites):
+        x, y = lay.site(s)
+        out.append(Mark("site_labels", s, TEXT, x, y + 4.9 * u, 0.5 * u, sz=0.8 * u, rgba=TEXT_COLOUR, text=name))
+    for j in range(p):
+        x, y = lay.task(j)
+        lv = None if levels is None else int(levels[j])
+        shape = CUBE if j % 2 == 0 else SPHERE
+        out.append(Mark("tasks", j, shape, x, y, 0.7 * u, 1.4 * u, 1.4 * u, 1.4 * u, level_colour(lv, L)))
+    for j in range(p):
+        x, y = lay.task(j)
+        lv = None if levels is None else int(levels[j])
+        state = "level ?" if lv is None or lv < 0 else ("done" if lv == 0 else f"level {lv}")
+        text = f"{TASK_TYPES[j % 2]}\n{state}"
+        out.append(Mark("task_labels", j, TEXT, x, y + 1.7 * u, 1.6 * u, sz=0.5 * u, rgba=TEXT_COLOUR, text=text))
+    taken = [0] * sc.n_sites
+    heard = set(acted)
+    agents: list[Mark] = []
+    labels: list[Mark] = []
+    for k, a in enumerate(actions):
+        a = int(a)
+        stay = int(sites[k]) if sites is not None and sites[k] >= 0 else 0  # no action: where it was
+        s = int(model.action_site[a]) if a >= 0 else stay
+        slot = taken[s]
+        taken[s] += 1
+        x, y = lay.agent(s, slot)
+        working = 0 <= a < p
+        does = TASK_TYPES[a % 2] if working else ("idle" if a >= p else "no action")
+        if k not in heard:
+            does += " (absent)"
+        agents.append(
+            Mark("agents", k, CYLINDER, x, y, 0.5 * u, 0.7 * u, 0.7 * u, 1.0 * u, WORKING if working else IDLE)
+        )
+        text = f"{sc.agents[k].name}: {does}"
+        # text is drawn centred on its position: put the centre so that the text starts just right of the cylinder
+        lx = x + 0.6 * u + 0.5 * CHAR_WIDTH * 0.45 * u * len(text)
+        labels.append(Mark("agent_labels", k, TEXT, lx, y, 1.2 * u, sz=0.45 * u, rgba=TEXT_COLOUR, text=text))
+    out += agents + labels
+    xs = [lay.site(s)[0] for s in range(sc.n_sites)]
+    ys = [lay.site(s)[1] for s in range(sc.n_sites)]
+    out.append(
+        Mark(
+            "status",
+            0,
+            TEXT,
+            (min(xs) + max(xs)) / 2,
+            max(ys) + lay.radius + 1.0 * u,
+            2.0 * u,
+            sz=0.8 * u,
+            rgba=TEXT_COLOUR,
+            text=status_text(episode, step, sc.horizon),
+        )
+    )
+    return out
+
+
+class MarkerView:
+    """Follows the world protocol's records and says which markers to publish, for one episode of each batch."""
+
+    def __init__(self, scenario: Scenario, model: Model) -> None:
+        """The view of a run of `scenario`."""
+        self.scenario = scenario
+        self.model = model
+        self.layout = Layout(scenario)
+        self.acted: list[int] = list(range(scenario.n_agents))
+        """The agents whose actions the world applied in the latest step."""
+        self.sites: list[int] = []
+        """Site of each agent's latest assignment in the shown episode (where an agent with no action stays)."""
+        self.shown = (-1, -1)
+        """(episode, step) of the latest update."""
+
+    def initial(self, episode: int) -> list[Mark]:
+        """The scene at the begin of `episode`: initial levels, every agent at its start assignment."""
+        sc = self.scenario
+        start = sc.start_assignment
+        self.sites = [int(self.model.action_site[start]) if start >= 0 else 0] * sc.n_agents
+        self.shown = (episode, 0)
+        actions = [start] * sc.n_agents
+        everyone = range(sc.n_agents)
+        return scene(sc, self.model, sc.initial_levels, actions, everyone, episode, 0, self.sites, self.layout)
+
+    def on_record(self, kind: str, fields: dict[str, Any], index: int) -> Sequence[Mark] | None:
+        """The markers to publish after the protocol's record (kind, fields), None when nothing changes.
+
+        Args:
+            kind: The record's kind (scenario, step, ground_truth, ...; the others are ignored).
+            fields: Its fields as the protocol returned them.
+            index: Which episode of the batch to show (clipped to the batch's size).
+        """
+        if kind == "scenario":
+            return DELETE_ALL if fields.get("state") == "stopped" else None
+        if kind == "step":
+            if fields["phase"] == "begin":
+                i = min(index, int(fields["size"]) - 1)
+                e = int(fields["episode"]) + i
+                return None if self.shown == (e, 0) else self.initial(e)  # the begin is announced again and again
+            if fields["phase"] == "step":
+                self.acted = list(fields["acted"])
+            return None
+        if kind == "ground_truth":
+            actions = fields["actions"]
+            i = min(index, len(actions) - 1)
+            levels = fields.get("levels")
+            return self.after_step(int(fields["episode"]) + i, int(fields["step"]), levels and levels[i], actions[i])
+        return None
+
+    def after_step(self, episode: int, step: int, levels: Sequence[int] | None, actions: Sequence[int]) -> list[Mark]:
+        """The scene after `step` of `episode`: true levels (None: unknown) and the applied actions (N,)."""
+        if len(self.sites) != len(actions):
+            self.sites = [0] * len(actions)
+        for k, a in enumerate(actions):
+            if a >= 0:
+                self.sites[k] = int(self.model.action_site[a])
+        self.shown = (episode, step)
+        sc = self.scenario
+        return scene(sc, self.model, levels, actions, self.acted, episode, step, self.sites, self.layout)
+
+
+def render(marks: Sequence[Mark], path: str, title: str = "") -> None:
+    """Draw an update as RViz2 would show it from straight above (top view of the map frame) into a PNG file:
+    cylinders and spheres as discs, cubes as squares, text centred on its position; a DELETEALL draws nothing.
+
+    Needs matplotlib (installed with htlm_agent), imported here so the world itself does not depend on it.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle, Rectangle
+
+    shown = [m for m in marks if m.action == ADD]
+    fig = Figure(figsize=(10, 6), dpi=120)
+    ax = fig.add_axes((0.02, 0.02, 0.96, 0.9 if title else 0.96))
+    ax.set_aspect("equal")
+    ax.set_axis_off()
+    ax.set_facecolor("white")
+    if title:
+        fig.suptitle(title, fontsize=11)
+    if not shown:
+        fig.savefig(path)
+        return
+    half = [max(m.sx, m.sy) / 2 for m in shown]
+    x0 = min(m.x - h for m, h in zip(shown, half, strict=True))
+    x1 = max(m.x + h for m, h in zip(shown, half, strict=True))
+    y0 = min(m.y - h - m.sz for m, h in zip(shown, half, strict=True))
+    y1 = max(m.y + h + m.sz for m, h in zip(shown, half, strict=True))
+    pad = 0.04 * max(x1 - x0, y1 - y0)
+    ax.set_xlim(x0 - pad, x1 + pad)
+    ax.set_ylim(y0 - pad, y1 + pad)
+    # points per metre, with equal aspect: the axes box is limited by its tighter side
+    box = ax.get_position()
+    w_pt, h_pt = box.width * fig.get_figwidth() * 72, box.height * fig.get_figheight() * 72
+    per_m = min(w_pt / (x1 - x0 + 2 * pad), h_pt / (y1 - y0 + 2 * pad))
+    for m in sorted(shown, key=lambda m: m.z):
+        if m.type == TEXT:
+            # RViz's text height is the capital letters' height; matplotlib's font size is about 1.4 times that
+            ax.text(
+                m.x, m.y, m.text, ha="center", va="center", fontsize=m.sz * per_m * 1.4, color=m.rgba, zorder=m.z + 10
+            )
+        elif m.type == CUBE:
+            ax.add_patch(Rectangle((m.x - m.sx / 2, m.y - m.sy / 2), m.sx, m.sy, color=m.rgba, zorder=m.z, lw=0))
+        else:
+            ax.add_patch(Circle((m.x, m.y), max(m.sx, m.sy) / 2, color=m.rgba, zorder=m.z, lw=0))
+    fig.savefig(path)
