@@ -13,7 +13,7 @@ from collections.abc import Iterable
 from typing import IO
 
 from rich.console import Console, RenderableType
-from rich.progress import BarColumn, TextColumn
+from rich.progress import BarColumn, TaskID, TextColumn
 from rich.progress import Progress as RichProgress
 from rich.text import Text
 
@@ -74,8 +74,8 @@ class Progress:
         self.t0 = time.perf_counter()
         self.last_draw = -1e9
         self.fields: dict[str, str] = {}
-        self._bar: RichProgress | None = None
-        self._task = 0
+        self._bar: _Bar | None = None
+        self._task = TaskID(0)
 
     @property
     def elapsed(self) -> float:
