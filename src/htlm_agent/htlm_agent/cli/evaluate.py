@@ -1,7 +1,9 @@
 """`htlm evaluate`: greedy evaluation of a trained team (--policy) or a baseline (--baseline) in the batched simulator.
 
-Reports the metrics of docs/model.md per team and per agent, and writes metrics.json, summary.csv, episodes.csv and
-completion_hist.png. `--inactivate` makes agents always idle, without retraining.
+Reports the metrics of docs/model.md per team and per agent, and writes metrics.json, summary.csv, episodes.csv,
+completion_hist.png, scenario.yaml and world.jsonl (every episode's true levels, actions and observations, in the
+format of the world's episode log over ROS; `htlm show OUT --episode E` draws one). `--inactivate` makes agents
+always idle, without retraining.
 """
 
 from __future__ import annotations
@@ -159,5 +161,6 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(ev.metrics))
     else:
         print(format_metrics(ev.metrics))
-        print(f"reports: {paths['json'].parent}")
+        where = paths["json"].parent
+        print(f"reports: {where} (one episode as a picture: htlm show {where} --episode 0)")
     return 0

@@ -7,7 +7,9 @@ trajectories; this module only runs the episodes, aggregates and writes files.
 from __future__ import annotations
 
 import csv
+import gc
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,10 +21,21 @@ from htlm_agent.mind.reward import confident_levels
 from htlm_agent.runtime.team import Policy, Team, rollout
 from htlm_world.metrics import EpisodeMetrics, episode_metrics, importance, mean_se
 from htlm_world.scenario import Scenario
-from htlm_world.types import BoolArray, IntArray
+from htlm_world.types import BoolArray, FloatArray, IntArray
 
 MAX_BATCH = 1024
 """Episodes simulated at once; more are run in chunks (chunk c uses the episode index c for its seeds)."""
+
+
+@dataclass
+class Rollouts:
+    """What `run_episodes` recorded of E episodes."""
+
+    levels: IntArray  # (h+1, E, p) true levels, levels[0] the initial ones
+    actions: IntArray  # (h, E, N) applied actions
+    observations: IntArray  # (h, E, N) observed level of each agent's task, -1 when idle
+    believed_complete: BoolArray  # (E,) every agent's belief says every task is at level 0 after the last step
+    seconds: FloatArray  # (E,) wall time of the batch the episode ran in (as the world's log counts it)
 
 
 @dataclass
@@ -34,28 +47,40 @@ class Evaluation:
     actions: IntArray  # (h, E, N)
     scenario: Scenario
     believed_complete: BoolArray  # (E,) every agent's belief says every task is at level 0 after the last step
+    rollouts: Rollouts
+    """The trajectories behind the metrics (written as world.jsonl by `write_reports`)."""
 
 
 def run_episodes(
     policy: Policy, scenario: Scenario, episodes: int, seed: int = 0, inactive: tuple[int, ...] = ()
-) -> tuple[IntArray, IntArray, BoolArray]:
-    """Run `episodes` episodes of `policy`; returns true levels (h+1, E, p), actions (h, E, N) and whether every
-    agent believes, after the last step, that every task is at level 0 (confident levels of the reward, (E,))."""
+) -> Rollouts:
+    """Run `episodes` episodes of `policy` in batches of at most MAX_BATCH: true levels, actions, observations,
+    whether every agent believes, after the last step, that every task is at level 0 (confident levels of the
+    reward) and the seconds of each batch."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes!r}")
-    levels, actions, believed = [], [], []
+    levels, actions, observations, believed, seconds = [], [], [], [], []
     chunk = 0
     left = episodes
     while left > 0:
         b = min(left, MAX_BATCH)
+        t0 = time.perf_counter()
         team = Team(scenario, b, seed, episode=chunk, inactive=inactive)
         tr = rollout(team, policy)
         levels.append(tr.levels)
         actions.append(tr.actions)
+        observations.append(tr.observations)
         believed.append((confident_levels(team.marg, team.tables.threshold) == 0).all(axis=(1, 2)))
+        seconds.append(np.full(b, time.perf_counter() - t0))
         left -= b
         chunk += 1
-    return np.concatenate(levels, axis=1), np.concatenate(actions, axis=1), np.concatenate(believed)
+    return Rollouts(
+        levels=np.concatenate(levels, axis=1),
+        actions=np.concatenate(actions, axis=1),
+        observations=np.concatenate(observations, axis=1),
+        believed_complete=np.concatenate(believed),
+        seconds=np.concatenate(seconds),
+    )
 
 
 def _ms(x: Any) -> dict[str, float]:
@@ -141,10 +166,10 @@ def evaluate_run(
         inactive: agent indices forced to idle whatever they decide (no retraining).
         policy_name: label for reports.
     """
-    levels, actions, believed = run_episodes(policy, scenario, episodes, seed, inactive)
-    em = episode_metrics(scenario, levels, actions)
-    metrics = summarize(scenario, em, seed, inactive, policy_name or type(policy).__name__, believed)
-    return Evaluation(metrics, em, actions, scenario, believed)
+    ro = run_episodes(policy, scenario, episodes, seed, inactive)
+    em = episode_metrics(scenario, ro.levels, ro.actions)
+    metrics = summarize(scenario, em, seed, inactive, policy_name or type(policy).__name__, ro.believed_complete)
+    return Evaluation(metrics, em, ro.actions, scenario, ro.believed_complete, ro)
 
 
 def evaluate(
@@ -156,8 +181,8 @@ def evaluate(
 
 def write_reports(ev: Evaluation, out_dir: str | Path, settings: Any = None) -> dict[str, Path]:
     """Write metrics.json, summary.csv (one row per agent and one for the team), episodes.csv (one row per episode),
-    completion_hist.png and scenario.yaml (and settings.json of the learner, when given) into out_dir; returns the
-    paths."""
+    world.jsonl (every episode's trajectory, `write_episode_log`), completion_hist.png and scenario.yaml (and
+    settings.json of the learner, when given) into out_dir; returns the paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "scenario.yaml").write_text(yaml.safe_dump(ev.scenario.to_dict(), sort_keys=False))
@@ -169,7 +194,9 @@ def write_reports(ev: Evaluation, out_dir: str | Path, settings: Any = None) -> 
         "summary": out / "summary.csv",
         "episodes": out / "episodes.csv",
         "png": out / "completion_hist.png",
+        "trajectories": out / EPISODE_LOG,
     }
+    write_episode_log(ev, paths["trajectories"], run=out.resolve().name)
     paths["json"].write_text(json.dumps(m, indent=2) + "\n")
     cols = [
         "who",
@@ -228,6 +255,75 @@ def write_reports(ev: Evaluation, out_dir: str | Path, settings: Any = None) -> 
     return paths
 
 
+EPISODE_LOG = "world.jsonl"
+"""The episode log's file name: the same as the world node's (htlm_world.protocol, `WorldEffects.episode_log`),
+since its lines are the same records; `htlm show` reads both."""
+
+
+LOG_BLOCK = 256
+"""Episodes converted to Python lists together, then written one JSON line each."""
+
+
+def write_episode_log(ev: Evaluation, path: Path, run: str) -> None:
+    """One JSON line per episode, in the world's episode log format (what the world node writes to world.jsonl over
+    ROS): {"run", "metrics": {episode, severity, completion, failed, unused_capability, unused_fraction, idle_before,
+    reassign_before, absent, seconds}, "levels": (h+1, p), "actions": (h, N), "observations": (h, N)}. The levels
+    are simulated, no agent is ever absent in process, and "seconds" is the wall time of the batch the episode ran
+    in."""
+    collecting = gc.isenabled()
+    gc.disable()  # the many small lists made here hold no cycles: collecting on the way only costs time (half)
+    try:
+        with path.open("w") as f:
+            for first in range(0, ev.rollouts.actions.shape[1], LOG_BLOCK):
+                f.writelines(_log_lines(ev, run, first))
+    finally:
+        if collecting:
+            gc.enable()
+
+
+def _log_lines(ev: Evaluation, run: str, first: int) -> list[str]:
+    """The episode log lines of episodes first .. first + LOG_BLOCK - 1 (`write_episode_log`)."""
+    ro, em = ev.rollouts, ev.episodes
+    block = slice(first, first + LOG_BLOCK)
+    levels = ro.levels[:, block].transpose(1, 0, 2).tolist()
+    actions = ro.actions[:, block].transpose(1, 0, 2).tolist()
+    observations = ro.observations[:, block].transpose(1, 0, 2).tolist()
+    columns = zip(
+        em.completion[block].tolist(),
+        em.failed[block].tolist(),
+        em.unused_capability[block].tolist(),
+        em.unused_fraction[block].tolist(),
+        em.idle_before[block].tolist(),
+        em.reassign_before[block].tolist(),
+        np.round(ro.seconds[block], 6).tolist(),
+        strict=True,
+    )
+    absent = [0] * ev.scenario.n_agents
+    lines = []
+    for i, (completion, failed, unused, fraction, idle, reassign, seconds) in enumerate(columns):
+        metrics = {
+            "episode": first + i,
+            "severity": "simulated",
+            "completion": completion,
+            "failed": failed,
+            "unused_capability": unused,
+            "unused_fraction": fraction,
+            "idle_before": idle,
+            "reassign_before": reassign,
+            "absent": absent,
+            "seconds": seconds,
+        }
+        line = {
+            "run": run,
+            "metrics": metrics,
+            "levels": levels[i],
+            "actions": actions[i],
+            "observations": observations[i],
+        }
+        lines.append(json.dumps(line, separators=(",", ":")) + "\n")
+    return lines
+
+
 def plot_completion(ev: Evaluation, path: Path) -> None:
     """Histogram of completion steps (failures at h, marked)."""
     import matplotlib
@@ -259,8 +355,7 @@ def plot_completion(ev: Evaluation, path: Path) -> None:
 def importance_table(policy: Policy, scenario: Scenario, episodes: int = 500, seed: int = 0) -> dict[str, Any]:
     """The agent importance table (Eqs. 6-9) from `episodes` greedy episodes: per agent C_fire, C_rescue, U_fire,
     U_rescue, ζ; per task type ω."""
-    _, actions, _ = run_episodes(policy, scenario, episodes, seed)
-    imp = importance(scenario, actions)
+    imp = importance(scenario, run_episodes(policy, scenario, episodes, seed).actions)
     return {
         "scenario": scenario.name,
         "team": scenario.team,
