@@ -233,6 +233,14 @@ def read_episode(path: str | Path, episode: int) -> LoggedEpisode:
     )
 
 
+def run_label(ep: LoggedEpisode) -> str:
+    """The run in the picture's title: the log's folder and its parent (RUN/eval, RUN/evaluate, runs/OUT), and the
+    run identifier the log records when it is not the folder's name."""
+    folder = ep.source.resolve().parent
+    label = "/".join(folder.parts[-2:])
+    return label if ep.run in ("", folder.name) else f"{label} (run {ep.run})"
+
+
 def decision_rows(ep: LoggedEpisode) -> FloatArray:
     """The row of the picture of every decision (t, N): task j on row j, idle at site s on row p + s (the idle
     rows follow the task rows, as in G-bar), no action (-1, HT mode) NaN (a gap in the agent's line)."""
@@ -341,9 +349,7 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
     outcome = f"complete at step {completion}"
     if did_fail:
         outcome = f"failed (tasks at levels {ep.levels[-1].tolist()} at the end)"
-    ax.set_title(
-        f"{ep.run or ep.source.parent.name} · episode {ep.episode} · {sc.team} team · {outcome}", fontsize=10, pad=22
-    )
+    ax.set_title(f"{run_label(ep)} · episode {ep.episode} · {sc.team} team · {outcome}", fontsize=10, pad=22)
     bar = fig.colorbar(mesh, ax=ax, ticks=range(nl), pad=0.015, fraction=0.04)
     bar.set_label("true severity level", fontsize=9)
     bar.ax.set_yticklabels([f"{k} (done)" if k == 0 else str(k) for k in range(nl)], fontsize=8)
