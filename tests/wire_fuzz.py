@@ -16,6 +16,8 @@ VALID: dict[str, dict[str, Any]] = {
         "seed": 1,
         "mode": "evaluate",
         "clock": "lockstep",
+        "period": 0.5,
+        "operation": "simulated",
         "first_episode": 0,
         "episodes": 1,
         "batch": 2,
@@ -55,7 +57,15 @@ VALID: dict[str, dict[str, Any]] = {
         "settings": {},
     },
     "htlm/trainer_progress": {"run": "r1", "trained": 90, "updates": 12},
-    "htlm/belief": {"agent": 1, "episode": 1, "step": 3, "marginals": [0.2] * 20, "confident": [1, 2, 3, 4]},
+    "htlm/belief": {
+        "agent": 1,
+        "episode": 1,
+        "step": 3,
+        "marginals": [0.2] * 20,
+        "confident": [1, 2, 3, 4],
+        "arrived": "yes",
+        "distance": 0.25,
+    },
     "htlm/ground_truth": {
         "episode": 2,
         "step": 3,
@@ -64,6 +74,7 @@ VALID: dict[str, dict[str, Any]] = {
     },
     "htlm/episode_metrics": {
         "episode": 1,
+        "severity": "simulated",
         "completion": 9,
         "failed": False,
         "unused_capability": 0.5,
@@ -73,6 +84,7 @@ VALID: dict[str, dict[str, Any]] = {
         "absent": [0, 0, 0, 0, 0],
         "seconds": 0.3,
     },
+    "htlm/severity": {"episode": 2, "step": 3, "levels": [[1, 2, 3, 4], [0, 1, 2, 4]]},
 }
 """A valid record of every schema for the paper scenario's limits (5 agents, 4 tasks, 6 actions, 5 levels, h 30);
 the per-step records are of a batch of B = 2 episodes (2 and 3)."""

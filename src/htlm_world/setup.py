@@ -32,6 +32,8 @@ setup(
     entry_points={
         "console_scripts": [
             "world_node = htlm_world.ros.world_node:main",
+            "robot_node = htlm_world.ros.robot_node:main",
+            "operation_node = htlm_world.ros.operation_node:main",
         ],
     },
 )

@@ -45,4 +45,13 @@ cadence; agents read with STATE_READER, so a burst of other records never overwr
 DIAGNOSTICS = QosSpec("DIAGNOSTICS", "reliable", "volatile", 10)
 """/diagnostics, as the ROS diagnostics tools expect it."""
 
-PROFILES: dict[str, QosSpec] = {q.name: q for q in (STATE, STATE_READER, EVENTS, WEIGHTS, DIAGNOSTICS)}
+ODOMETRY = QosSpec("ODOMETRY", "reliable", "volatile", 10)
+"""Robot poses (nav_msgs/Odometry of the simulated robots): a stream, as robot drivers publish /odom."""
+
+POSE_READER = QosSpec("POSE_READER", "best_effort", "volatile", 10)
+"""How agents read a robot's pose topic: best effort matches a robot stack's publisher whether it is reliable or
+best effort (sensor data), and only the newest pose matters."""
+
+PROFILES: dict[str, QosSpec] = {
+    q.name: q for q in (STATE, STATE_READER, EVENTS, WEIGHTS, DIAGNOSTICS, ODOMETRY, POSE_READER)
+}

@@ -288,12 +288,14 @@ _BATCH_SIZE = Int(1, "batch")
 
 SCENARIO = Schema(
     "htlm/scenario",
-    2,
+    3,
     {
         "run": Text(64, r"[A-Za-z0-9_.:-]+"),
         "seed": Int(0, 2**63 - 1),
         "mode": OneOf(("train", "evaluate", "deploy")),
         "clock": OneOf(("lockstep", "free")),
+        "period": Float(0.0, 3600.0),
+        "operation": OneOf(("simulated", "external")),
         "first_episode": _EPISODE,
         "episodes": Int(0, EPISODE_MAX),
         "batch": Int(1, STATIC_LIMITS["batch"]),
@@ -303,7 +305,8 @@ SCENARIO = Schema(
         "scenario": Object(),
     },
     max_bytes=256 * 1024,
-    doc="The run: the scenario (Scenario.to_dict), its layout hash, master seed, mode, episode range and batch "
+    doc="The run: the scenario (Scenario.to_dict), its layout hash, master seed, mode, clock and its period, "
+    "operation (simulated by the world, or external: observations come from the robots), episode range and batch "
     "size B (episodes run at once); `state` turns to stopped when the world ends the run.",
 )
 STEP = Schema(
@@ -415,16 +418,19 @@ TRAINER_PROGRESS = Schema(
 )
 BELIEF = Schema(
     "htlm/belief",
-    2,
+    3,
     {
         "agent": _AGENT,
         "episode": _EPISODE,
         "step": Int(0, "step"),
         "marginals": FloatList(-1e-6, 1.000001, length="marginals"),
         "confident": IntList(0, "level", length="tasks"),
+        "arrived": OneOf(("yes", "no", "unknown")),
+        "distance": Float(-1.0, 1e9),
     },
     doc="Per-task marginals of the agent's belief (p x L, row-major) and the confident level of every task, in one "
-    "episode of the batch (`episode`, the agent's belief_episode parameter).",
+    "episode of the batch (`episode`, the agent's belief_episode parameter); whether its robot has reached the site "
+    "of its assignment and how far it is, metres (unknown and -1 without a pose topic).",
 )
 GROUND_TRUTH = Schema(
     "htlm/ground_truth",
@@ -441,19 +447,30 @@ GROUND_TRUTH = Schema(
 )
 EPISODE_METRICS = Schema(
     "htlm/episode_metrics",
-    1,
+    2,
     {
         "episode": _EPISODE,
-        "completion": Int(0, "step"),
+        "severity": OneOf(("simulated", "reported", "unknown")),
+        "completion": Int(-1, "step"),
         "failed": Bool(),
-        "unused_capability": Float(0.0, 1e6),
-        "unused_fraction": Float(0.0, 1e6),
-        "idle_before": Int(0, EPISODE_MAX),
-        "reassign_before": Int(0, EPISODE_MAX),
+        "unused_capability": Float(-1.0, 1e6),
+        "unused_fraction": Float(-1.0, 1e6),
+        "idle_before": Int(-1, EPISODE_MAX),
+        "reassign_before": Int(-1, EPISODE_MAX),
         "absent": IntList(0, "step", length="agents"),
         "seconds": Float(0.0, 1e9),
     },
-    doc="Metrics of docs/model.md for one episode; `absent` counts the steps each agent missed (treated as idle).",
+    doc="Metrics of docs/model.md for one episode; `absent` counts the steps each agent missed (treated as idle). "
+    "`severity` says where the true levels came from: the world's simulation, an outside source (external "
+    "operation), or nowhere: then completion, failed, unused and the counts before completion are unknown (-1, "
+    "false).",
+)
+SEVERITY = Schema(
+    "htlm/severity",
+    1,
+    {"episode": _EPISODE, "step": Int(0, "step"), "levels": Rows(IntList(0, "level", length="tasks"))},
+    doc="External operation: the true levels of every task after step t (an outside source, e.g. the simulated "
+    "operation of the robot stand-ins, or a human operator's report); the world logs them and computes the metrics.",
 )
 
 SCHEMAS: dict[str, Schema] = {
@@ -472,6 +489,7 @@ SCHEMAS: dict[str, Schema] = {
         BELIEF,
         GROUND_TRUTH,
         EPISODE_METRICS,
+        SEVERITY,
     )
 }
 

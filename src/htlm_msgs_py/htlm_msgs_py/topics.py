@@ -31,6 +31,8 @@ GROUND_TRUTH = f"{NAMESPACE}/ground_truth"
 """World -> monitoring tools: true levels and the joint assignment applied (agents never read it)."""
 EPISODE_METRICS = f"{NAMESPACE}/episode_metrics"
 """World -> trainer and monitoring tools: the metrics of docs/model.md of every finished episode."""
+SEVERITY = f"{NAMESPACE}/severity"
+"""Outside source -> world (external operation): the true levels after a step, for the logs and metrics."""
 MARKERS = f"{NAMESPACE}/markers"
 """World -> RViz2 / Foxglove: visualization_msgs/MarkerArray of one episode (sites, task levels, agents), frame map."""
 DIAGNOSTICS = "/diagnostics"
@@ -45,6 +47,11 @@ def observation(agent: str) -> str:
 def goal_pose(agent: str) -> str:
     """Agent -> navigation: geometry_msgs/PoseStamped of the site of the agent's assignment, on change."""
     return f"{NAMESPACE}/{agent}/goal_pose"
+
+
+def odometry(agent: str) -> str:
+    """Simulated robot -> that agent (arrival): nav_msgs/Odometry of the robot in the frame `map`."""
+    return f"{NAMESPACE}/{agent}/odom"
 
 
 def belief(agent: str) -> str:
@@ -79,7 +86,13 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(SCENARIO, "std_msgs/msg/String", "STATE", "htlm/scenario", "world", "agents, trainer"),
     TopicSpec(STEP, "std_msgs/msg/String", "EVENTS", "htlm/step", "world", "agents, trainer"),
     TopicSpec(ACTION, "std_msgs/msg/String", "EVENTS", "htlm/action", "agents", "world"),
-    TopicSpec(observation("<agent>"), "std_msgs/msg/String", "EVENTS", "htlm/observation", "world", "<agent>"),
+    TopicSpec(
+        observation("<agent>"), "std_msgs/msg/String", "EVENTS", "htlm/observation", "world (or robot)", "<agent>"
+    ),
+    TopicSpec(SEVERITY, "std_msgs/msg/String", "EVENTS", "htlm/severity", "outside source", "world (external)"),
+    TopicSpec(
+        odometry("<agent>"), "nav_msgs/msg/Odometry", "ODOMETRY", None, "robot (simulated)", "<agent>, operation"
+    ),
     TopicSpec(BROADCAST, "std_msgs/msg/String", "EVENTS", "htlm/broadcast", "agents", "agents"),
     TopicSpec(READY, "std_msgs/msg/String", "EVENTS", "htlm/ready", "agents", "world"),
     TopicSpec(TRANSITIONS, "std_msgs/msg/String", "EVENTS", "htlm/transition", "agents", "trainer"),

@@ -74,6 +74,9 @@ class LockstepSettings:
     the networks of every update before the step, exactly as `htlm train`)."""
     trainer_deadline: float = 30.0
     """Longest wait for the trainer's progress, seconds; then the world goes on without it until it is heard."""
+    operation: str = "simulated"
+    """simulated: the world simulates the severities and sends the observations; external: the operation is outside
+    (robots observe and publish the observations themselves, an outside source may report the true levels)."""
 
 
 def batch_index(episode: int, batch: int) -> int:
@@ -173,6 +176,7 @@ class WorldEpisode:
         return [
             {
                 "episode": self.episode + i,
+                "severity": "simulated",
                 "completion": int(m.completion[i]),
                 "failed": bool(m.failed[i]),
                 "unused_capability": float(m.unused_capability[i]),
@@ -191,6 +195,88 @@ class WorldEpisode:
             "levels": np.stack(self.level_log)[:, i].tolist(),
             "actions": np.stack(self.action_log)[:, i].tolist() if self.action_log else [],
             "observations": np.stack(self.obs_log)[:, i].tolist() if self.obs_log else [],
+        }
+
+
+class ExternalEpisode(WorldEpisode):
+    """One episode of an external operation (B = 1): the world applies nothing and observes nothing; it records
+    the joint assignment of every step, the true levels an outside source reports (`report_levels`) and the
+    observations the robots publish (`report_observation`), and knows the metrics only when every level is known."""
+
+    def __init__(self, scenario: Scenario, model: Model, episode: int, started: float | None = None) -> None:
+        """Start episode `episode` (its levels at step 0 are the scenario's initial levels, the rest unknown)."""
+        super().__init__(scenario, model, 0, episode, started, size=1)
+        self.reported: dict[int, IntArray] = {0: self.levels[0].copy()}
+        self.observed: dict[tuple[int, int], int] = {}
+
+    def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
+        """Record the joint assignment of the step (absent agents idle); nothing is simulated."""
+        n = self.scenario.n_agents
+        actions = np.empty((1, n), dtype=np.int64)
+        acted = []
+        for k in range(n):
+            a = chosen.get(k)
+            if a is None:
+                actions[:, k] = self.idle_actions(k)
+                self.absent[k] += 1
+            else:
+                actions[:, k] = a
+                acted.append(k)
+        self.prev = np.where(actions >= 0, actions, self.prev)
+        self.t += 1
+        self.action_log.append(actions)
+        unknown = np.full((1, n), -1, dtype=np.int64)
+        return StepOutcome(
+            actions=actions, acted=acted, levels=np.full((1, self.scenario.n_tasks), -1), observations=unknown
+        )
+
+    def report_levels(self, t: int, levels: IntArray) -> bool:
+        """The outside source's true levels after step t (1..steps so far); False when t is not a step of it."""
+        if not 1 <= t <= self.t:
+            return False
+        self.reported[t] = np.asarray(levels, dtype=np.int64).reshape(-1)
+        return True
+
+    def report_observation(self, agent: int, t: int, level: int) -> None:
+        """A robot's observation of its task at step t (kept for the episode log)."""
+        self.observed[(t, agent)] = int(level)
+
+    @property
+    def levels_known(self) -> bool:
+        """Whether the true levels of every step so far were reported."""
+        return all(t in self.reported for t in range(self.t + 1))
+
+    def metrics(self, now: float | None = None) -> list[dict[str, Any]]:
+        """The episode's metrics: as the simulated world's when every level was reported, else unknown (-1)."""
+        if self.levels_known and self.action_log:
+            self.level_log = [self.reported[t].reshape(1, -1) for t in range(self.t + 1)]
+            out = super().metrics(now)
+            out[0]["severity"] = "reported"
+            return out
+        seconds = round((time.monotonic() if now is None else now) - self.started, 6)
+        return [
+            {
+                "episode": self.episode,
+                "severity": "unknown",
+                "completion": -1,
+                "failed": False,
+                "unused_capability": -1.0,
+                "unused_fraction": -1.0,
+                "idle_before": -1,
+                "reassign_before": -1,
+                "absent": [int(x) for x in self.absent],
+                "seconds": seconds,
+            }
+        ]
+
+    def trajectory(self, i: int = 0) -> dict[str, Any]:
+        """The episode: levels (t+1 rows, None where not reported), applied actions (t, N), the robots'
+        observations (t, N; -1 where none arrived)."""
+        n = self.scenario.n_agents
+        return {
+            "levels": [self.reported[t].tolist() if t in self.reported else None for t in range(self.t + 1)],
+            "actions": np.stack(self.action_log)[:, 0].tolist() if self.action_log else [],
+            "observations": [[self.observed.get((t, k), -1) for k in range(n)] for t in range(1, self.t + 1)],
         }
 
 
@@ -393,6 +479,35 @@ class WorldProtocol:
         self._progress(now, out)
         return out
 
+    def on_severity(self, rec: dict[str, Any], now: float) -> WorldEffects:
+        """A decoded severity record {episode, step, levels} of an outside source (external operation only): the
+        true levels after a step of the current episode, logged and published as the step's ground truth."""
+        out = WorldEffects()
+        ep = self.ep
+        if not isinstance(ep, ExternalEpisode):
+            out.drops.append(("severity", "simulated"))
+            return out
+        e, t = rec["episode"], rec["step"]
+        if e != self.episode or len(rec["levels"]) != 1:
+            out.drops.append(("severity", "past" if e < self.episode else "future" if e > self.episode else "length"))
+            return out
+        if t == 0:
+            return out  # the initial levels are the scenario's
+        if not ep.report_levels(t, rec["levels"][0]):
+            out.drops.append(("severity", "future"))
+            return out
+        actions = ep.action_log[t - 1].tolist()
+        out.publish.append(("ground_truth", {"episode": e, "step": t, "levels": rec["levels"], "actions": actions}))
+        return out
+
+    def on_observation(self, rec: dict[str, Any], now: float) -> WorldEffects:
+        """A decoded observation record a robot published (external operation only): kept for the episode log."""
+        out = WorldEffects()
+        ep = self.ep
+        if isinstance(ep, ExternalEpisode) and rec["episode"] == self.episode and 1 <= rec["step"] <= ep.t:
+            ep.report_observation(rec["agent"], rec["step"], rec["levels"][0])
+        return out
+
     def _gate_closed(self, now: float, out: WorldEffects) -> bool:
         """Whether the next step must wait for the trainer (pace): the steps before g - trainer_lag are not all
         trained. Gives up on a silent trainer after trainer_deadline; once the gate opens, the agents' deadline of
@@ -488,9 +603,19 @@ class WorldProtocol:
             self.linger_until = now + s.linger
             return
         self.size = self.batch_size(e)
-        self.ep = WorldEpisode(
-            self.scenario, self.model, s.seed, e, started=now, size=self.size, b=batch_index(e, s.batch), mode=s.mode
-        )
+        if s.operation == "external":
+            self.ep = ExternalEpisode(self.scenario, self.model, e, started=now)
+        else:
+            self.ep = WorldEpisode(
+                self.scenario,
+                self.model,
+                s.seed,
+                e,
+                started=now,
+                size=self.size,
+                b=batch_index(e, s.batch),
+                mode=s.mode,
+            )
         self.episode, self.t, self.phase = e, 1, "act"
         self.answers = {}
         self.joining = True
@@ -537,19 +662,32 @@ class WorldProtocol:
         self.present = set(chosen)
         res = self.ep.step(chosen)
         self.answers = {}  # from here on, the agents' answers are their actions of step t + 1 (ready after step h)
-        tasks = np.where((res.actions >= 0) & (res.actions < sc.n_tasks), res.actions, -1).T.tolist()
-        levels = res.observations.T.tolist()
-        for k in range(sc.n_agents):
+        external = isinstance(self.ep, ExternalEpisode)
+        if not external:  # in an external operation the robots observe and publish the observations themselves
+            tasks = np.where((res.actions >= 0) & (res.actions < sc.n_tasks), res.actions, -1).T.tolist()
+            levels = res.observations.T.tolist()
+            for k in range(sc.n_agents):
+                out.publish.append(
+                    (
+                        "observation",
+                        {
+                            "agent": k,
+                            "episode": e,
+                            "step": t,
+                            "tasks": tasks[k],
+                            "levels": levels[k],
+                            "acted": res.acted,
+                        },
+                    )
+                )
+        out.publish.append(self._step_record(t, "step", res.acted))
+        if not external:  # external: published when the outside source reports the levels (on_severity)
             out.publish.append(
                 (
-                    "observation",
-                    {"agent": k, "episode": e, "step": t, "tasks": tasks[k], "levels": levels[k], "acted": res.acted},
+                    "ground_truth",
+                    {"episode": e, "step": t, "levels": res.levels.tolist(), "actions": res.actions.tolist()},
                 )
             )
-        out.publish.append(self._step_record(t, "step", res.acted))
-        out.publish.append(
-            ("ground_truth", {"episode": e, "step": t, "levels": res.levels.tolist(), "actions": res.actions.tolist()})
-        )
         if t < h:
             self.t, self.phase = t + 1, "act"
             if s.clock == "free":
@@ -572,7 +710,15 @@ class WorldProtocol:
         out.publish.extend(("episode_metrics", m) for m in ms)
         self.episodes_done += len(ms)
         m = ms[0]
-        if len(ms) == 1:
+        if m["severity"] == "unknown":
+            out.log.append(
+                (
+                    "info",
+                    f"episode {m['episode']}: completion unknown (no outside source reported every level), "
+                    f"absent {m['absent']}, {m['seconds']:.2f} s",
+                )
+            )
+        elif len(ms) == 1:
             out.log.append(
                 (
                     "info",
@@ -604,6 +750,8 @@ class WorldProtocol:
             "seed": s.seed,
             "mode": s.mode,
             "clock": s.clock,
+            "period": s.period,
+            "operation": s.operation,
             "first_episode": s.first_episode,
             "episodes": s.episodes,
             "batch": s.batch,

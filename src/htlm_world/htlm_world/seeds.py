@@ -46,6 +46,11 @@ class Stream(IntEnum):
     TRAIN_DROPOUT = 12
     """Which teammate drops out of which episode of one batch of training episodes (`Settings.dropout`): keys
     (batch, 0)."""
+    ROBOT_OPERATION = 13
+    """The stand-in operation of the simulated robots (external world): task transitions of one episode: keys
+    (episode, 0)."""
+    ROBOT_SENSING = 14
+    """One simulated robot's observations in one episode: keys (agent, episode)."""
 
 
 def sequence(seed: int, stream: Stream, first: int = 0, second: int = 0) -> np.random.SeedSequence:
@@ -117,6 +122,16 @@ def train_explore(seed: int, agent: int, batch: int) -> np.random.Generator:
 def train_dropout(seed: int, batch: int) -> np.random.Generator:
     """Which episodes of in-process training batch `batch` lose a teammate, and which one."""
     return generator(seed, Stream.TRAIN_DROPOUT, batch)
+
+
+def robot_operation(seed: int, episode: int) -> np.random.Generator:
+    """The task transitions of the simulated robots' stand-in operation in `episode`."""
+    return generator(seed, Stream.ROBOT_OPERATION, episode)
+
+
+def robot_sensing(seed: int, agent: int, episode: int) -> np.random.Generator:
+    """Simulated robot `agent`'s observations of its task in `episode`."""
+    return generator(seed, Stream.ROBOT_SENSING, agent, episode)
 
 
 def random_policy(seed: int, agent: int) -> np.random.Generator:

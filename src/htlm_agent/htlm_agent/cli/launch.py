@@ -101,6 +101,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--trainer-param", type=_kv, action="append", default=[], metavar="NAME=VALUE", help="trainer_node parameter"
     )
+    p.add_argument(
+        "--operation",
+        choices=("simulated", "external"),
+        default="simulated",
+        help="external: the world simulates nothing, the robots publish the observations (free clock, batch 1)",
+    )
+    p.add_argument(
+        "--robots",
+        choices=("none", "sim"),
+        default="none",
+        help="sim: a simulated robot per agent (follows goal_pose, publishes odometry and observations) and their "
+        "stand-in operation; implies --operation external",
+    )
+    p.add_argument("--period", type=float, default=0.5, help="step period of the free clock, seconds (external)")
+    p.add_argument(
+        "--robot-param",
+        type=_kv,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="robot_node parameter for every simulated robot, e.g. --robot-param speed=10.0",
+    )
     p.add_argument("--timeout", type=float, default=0.0, help="stop the team after this many seconds (exit 124)")
     p.add_argument("--quiet", action="store_true", help="do not echo the episode lines")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -134,6 +156,13 @@ def run(args: argparse.Namespace) -> int:
     default_episodes = {"train": learner.episodes, "evaluate": 500, "deploy": 0}[args.mode]
     episodes = args.episodes if args.episodes is not None else default_episodes
     batch = args.batch if args.batch is not None else {"train": learner.envs, "evaluate": 128, "deploy": 1}[args.mode]
+    is_external = args.operation == "external" or args.robots == "sim"
+    if is_external and (args.mode == "train" or batch != 1):
+        print(f"htlm launch {args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
+        return 2
+    if args.period <= 0:
+        print(f"htlm launch: --period {args.period!r}: must be > 0")
+        return 2
     if batch < 1 or args.first_episode % batch:
         print(f"htlm launch: --batch {batch}: must be >= 1 and divide --first-episode {args.first_episode}")
         return 2
@@ -141,6 +170,8 @@ def run(args: argparse.Namespace) -> int:
     run_dir = Path(args.run_dir or f"runs/launch-{args.mode}__{args.seed}__{stamp}")
     only = tuple(x.strip() for x in args.only.split(",") if x.strip())
     known = {"world", "trainer", *(a.name for a in sc.agents)}
+    if args.robots == "sim":
+        known |= {"operation", *(f"robot_{a.name}" for a in sc.agents)}
     if set(only) - known:
         print(f"htlm launch: --only {sorted(set(only) - known)}: unknown; choose from {sorted(known)}")
         return 2
@@ -166,6 +197,10 @@ def run(args: argparse.Namespace) -> int:
         trainer_params=dict(args.trainer_param),
         timeout=args.timeout,
         echo=not args.quiet,
+        operation=args.operation,
+        robots="" if args.robots == "none" else args.robots,
+        period=args.period,
+        robot_params=dict(args.robot_param),
     )
     code = run_team(cfg)
     out: dict[str, Any] = {"mode": args.mode, "run_dir": str(run_dir), "exit_code": code, **summarize(run_dir)}
@@ -217,6 +252,8 @@ def _print_summary(out: dict[str, Any]) -> None:
     def line(tag: str, s: dict[str, Any]) -> str:
         if not s.get("episodes"):
             return f"{tag}: no episode finished"
+        if s.get("severity_unknown"):
+            return f"{tag}: {s['episodes']} episodes, completion unknown (no outside source reported the severities)"
         return (
             f"{tag}: {s['episodes']} episodes, completion step {s['completion_mean']:.2f} "
             f"(failure rate {s['failure_rate']:.2f}), unused capability {s['unused_fraction_mean']:.3f}, "

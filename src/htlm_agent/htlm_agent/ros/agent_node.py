@@ -14,6 +14,7 @@ import base64
 import binascii
 import hashlib
 import json
+import math
 import secrets
 import sys
 import time
@@ -23,12 +24,14 @@ from typing import Any
 from rclpy.node import Node
 
 from htlm_agent.mind.agent import AgentMind, Effects, Transition
+from htlm_agent.mind.external import ExternalObservations, Observed
 from htlm_agent.mind.policies import AgentPolicy, builtin_policy
 from htlm_agent.ros.settings import AgentSettings, validate_agent_settings
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import (
     EVENTS,
+    POSE_READER,
     STATE,
     STATE_READER,
     Health,
@@ -45,6 +48,7 @@ from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
 from htlm_world.protocol import global_step
+from htlm_world.robots import site_distance
 from htlm_world.scenario import Scenario, ScenarioError, from_dict
 
 
@@ -105,6 +109,12 @@ class AgentNode(Node):
         self.acked = 0
         self.episodes_done = 0
         self.log_file: Any = None
+        self.operation = "simulated"
+        self.period = 0.5
+        self.external: ExternalObservations | None = None
+        self.position: tuple[float, float] | None = None  # the robot's (x, y) in the map frame, from pose_topic
+        self.pose_at = 0.0
+        self.arrived_logged = "unknown"
         # publishers
         self.pub_action = self.create_publisher(String, topics.ACTION, EVENTS)
         self.pub_broadcast = self.create_publisher(String, topics.BROADCAST, EVENTS)
@@ -119,6 +129,13 @@ class AgentNode(Node):
         self.create_subscription(String, topics.BROADCAST, self._on_broadcast, EVENTS)
         self.create_subscription(String, topics.TRANSITION_ACK, self._on_ack, EVENTS)
         self.sub_weights: Any = None
+        if s.pose_topic:
+            if s.pose_type == "odometry":
+                from nav_msgs.msg import Odometry
+
+                self.create_subscription(Odometry, s.pose_topic, self._on_pose, POSE_READER)
+            else:
+                self.create_subscription(PoseStamped, s.pose_topic, self._on_pose, POSE_READER)
         # timers
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.create_timer(s.resend_period, self._resend)
@@ -152,6 +169,9 @@ class AgentNode(Node):
         self.episodes = rec["episodes"]
         self.batch = rec["batch"]
         self.trainer_lag = rec["trainer_lag"]
+        self.operation = rec["operation"]
+        self.period = rec["period"]
+        self.external = ExternalObservations(self.batch) if self.operation == "external" else None
         self.first_step = global_step(self.first_episode, self.batch, 1, sc.horizon)
         self.scenario = sc
         self.scenario_at = time.monotonic()
@@ -180,6 +200,7 @@ class AgentNode(Node):
         self.get_logger().info(
             f"run {self.run}: agent {self.name} (index {self.index}) of {sc.name}/{sc.team}, mode {self.mode}, "
             f"policy {kind}, transitions {'on' if self.send_transitions else 'off'}"
+            + (", operation external: observations from the robot" if self.external is not None else "")
         )
         if rec["state"] == "stopped":
             self._stop_run()
@@ -304,6 +325,8 @@ class AgentNode(Node):
         else:
             self.world_ahead = max(self.world_ahead, (e, t))
             if phase == "step":
+                if self.external is not None:  # the step was applied: pair it with the robot's observation
+                    self._observe_external(self.external.on_step(e, t, rec["acted"], time.monotonic(), self._wait()))
                 return
             eff = self.mind.end(e, t)
         if eff.drop is None:
@@ -316,6 +339,12 @@ class AgentNode(Node):
             return
         if rec["agent"] != self.index:
             self.health.reject("observation", "agent", f"observation for agent {rec['agent']} on {self.name}'s topic")
+            return
+        if self.external is not None:  # from the robot's perception
+            if len(rec["levels"]) != self.mind.size:
+                self.health.reject("observation", "length", f"{len(rec['levels'])} levels for {self.mind.size}")
+                return
+            self._observe_external(self.external.on_robot(rec["episode"], rec["step"], rec["levels"]))
             return
         eff = self.mind.observe(rec["episode"], rec["step"], rec["levels"], rec["acted"], time.monotonic())
         if eff.drop is None:
@@ -331,7 +360,51 @@ class AgentNode(Node):
         eff = self.mind.hear(rec["agent"], rec["episode"], rec["step"], rec["actions"], rec["levels"])
         self._apply("broadcast", eff)
 
+    def _wait(self) -> float:
+        """Seconds to wait for the robot's observation of a step (external operation)."""
+        w = self.settings.observation_wait
+        return w if w >= 0.0 else 0.25 * self.period
+
+    def _observe_external(self, ready: list[Observed]) -> None:
+        for ob in ready:
+            if self.mind is None:
+                return
+            eff = self.mind.observe(ob.episode, ob.step, ob.levels, ob.acted, time.monotonic())
+            if eff.drop is None:
+                self.last_accept = time.monotonic()
+            self._apply("observation", eff)
+
+    def _on_pose(self, msg: Any) -> None:
+        p = msg.pose.pose.position if hasattr(msg, "twist") else msg.pose.position
+        x, y = float(p.x), float(p.y)
+        if not (math.isfinite(x) and math.isfinite(y)):
+            self.health.reject("pose", "range", f"position ({x}, {y})")
+            return
+        self.position = (x, y)
+        self.pose_at = time.monotonic()
+        self._log_arrival()
+
+    def _log_arrival(self) -> None:
+        """Log when the robot reaches the site of its assignment or leaves it (a change, never per step)."""
+        arrived, distance = self.arrival()
+        if arrived != self.arrived_logged and arrived != "unknown":
+            self.arrived_logged = arrived
+            assert self.scenario is not None
+            site = self.scenario.sites[self.last_site]
+            self.get_logger().info(
+                f"robot at site {site}" if arrived == "yes" else f"robot on its way to site {site} ({distance:g} m)"
+            )
+
+    def arrival(self) -> tuple[str, float]:
+        """Whether the robot is at the site of its assignment (yes, no, unknown) and its distance (-1: unknown)."""
+        if self.position is None or self.scenario is None or self.last_site < 0:
+            return "unknown", -1.0
+        d = site_distance(self.scenario, self.last_site, *self.position)
+        return ("yes" if d <= self.settings.arrival_radius else "no"), round(d, 3)
+
     def _tick(self) -> None:
+        if self.external is not None:
+            self._observe_external(self.external.due(time.monotonic()))
         m = self.mind
         if m is not None and m.deferred is not None:
             if time.monotonic() - self.deferred_since > self.settings.weights_timeout and m.policy is not None:
@@ -481,11 +554,20 @@ class AgentNode(Node):
             assert self.mind is not None
             i = min(self.settings.belief_episode, self.mind.size - 1)
             marg, conf = self.mind.belief_summary(i)
+            arrived, distance = self.arrival()
             self.pub_belief.publish(
                 string(
                     encode(
                         S.BELIEF,
-                        {"agent": me, "episode": tr.episode + i, "step": tr.step, "marginals": marg, "confident": conf},
+                        {
+                            "agent": me,
+                            "episode": tr.episode + i,
+                            "step": tr.step,
+                            "marginals": marg,
+                            "confident": conf,
+                            "arrived": arrived,
+                            "distance": distance,
+                        },
                         self.signer,
                     )
                 )
@@ -549,8 +631,18 @@ class AgentNode(Node):
                 "transitions_acked": str(self.acked),
                 "outbox": str(len(self.outbox)),
                 "signed": str(self.signer.enabled).lower(),
+                "operation": self.operation,
             }
         )
+        arrived, distance = self.arrival()
+        h.values.update({"arrived": arrived, "distance_to_site": f"{distance:g}"})
+        if self.external is not None:
+            h.values.update(
+                {
+                    "observations_missing": str(self.external.missing),
+                    "observations_late": str(self.external.late),
+                }
+            )
         if self.fatal is None:
             h.ok("waiting for the world" if m is None else f"episode {m.episode} step {m.current}")
         h.publish()

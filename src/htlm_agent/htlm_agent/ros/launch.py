@@ -91,6 +91,15 @@ class LaunchConfig:
     """Seconds the other processes get to finish after the world ended (trainer checkpoint, agents' outbox)."""
     echo: bool = True
     """Print the world's and trainer's episode lines while the team runs."""
+    operation: str = "simulated"
+    """simulated (the world simulates the severities) or external (the robots observe; world parameter operation)."""
+    robots: str = ""
+    """sim: start a simulated robot per agent and their stand-in operation (implies operation external, the free
+    clock, and the agents' arrival from the robots' odometry); empty: none."""
+    period: float = 0.5
+    """Step period of the free clock (external operation), seconds."""
+    robot_params: dict[str, Any] = field(default_factory=dict)
+    """Extra robot_node parameters (every simulated robot)."""
 
 
 @dataclass
@@ -108,7 +117,10 @@ def _yaml_value(v: Any) -> str:
 
 def write_params(path: Path, params: dict[str, Any]) -> Path:
     """A ROS 2 parameters file applying `params` to any node name."""
-    lines = ["/**:", "  ros__parameters:"] + [f"    {k}: {_yaml_value(v)}" for k, v in params.items()]
+    if not params:  # an empty mapping must be written as one: rcl refuses a bare key
+        lines = ["/**:", "  ros__parameters: {}"]
+    else:
+        lines = ["/**:", "  ros__parameters:"] + [f"    {k}: {_yaml_value(v)}" for k, v in params.items()]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -146,6 +158,7 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         "batch": cfg.batch,
         "run_dir": str(run),
         "run_id": f"{run.name}"[:64].replace(" ", "_"),
+        **({"operation": "external", "clock": "free", "period": cfg.period} if external(cfg) else {}),
         **cfg.world_params,
     }
     if cfg.scenario_file:
@@ -163,13 +176,25 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         )
     )
     for a in sc.agents:
-        params: dict[str, Any] = {"agent": a.name, "policy": cfg.policy, "run_dir": str(run), **cfg.agent_params}
+        params: dict[str, Any] = {"agent": a.name, "policy": cfg.policy, "run_dir": str(run)}
+        if cfg.robots == "sim":  # arrival from the simulated robot's odometry
+            params.update({"pose_topic": f"/htlm/{a.name}/odom", "pose_type": "odometry"})
+        params.update(cfg.agent_params)
         if cfg.checkpoint:
             params["checkpoint"] = str(Path(cfg.checkpoint).resolve())
         specs.append((a.name, "htlm_agent.ros.agent_node", params))
+    if cfg.robots == "sim":
+        specs.append(("operation", "htlm_world.ros.operation_node", {}))
+        for a in sc.agents:
+            specs.append((f"robot_{a.name}", "htlm_world.ros.robot_node", {"agent": a.name, **cfg.robot_params}))
     if cfg.only:
         specs = [s for s in specs if s[0] in cfg.only]
     return specs
+
+
+def external(cfg: LaunchConfig) -> bool:
+    """Whether the launch runs an external operation (the world simulates nothing)."""
+    return cfg.operation == "external" or cfg.robots == "sim"
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
@@ -190,7 +215,7 @@ def start(cfg: LaunchConfig) -> list[Proc]:
     procs = []
     for name, module, params in process_specs(cfg):
         pfile = write_params(cfg.run_dir / "parameters" / f"{name}.yaml", params)
-        node = "htlm_world" if name == "world" else "htlm_trainer" if name == "trainer" else f"htlm_{name}"
+        node = f"htlm_{name}"
         cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__node:={node}", "--params-file", str(pfile)]
         log = logs / f"{name}.log"
         with open(log, "ab") as out:
@@ -387,9 +412,10 @@ def summarize(run_dir: Path) -> dict[str, Any]:
     f = run_dir / "world.jsonl"
     if not f.exists():
         return {"episodes": 0}
-    eps = [json.loads(line)["metrics"] for line in f.read_text().splitlines() if line.strip()]
+    logged = [json.loads(line)["metrics"] for line in f.read_text().splitlines() if line.strip()]
+    eps = [e for e in logged if e.get("severity") != "unknown"]  # external operation without a severity source
     if not eps:
-        return {"episodes": 0}
+        return {"episodes": len(logged), "severity_unknown": len(logged)}
     comp = [e["completion"] for e in eps]
     batches: dict[float, list[int]] = {}  # the episodes of one batch share their absences and seconds
     for e in eps:

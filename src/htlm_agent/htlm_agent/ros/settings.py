@@ -65,6 +65,16 @@ class AgentSettings:
     with the newest weights it has (counted as stale_weights)."""
     belief_episode: int = setting(0, lo=0, hi=4095)
     """Which episode of a batch the belief summary and the goal pose follow (its index in the batch)."""
+    pose_topic: str = setting("")
+    """The robot's pose topic (e.g. /robot1/odom): the agent reports whether the robot has reached the site of its
+    assignment (/diagnostics, belief record); empty: unknown."""
+    pose_type: str = setting("odometry", choices=("odometry", "pose"))
+    """Message type of pose_topic: odometry (nav_msgs/Odometry) or pose (geometry_msgs/PoseStamped)."""
+    arrival_radius: float = setting(2.0, lo=0.0, hi=1e6)
+    """Metres from the site within which the robot has arrived."""
+    observation_wait: float = setting(-1.0, lo=-1.0, hi=SECONDS[1])
+    """External operation: seconds after the world's step record to wait for the robot's observation before
+    updating without one; -1: a quarter of the world's clock period."""
 
 
 def validate_agent_settings(s: AgentSettings) -> list[str]:
@@ -79,7 +89,18 @@ def validate_agent_settings(s: AgentSettings) -> list[str]:
         bad.append(f"epsilon: {s.epsilon!r} must be -1 or in [0, 1]")
     if not s.frame_id:
         bad.append("frame_id: '' must not be empty")
+    if -1.0 < s.observation_wait < 0.0:
+        bad.append(f"observation_wait: {s.observation_wait!r} must be -1 or >= 0")
+    if s.pose_topic and not _topic_name(s.pose_topic):
+        bad.append(f"pose_topic: {s.pose_topic!r} is not a valid topic name")
     return bad
+
+
+def _topic_name(name: str) -> bool:
+    """Whether `name` is a plausible ROS topic name (letters, digits, _ and / separators, ~ for private)."""
+    body = name.lstrip("/~")
+    parts = body.split("/")
+    return bool(body) and all(p and (p[0].isalpha() or p[0] == "_") and p.replace("_", "").isalnum() for p in parts)
 
 
 @dataclass(frozen=True)

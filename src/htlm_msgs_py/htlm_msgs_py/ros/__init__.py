@@ -72,6 +72,8 @@ STATE_READER = qos_profile(_qos.STATE_READER)
 EVENTS = qos_profile(_qos.EVENTS)
 WEIGHTS = qos_profile(_qos.WEIGHTS)
 DIAGNOSTICS = qos_profile(_qos.DIAGNOSTICS)
+ODOMETRY = qos_profile(_qos.ODOMETRY)
+POSE_READER = qos_profile(_qos.POSE_READER)
 
 
 def make_executor(kind: str) -> Executor:

@@ -38,6 +38,10 @@ class WorldSettings:
     """lockstep: advance as soon as every live agent answered; free: one step every `period` seconds."""
     period: float = setting(0.5, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
     """Step period of the free-running clock, seconds."""
+    operation: str = setting("simulated", choices=("simulated", "external"))
+    """simulated: the world simulates the severities and sends every observation; external: the operation is outside
+    (clock free, batch 1): the robots publish the observations, an outside source may report the true levels on
+    /htlm/severity, the world keeps the clock, the assignments and the logs (docs/ros.md, Connecting your robots)."""
     act_deadline: float = setting(2.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
     """Longest wait for the agents' actions of a step, seconds; a silent agent is idle for that step."""
     update_deadline: float = setting(2.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
@@ -84,6 +88,10 @@ def validate_world_settings(s: WorldSettings) -> list[str]:
     bad = problems(s)
     if s.scenario == "" and s.team not in TEAMS:
         bad.append(f"team: {s.team!r} is not one of {sorted(TEAMS)}")
+    if s.operation == "external" and s.clock != "free":
+        bad.append(f"clock: {s.clock!r}: operation external needs clock free (the robots' world does not wait)")
+    if s.operation == "external" and s.batch != 1:
+        bad.append(f"batch: {s.batch!r}: operation external runs one episode at a time (batch 1)")
     if s.first_episode % s.batch:
         bad.append(f"first_episode: {s.first_episode!r} must be a multiple of batch ({s.batch})")
     if s.run_id and (len(s.run_id) > 64 or not all(c.isalnum() or c in "_.:-" for c in s.run_id)):

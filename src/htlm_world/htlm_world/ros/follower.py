@@ -1,0 +1,86 @@
+"""The part every stand-in node of the robots' world shares: follow the run the world announces on /htlm/scenario.
+
+A `RunFollower` decodes the world's scenario records (rejecting and counting bad ones), takes the scenario, seed
+and run of the first valid one, and finishes when that run stops (`exit_on_stop`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rclpy.node import Node
+
+from htlm_msgs_py import schema as S
+from htlm_msgs_py import topics
+from htlm_msgs_py.ros import STATE_READER, Health, SettingsError, String, declare_settings
+from htlm_msgs_py.signing import SigningError, signer_from_env
+from htlm_world.model import Model
+from htlm_world.scenario import Scenario, ScenarioError, from_dict
+
+
+class RunFollower(Node):
+    """A node that follows the world's run: `scenario`, `model`, `seed`, `run` once announced; `on_run` hook."""
+
+    def __init__(self, node_name: str, settings_cls: Any, validate: Any, health_name: str) -> None:
+        """Declare the parameters of `settings_cls` (checked by `validate`), the diagnostics and the scenario reader."""
+        super().__init__(node_name)
+        self.settings = declare_settings(self, settings_cls, validate)
+        try:
+            self.signer = signer_from_env()
+        except SigningError as e:
+            raise SettingsError(str(e)) from None
+        self.health = Health(self, health_name, self.signer)
+        self.stop_signal = 0
+        self.fatal: str | None = None
+        self.run: str | None = None
+        self.seed = 0
+        self.scenario: Scenario | None = None
+        self.model: Model | None = None
+        self.lim: dict[str, int] | None = None
+        self.stopped = False
+        self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
+        self.create_timer(self.settings.diagnostics_period, self._publish_health)
+
+    def _on_scenario(self, msg: String) -> None:
+        rec = self.health.decode("scenario", msg, S.SCENARIO)
+        if rec is None:
+            return
+        if self.run is not None:
+            if rec["run"] == self.run and rec["state"] == "stopped":
+                self.stopped = True
+            elif rec["run"] != self.run:
+                self.health.drop("scenario", "other_run")
+            return
+        try:
+            sc = from_dict(rec["scenario"], "/htlm/scenario")
+        except ScenarioError as e:
+            self.health.reject("scenario", "scenario", str(e))
+            return
+        self.run, self.seed, self.scenario, self.model = rec["run"], rec["seed"], sc, Model.build(sc)
+        self.lim = S.limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, rec["batch"])
+        self.on_run(rec)
+        self.stopped = rec["state"] == "stopped"
+
+    def on_run(self, rec: dict[str, Any]) -> None:
+        """The run `rec` (a scenario record) was announced: `scenario`, `model`, `seed`, `run` are set."""
+
+    def fail(self, why: str) -> None:
+        """A fatal problem: report it and finish (exit code 2)."""
+        self.fatal = why
+        self.health.error(why)
+        self.get_logger().error(why)
+
+    def finished(self) -> bool:
+        """Whether the process should exit: a fatal problem, or the run stopped."""
+        return self.fatal is not None or (self.stopped and bool(self.settings.exit_on_stop))
+
+    def health_values(self) -> tuple[str, dict[str, str]]:
+        """The status message and values of this node's diagnostics."""
+        return "running", {}
+
+    def _publish_health(self) -> None:
+        message, values = self.health_values()
+        self.health.values.update({"run": str(self.run), **values})
+        if self.fatal is None:
+            self.health.ok(message if self.run else "waiting for the world")
+        self.health.publish()

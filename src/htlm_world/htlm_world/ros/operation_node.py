@@ -1,0 +1,135 @@
+"""operation_node: the stand-in operation of the simulated robots, the outside truth an external-operation world
+does not simulate (docs/ros.md, Connecting your robots).
+
+It keeps the true task levels of the current episode and, whenever the world announces that step t was applied
+(its /htlm/step record, with the agents whose actions it applied), applies the model's T to the capabilities of the
+robots that are at the site of their assignment (their nav_msgs/Odometry on /htlm/<agent>/odom, within
+`arrival_radius`): a robot on its way works on nothing. It publishes the levels on /htlm/severity, where the
+simulated robots read the true level of the task they observe and the world takes the levels for its logs and
+metrics. Run: `python -m htlm_world.ros.operation_node` (or `htlm launch deploy --robots sim`).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any
+
+import numpy as np
+from nav_msgs.msg import Odometry
+
+from htlm_msgs_py import schema as S
+from htlm_msgs_py import topics
+from htlm_msgs_py.ros import EVENTS, POSE_READER, SettingsError, String, run_node, spin_until_finished, string
+from htlm_msgs_py.schema import encode
+from htlm_world.robots import StandInOperation, action_distance
+from htlm_world.ros.follower import RunFollower
+from htlm_world.ros.robot_settings import OperationSettings, validate_operation_settings
+
+
+def _validate(s: OperationSettings) -> None:
+    bad = validate_operation_settings(s)
+    if bad:
+        raise SettingsError("; ".join(bad))
+
+
+class OperationNode(RunFollower):
+    """The true levels of the simulated robots' world."""
+
+    def __init__(self) -> None:
+        """Parameters, the severity publisher, the world's records; the robots' poses once the run is known."""
+        super().__init__("htlm_operation", OperationSettings, _validate, "htlm: operation")
+        self.op: StandInOperation | None = None
+        self.positions: dict[int, tuple[float, float]] = {}
+        self.actions: dict[tuple[int, int], dict[int, int]] = {}  # (episode, step) -> agent -> action
+        self.pending: list[tuple[int, int, list[int], float]] = []  # steps applied by the world, not yet here
+        self.prev: Any = None
+        self.pub = self.create_publisher(String, topics.SEVERITY, EVENTS)
+        self.create_subscription(String, topics.STEP, self._on_step, EVENTS)
+        self.create_subscription(String, topics.ACTION, self._on_action, EVENTS)
+        self.create_timer(0.02, self._flush)
+
+    def on_run(self, rec: dict[str, Any]) -> None:
+        """Follow every robot's odometry."""
+        assert self.scenario is not None
+        if rec["batch"] != 1:
+            self.fail(f"batch {rec['batch']}: the stand-in operation runs one episode at a time (batch 1)")
+            return
+        for k, a in enumerate(self.scenario.agents):
+            self.create_subscription(
+                Odometry, topics.odometry(a.name), lambda msg, k=k: self._on_odom(k, msg), POSE_READER
+            )
+        self.get_logger().info(f"run {self.run}: the stand-in operation of {len(self.scenario.agents)} robots")
+
+    def _on_odom(self, k: int, msg: Odometry) -> None:
+        self.positions[k] = (float(msg.pose.pose.position.x), float(msg.pose.pose.position.y))
+
+    def _on_action(self, msg: String) -> None:
+        rec = self.health.decode("action", msg, S.ACTION, self.lim)
+        if rec is None:
+            return
+        self.actions.setdefault((rec["episode"], rec["step"]), {})[rec["agent"]] = int(rec["actions"][0])
+        while len(self.actions) > 64:
+            del self.actions[min(self.actions)]
+        self._flush()
+
+    def _on_step(self, msg: String) -> None:
+        rec = self.health.decode("step", msg, S.STEP, self.lim)
+        if rec is None or self.scenario is None or self.model is None:
+            return
+        e, t = rec["episode"], rec["step"]
+        if rec["phase"] == "begin":
+            if self.op is None or self.op.episode != e:
+                self.op = StandInOperation(self.scenario, self.model, self.seed, e)
+                self.prev = np.full(self.scenario.n_agents, self.scenario.start_assignment, dtype=np.int64)
+                self.pending = []
+        elif rec["phase"] == "step" and self.op is not None and e == self.op.episode:
+            self.pending.append((e, t, list(rec["acted"]), time.monotonic() + self.settings.action_wait))
+            self._flush()
+
+    def _flush(self) -> None:
+        """Apply the world's applied steps in order, once the actions of the agents it applied are in (or late)."""
+        now = time.monotonic()
+        while self.pending and self.op is not None and self.model is not None and self.scenario is not None:
+            e, t, acted, deadline = self.pending[0]
+            heard = self.actions.get((e, t), {})
+            if not set(acted) <= heard.keys() and now < deadline:
+                return
+            self.pending.pop(0)
+            n = self.scenario.n_agents
+            joint = np.array(
+                [
+                    heard[k] if k in acted and k in heard else int(self.model.idle_action(self.prev[k]))
+                    for k in range(n)
+                ],
+                dtype=np.int64,
+            )
+            arrived = np.array(
+                [
+                    k in self.positions
+                    and action_distance(self.model, int(joint[k]), *self.positions[k]) <= self.settings.arrival_radius
+                    for k in range(n)
+                ]
+            )
+            self.health.counters["robot_steps_on_the_way"] += int((~arrived).sum())
+            levels = self.op.step(joint, arrived)
+            self.prev = joint
+            self.pub.publish(
+                string(encode(S.SEVERITY, {"episode": e, "step": t, "levels": [levels.tolist()]}, self.signer))
+            )
+
+    def health_values(self) -> tuple[str, dict[str, str]]:
+        """The episode, step and levels."""
+        if self.op is None:
+            return "waiting for an episode", {}
+        lv = ",".join(str(int(x)) for x in self.op.levels[0])
+        return f"episode {self.op.episode} step {self.op.t}: levels {lv}", {"levels": lv}
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of `operation_node` (exit code: 0 run over, 2 bad parameters, 130/143 SIGINT/SIGTERM)."""
+    return run_node("operation_node", OperationNode, spin_until_finished, lambda node: None, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
