@@ -350,13 +350,19 @@ def _tasks_table(state: WatchState) -> Table | None:
     if tr is not None and shown is not None and 0 <= shown - tr["episode"] < len(tr["levels"]):
         row = shown - tr["episode"]
     title = "true severities" + (f" after step {tr['step']}" if tr is not None and row is not None else "")
-    table = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False)
+    table = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
     table.add_column("task")
     table.add_column("true level")
     names = state.agent_names
     for a in names:
-        b = state.beliefs.get(a)
-        table.add_column(f"{a} belief" + (f" (e{b.episode} t{b.step})" if b is not None else ""))
+        table.add_column(a)
+    seen = {(b.episode, b.step) for b in state.beliefs.values()}
+    if len(seen) == 1:
+        ((e, t_b),) = seen
+        where = f"of episode {e} after step {t_b}"
+    else:
+        where = "; ".join(f"{a}: episode {b.episode} step {b.step}" for a, b in sorted(state.beliefs.items()))
+    caption = "beliefs: confident level (probability)" + (f", {where}" if seen else ": none yet")
     for j, task in enumerate(sc.action_names[: sc.n_tasks]):
         true = int(tr["levels"][row][j]) if tr is not None and row is not None else None
         cells: list[RenderableType] = [task, _level_text(true, sc.levels) if true is not None else Text("-")]
@@ -370,7 +376,9 @@ def _tasks_table(state: WatchState) -> Table | None:
             cells.append(Text(f"{b.confident[j]} ({b.probability[j]:.2f})", style=style))
         table.add_row(*cells)
     if tr is None:
-        table.caption = "no ground truth yet (/htlm/ground_truth)"
+        caption += "; no ground truth yet (/htlm/ground_truth)"
+    table.caption = caption
+    table.caption_justify = "left"
     return table
 
 
@@ -392,7 +400,7 @@ def _agents_table(state: WatchState, now: float) -> Table | None:
     if tr is not None and shown is not None and 0 <= shown - tr["episode"] < len(tr["actions"]):
         row = shown - tr["episode"]
     absent = set(state.absent())
-    table = Table(title="agents", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False)
+    table = Table(title="agents", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
     robots = any(b.arrived != "unknown" for b in state.beliefs.values())
     for col in ("agent", "assignment", "state", "rejected", "dropped") + (("robot",) if robots else ()):
         table.add_column(col)
@@ -422,7 +430,9 @@ def _agents_table(state: WatchState, now: float) -> Table | None:
 
 
 def _nodes_table(state: WatchState, now: float) -> Table:
-    table = Table(title="nodes (/diagnostics)", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False)
+    table = Table(
+        title="nodes (/diagnostics)", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False
+    )
     for col in ("node", "level", "message", "rejected", "dropped", "heard"):
         table.add_column(col)
     for name in sorted(state.nodes):
@@ -496,7 +506,10 @@ def render(state: WatchState, now: float) -> RenderableType:
         if table is not None:
             parts.append(table)
     parts += [_stats(state), _nodes_table(state, now), _problems(state)]
-    return Group(*parts)
+    spaced: list[RenderableType] = [parts[0]]
+    for p in parts[1:]:
+        spaced += [Text(""), p]
+    return Group(*spaced)
 
 
 def snapshot(state: WatchState, now: float, width: int = 120) -> str:

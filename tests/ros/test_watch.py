@@ -1,0 +1,113 @@
+"""`htlm watch` against a real team (world, trainer and five agent processes over DDS): what it prints agrees with
+what the world logged, it shows an agent that was killed as absent, accepts the team's signed records, and exits
+with code 0 on Ctrl-C."""
+
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
+
+SEPARATOR = "--- htlm watch"
+
+
+def start_watch(team: Any, out: Path, *args: str) -> subprocess.Popen[bytes]:
+    """`htlm watch --plain` on the team's domain (its environment: domain, discovery, team key)."""
+    cmd = [sys.executable, "-m", "htlm_agent.cli", "watch", "--plain", "--every", "0.5", "--width", "160", *args]
+    with out.open("wb") as f:
+        return subprocess.Popen(cmd, env=team.env(), stdout=f, stderr=subprocess.PIPE)
+
+
+def snapshots(out: Path) -> list[str]:
+    """The complete snapshots printed so far (the one being written is left out)."""
+    parts = out.read_text(errors="replace").split(SEPARATOR)[1:]
+    return parts[:-1]
+
+
+def stop_watch(watch: subprocess.Popen[bytes]) -> tuple[int, str]:
+    watch.send_signal(signal.SIGINT)
+    try:
+        _, err = watch.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        watch.kill()
+        pytest.fail("htlm watch did not exit within 20 s of SIGINT")
+    return watch.returncode, err.decode(errors="replace")
+
+
+def completion_line(episodes: list[dict[str, Any]]) -> str:
+    """What the watch prints for these episodes of world.jsonl: the mean completion and its standard error."""
+    xs = [float(w["metrics"]["completion"]) for w in episodes]
+    mean = sum(xs) / len(xs)
+    se = math.sqrt(sum((x - mean) ** 2 for x in xs) / (len(xs) - 1) / len(xs))
+    return f"{len(xs)} episodes finished  completion {mean:.2f} ± {se:.2f} (mean ± SE)"
+
+
+def test_watch_shows_what_the_world_logged_with_signed_records(ros_team: Any, tmp_path: Path) -> None:
+    key = tmp_path / "team.key"
+    key.write_text("watch-test-team-key-0123456789\n")
+    team = ros_team(policy="greedy", seed=4, episodes=6, batch=2, key_file=str(key))
+    out = tmp_path / "watch.txt"
+    watch = start_watch(team, out)
+    team.wait_for(lambda: len(snapshots(out)) >= 1, 30, "the first snapshot of htlm watch")
+    team.start()
+    assert team.wait("world", 60) == 0
+    episodes = team.world_episodes()
+    assert len(episodes) == 6
+    expected = completion_line(episodes)
+    team.wait_for(lambda: expected in (snapshots(out) or [""])[-1], 15, f"htlm watch to print {expected!r}")
+    code, err = stop_watch(watch)
+    assert code == 0, err
+    assert "Traceback" not in err
+    last = out.read_text().split(SEPARATOR)[-1]  # the snapshot printed at exit
+    run_id = team.run_dir.name
+    assert f"run {run_id}  scenario paper/heterogeneous  mode evaluate  seed 4  episodes 0..5  batch 2" in last
+    assert "[stopped]" in last
+    assert "episode 4  step 30/30  phase end" in last  # the last batch: episodes 4..5, showing index 0
+    assert "showing episode 4, index 0 in the batch" in last
+    assert expected in last
+    final = max(episodes, key=lambda w: w["metrics"]["episode"])["metrics"]
+    assert f"last episode 5: completion {final['completion']}" in last
+    for a in team.cfg.scenario.agents:
+        assert any(line.strip().startswith(a.name + " ") for line in last.splitlines()), a.name
+    # every record was signed and accepted: nothing rejected, and the beliefs and the truth arrived
+    assert "records received, 0 rejected" in last
+    assert "beliefs: confident level (probability), of episode 4 after step 30" in last
+    assert "true severities after step 30" in last
+
+
+def test_watch_shows_a_killed_agent_as_absent(ros_team: Any, tmp_path: Path) -> None:
+    team = ros_team(
+        policy="greedy",
+        seed=2,
+        episodes=6,
+        batch=2,
+        world_params={"act_deadline": 1.0, "begin_deadline": 1.0},
+    )
+    out = tmp_path / "watch.txt"
+    watch = start_watch(team, out, "--stale-after", "3")
+    team.wait_for(lambda: len(snapshots(out)) >= 1, 30, "the first snapshot of htlm watch")
+    team.start()
+    team.wait_for(lambda: len(team.world_episodes()) >= 2, 60, "the first batch")
+    team.kill("agent5")
+    assert team.wait("world", 60) == 0
+    episodes = team.world_episodes()
+    names = [a.name for a in team.cfg.scenario.agents]
+    missed = [sum(w["metrics"]["absent"][k] for w in episodes) for k in range(len(names))]
+    assert missed[4] > 0
+    team.wait_for(lambda: completion_line(episodes) in (snapshots(out) or [""])[-1], 15, "the last episode")
+    code, err = stop_watch(watch)
+    assert code == 0, err
+    shown = out.read_text().split(SEPARATOR)
+    rows = [line for s in shown for line in s.splitlines() if line.strip().startswith("agent5 ")]
+    assert any(" absent " in r for r in rows), rows[-10:]  # while the world ran without it
+    last = shown[-1]
+    assert "absent steps " + ", ".join(f"{a} {n}" for a, n in zip(names, missed, strict=True) if n) in last
+    assert completion_line(episodes) in last
+    assert any("SILENT" in r for r in rows)  # its /diagnostics stopped
