@@ -16,7 +16,16 @@ from htlm_world.scenario import builtin
 
 SC = builtin()
 KEY = b"0123456789abcdef-team-key"
-OPTIONAL = {"period": 0.5, "operation": "simulated", "severity": "simulated", "arrived": "unknown", "distance": -1.0}
+OPTIONAL = {
+    "period": 0.5,
+    "operation": "simulated",
+    "nonce": "00112233aabbccdd",
+    "seq": 0,
+    "run": "watch-test",
+    "severity": "simulated",
+    "arrived": "unknown",
+    "distance": -1.0,
+}
 """Values of fields some versions of the schemas have, used when a test does not name them."""
 
 
@@ -108,7 +117,7 @@ def test_the_view_shows_run_episode_truth_assignments_beliefs_and_statistics() -
     out = text(fed_state())
     assert "run watch-test" in out and "mode evaluate" in out and "batch 2" in out
     assert "episode 2" in out and "step 3/30" in out
-    assert "showing episode 2, index 0 in the batch" in out
+    assert "episode 2  step 3/30  phase step  (index 0 of the batch 2..3: --episode-in-batch)" in out
     lines = out.splitlines()
     fire1 = next(ln for ln in lines if ln.strip().startswith("fire@site1"))
     assert "4 ####" in fire1  # true level 4 of episode 2 (row 0 of the batch)
@@ -127,13 +136,13 @@ def test_the_view_shows_run_episode_truth_assignments_beliefs_and_statistics() -
 
 def test_another_episode_of_the_batch() -> None:
     out = text(fed_state(episode_in_batch=1))
-    assert "episode 3" in out and "showing episode 3, index 1 in the batch" in out
+    assert "episode 3  step 3/30  phase step  (index 1 of the batch 2..3" in out
     fire1 = next(ln for ln in out.splitlines() if ln.strip().startswith("fire@site1"))
     assert fire1.split()[1] == "0"  # row 1 of the ground truth
     # agent1's belief is of episode 2, so it is not compared with episode 3's truth, but still shown
     assert "4 (0.75)" in fire1
     st = fed_state(episode_in_batch=9)  # beyond the batch: its last episode
-    assert "showing episode 3, index 1" in text(st)
+    assert "episode 3  step 3/30  phase step  (index 1 of the batch 2..3" in text(st)
 
 
 def test_bad_records_are_counted_and_change_nothing() -> None:
@@ -212,3 +221,11 @@ def test_episodes_of_unknown_severity_are_left_out_of_the_completion_statistics(
     out = text(st)
     assert "3 episodes finished" in out and "completion 9.50 ± 1.50" in out and "(2 with known severities)" in out
     assert "last episode 2: completion unknown" in out
+
+
+@pytest.mark.skipif("run" not in S.EPISODE_METRICS.fields, reason="episode metrics without a run id")
+def test_metrics_of_another_run_are_dropped() -> None:
+    st = fed_state()
+    st.on_metrics(encode(S.EPISODE_METRICS, {**S.decode(metrics(5, 3), S.EPISODE_METRICS, st.lim), "run": "old-run"}))
+    out = text(st)
+    assert "2 episodes finished" in out and "dropped episode_metrics/other_run 1" in out

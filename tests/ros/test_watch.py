@@ -69,8 +69,8 @@ def test_watch_shows_what_the_world_logged_with_signed_records(ros_team: Any, tm
     run_id = team.run_dir.name
     assert f"run {run_id}  scenario paper/heterogeneous  mode evaluate  seed 4  episodes 0..5  batch 2" in last
     assert "[stopped]" in last
-    assert "episode 4  step 30/30  phase end" in last  # the last batch: episodes 4..5, showing index 0
-    assert "showing episode 4, index 0 in the batch" in last
+    # the last batch: episodes 4..5, showing index 0
+    assert "episode 4  step 30/30  phase end  (index 0 of the batch 4..5: --episode-in-batch)" in last
     assert expected in last
     final = max(episodes, key=lambda w: w["metrics"]["episode"])["metrics"]
     assert f"last episode 5: completion {final['completion']}" in last

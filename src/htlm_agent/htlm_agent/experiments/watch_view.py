@@ -167,6 +167,8 @@ class WatchState:
         self.rejected: Counter[str] = Counter()
         """The watch's own rejections, by "<topic>/<reason>"."""
         self.received: Counter[str] = Counter()
+        self.dropped: Counter[str] = Counter()
+        """Well-formed records of another run, by "<topic>/<reason>"."""
         self.nodes: dict[str, NodeStatus] = {}
         self.scenario: Scenario | None = None
         self.run: dict[str, Any] | None = None
@@ -244,8 +246,12 @@ class WatchState:
         """A /htlm/episode_metrics record of a finished episode."""
         if self._needs_run("episode_metrics"):
             rec = self._decode("episode_metrics", text, S.EPISODE_METRICS)
-            if rec is not None:
-                self.stats.metrics[rec["episode"]] = rec
+            if rec is None:
+                return
+            if self.run is not None and rec.get("run", self.run["run"]) != self.run["run"]:
+                self.dropped["episode_metrics/other_run"] += 1
+                return
+            self.stats.metrics[rec["episode"]] = rec
 
     def on_belief(self, agent: str, text: Any) -> None:
         """A /htlm/<agent>/belief record."""
@@ -333,10 +339,7 @@ def _header(state: WatchState) -> Text:
     t.append(f"episode {shown}", style="bold")
     t.append(f"  step {st['step']}/{sc.horizon}  phase {st['phase']}")
     if size > 1 or int(run["batch"]) > 1:
-        t.append(
-            f"  (batch of episodes {first}..{first + size - 1}; showing episode {shown}, "
-            f"index {state.shown_index()} in the batch: --episode-in-batch)"
-        )
+        t.append(f"  (index {state.shown_index()} of the batch {first}..{first + size - 1}: --episode-in-batch)")
     return t
 
 
@@ -470,6 +473,8 @@ def _problems(state: WatchState) -> Text:
     t.append(f"watch: {sum(state.received.values())} records received, {mine} rejected")
     if mine:
         t.append(" (" + ", ".join(f"{k} {v}" for k, v in sorted(state.rejected.items())) + ")", style="red")
+    if state.dropped:
+        t.append(", dropped " + ", ".join(f"{k} {v}" for k, v in sorted(state.dropped.items())))
     return t
 
 
