@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -130,42 +132,36 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Launch the team and print a summary."""
-    from htlm_agent.ros.launch import LaunchConfig, run_team, summarize
-
-    try:
-        sc = load(args.scenario) if args.scenario else builtin(args.team or "heterogeneous")
-        if args.scenario and args.team:
-            raise ScenarioError("give --scenario or --team, not both")
-    except ScenarioError as e:
-        print(f"htlm launch: {e}")
-        return 2
-    if args.mode in ("evaluate", "deploy") and args.policy in ("auto", "checkpoint") and not args.checkpoint:
-        print(f"htlm launch {args.mode}: needs --checkpoint DIR (or --policy greedy / random)")
-        return 2
+    """Check the launch's input (every problem on stderr, exit 2, nothing started), launch the team, print a summary."""
     from htlm_agent.learning.settings import Settings
+    from htlm_agent.ros.launch import LaunchConfig, run_team, summarize
+    from htlm_agent.ros.launch_check import check_launch
 
+    bad: list[str] = []  # every problem of the input, reported together
+    sc = builtin(args.team or "heterogeneous")  # a stand-in when the scenario file does not load
+    if args.scenario and args.team:
+        bad.append(f"--scenario {args.scenario}, --team {args.team}: give one, not both")
+    if args.scenario:
+        with contextlib.suppress(ScenarioError):  # check_launch reports every problem of the file
+            sc = load(args.scenario)
+    if args.mode in ("evaluate", "deploy") and args.policy in ("auto", "checkpoint") and not args.checkpoint:
+        bad.append(f"{args.mode}: needs --checkpoint DIR (or --policy greedy / random)")
     try:
         learner = Settings.from_dict(dict(args.learner), "--set")
-    except ValueError as e:
-        print(f"htlm launch: {e}")
-        return 2
+    except ValueError:  # check_launch reports every bad key
+        learner = Settings()
     if args.mode == "train" and learner.dropout > 0:
-        print(f"htlm launch train: --set dropout={learner.dropout!r}: training for resilience runs in process only")
-        return 2
+        bad.append(f"train: --set dropout={learner.dropout!r}: training for resilience runs in process only")
     default_episodes = {"train": learner.episodes, "evaluate": 500, "deploy": 0}[args.mode]
     episodes = args.episodes if args.episodes is not None else default_episodes
     batch = args.batch if args.batch is not None else {"train": learner.envs, "evaluate": 128, "deploy": 1}[args.mode]
     is_external = args.operation == "external" or args.robots == "sim"
     if is_external and (args.mode == "train" or batch != 1):
-        print(f"htlm launch {args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
-        return 2
+        bad.append(f"{args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
     if args.period <= 0:
-        print(f"htlm launch: --period {args.period!r}: must be > 0")
-        return 2
+        bad.append(f"--period {args.period!r}: must be > 0")
     if batch < 1 or args.first_episode % batch:
-        print(f"htlm launch: --batch {batch}: must be >= 1 and divide --first-episode {args.first_episode}")
-        return 2
+        bad.append(f"--batch {batch}: must be >= 1 and divide --first-episode {args.first_episode}")
     stamp = time.strftime("%Y%m%d-%H%M%S")
     run_dir = Path(args.run_dir or f"runs/launch-{args.mode}__{args.seed}__{stamp}")
     only = tuple(x.strip() for x in args.only.split(",") if x.strip())
@@ -173,8 +169,7 @@ def run(args: argparse.Namespace) -> int:
     if args.robots == "sim":
         known |= {"operation", *(f"robot_{a.name}" for a in sc.agents)}
     if set(only) - known:
-        print(f"htlm launch: --only {sorted(set(only) - known)}: unknown; choose from {sorted(known)}")
-        return 2
+        bad.append(f"--only {sorted(set(only) - known)}: unknown; choose from {sorted(known)}")
     cfg = LaunchConfig(
         mode=args.mode,
         scenario=sc,
@@ -202,6 +197,11 @@ def run(args: argparse.Namespace) -> int:
         period=args.period,
         robot_params=dict(args.robot_param),
     )
+    bad += check_launch(cfg)
+    if bad:
+        for line in bad:
+            print(f"htlm launch: {line}", file=sys.stderr)
+        return 2
     code = run_team(cfg)
     out: dict[str, Any] = {"mode": args.mode, "run_dir": str(run_dir), "exit_code": code, **summarize(run_dir)}
     ckpt = run_dir / "trainer" / "checkpoint"
@@ -236,8 +236,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _report(sc: Any, seed: int, train_episodes: int, episodes: int, run_dir: Path, eval_dir: Path) -> dict[str, Any]:
     """The learned team (evaluated over ROS) beside random, greedy and the optimum: run_dir/result.{csv,json,png}."""
-    import sys
-
     from htlm_agent.experiments.ros_report import baseline_rows, learned_row, write_report
 
     print(f"htlm launch: evaluating the baselines in process on {episodes} episodes (seed {seed})", file=sys.stderr)
