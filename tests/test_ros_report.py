@@ -56,7 +56,7 @@ def test_launch_refuses_what_training_over_ros_cannot_do(tmp_path: Path, capsys:
     from htlm_agent.cli import main
 
     assert main(["launch", "train", "--set", "dropout=0.1", "--run-dir", str(tmp_path / "r")]) == 2
-    assert "dropout=0.1" in capsys.readouterr().out
+    assert "dropout=0.1" in capsys.readouterr().err
     assert main(["launch", "evaluate", "--policy", "greedy", "--batch", "3", "--first-episode", "4"]) == 2
-    assert "--batch 3" in capsys.readouterr().out
+    assert "--batch 3" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()  # nothing started

@@ -6,6 +6,7 @@ and the store's later records."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import random
 import re
@@ -37,14 +38,22 @@ SCHED = Schedule(weights_every=1, round_deadline=5.0, checkpoint_every=0)
 MODEL = Model.build(SC)
 
 
+_SEQ = itertools.count()
+"""Announcements only grow (a repeated sequence number is a replay)."""
+
+
 def _scenario(
     mode: str = "train", run: str = "r1", state: str = "running", episodes: int = 0, first: int = 0, batch: int = 2
 ) -> dict[str, Any]:
     return {
         "run": run,
+        "nonce": "00000000000000aa",
+        "seq": next(_SEQ),
         "seed": 7,
         "mode": mode,
         "clock": "lockstep",
+        "period": 0.5,
+        "operation": "simulated",
         "first_episode": first,
         "episodes": episodes,
         "batch": batch,
@@ -246,7 +255,11 @@ def test_batches_are_counted_logged_and_checkpointed(tmp_path: Path) -> None:
     assert (tmp_path / "checkpoint" / "meta.json").exists()
     # the checkpoint flushed the store first: every agent session is acknowledged up to its last seq
     assert sorted((a["agent"], a["upto"]) for a in eff.acks) == [(i, 2 * H - 1) for i in range(N)]
-    assert core.on_metrics({"episode": 1, "completion": 30, "failed": True, "absent": [0] * N}).drops == []
+    assert core.on_metrics({"run": "r1", "episode": 1, "completion": 30, "failed": True, "absent": [0] * N}).drops == []
+    repeat = core.on_metrics({"run": "r1", "episode": 1, "completion": 30, "failed": True, "absent": [0] * N})
+    assert repeat.drops == [("episode_metrics", "past")]  # logged once
+    other = core.on_metrics({"run": "r9", "episode": 2, "completion": 30, "failed": True, "absent": [0] * N})
+    assert other.drops == [("episode_metrics", "other_run")]
     core.flush()
     lines = [json.loads(x) for x in (tmp_path / "train_log.jsonl").read_text().splitlines()]
     assert [x.get("episodes") for x in lines] == [2, 4, None] and lines[-1]["episode"] == 1
@@ -280,7 +293,7 @@ def test_transitions_outside_the_run_duplicates_and_bad_arrays(tmp_path: Path) -
     assert _feed(core, [{**rec, "seq": 1, "mask2": no_action}]).rejects[0][:2] == ("transitions", "range")
     acks = core.flush().acks
     assert acks == [{"agent": 0, "session": rec["session"], "upto": 0}]  # the duplicate asks for an ack again
-    assert core.on_metrics({"episode": 5, "completion": 30, "failed": True, "absent": [0] * N}).drops == [
+    assert core.on_metrics({"run": "r1", "episode": 5, "completion": 30, "failed": True, "absent": [0] * N}).drops == [
         ("episode_metrics", "outside_run")
     ]
     assert core.on_step({"episode": 4, "size": 2, "step": 1, "phase": "step", "acted": []}, 1.0).progress == []
@@ -290,9 +303,13 @@ def test_transitions_outside_the_run_duplicates_and_bad_arrays(tmp_path: Path) -
 def test_the_run_stopping_another_layout_and_recording_only(tmp_path: Path) -> None:
     core = _core(tmp_path / "a")
     assert core.quiet_for(100.0) == 0.0
-    eff = core.on_scenario(_scenario(state="stopped"), 10.0)
+    assert core.on_scenario(_scenario(run="r2", state="stopped"), 9.0).rejects[0][:2] == ("scenario", "other_run")
+    assert not core.stopping, "a stop of another run while ours goes on"
+    replayed = _scenario(state="stopped")
+    eff = core.on_scenario(replayed, 10.0)
     assert core.stopping and eff.log == [("info", "run r1 stopped by the world")]
     assert core.quiet_for(12.5) == pytest.approx(2.5)
+    assert core.on_scenario(replayed, 10.5).rejects[0][:2] == ("scenario", "replay")
     other = builtin("homogeneous")
     rec = {**_scenario(run="r2"), "layout": other.layout_hash(), "scenario": other.to_dict()}
     if other.layout_hash() != SC.layout_hash():
@@ -303,8 +320,9 @@ def test_the_run_stopping_another_layout_and_recording_only(tmp_path: Path) -> N
     assert rec_only.learner is None and rec_only.store is not None
     eff = _feed(rec_only, _steps(0, 3))
     assert eff.progress == [] and eff.weights == [] and rec_only.tick(100.0).progress == []
+    assert eff.drops == [("transitions", "not_training")] * (3 * N)  # only a training run is training data
     rec_only.flush()
-    assert rec_only.store.count == 3 * N * 2
+    assert rec_only.store.count == 0
     assert len((tmp_path / "b" / "train_log.jsonl").read_text().splitlines()) == 0
 
 

@@ -13,6 +13,8 @@ from htlm_msgs_py import schema as S
 VALID: dict[str, dict[str, Any]] = {
     "htlm/scenario": {
         "run": "r1",
+        "nonce": "0123456789abcdef",
+        "seq": 3,
         "seed": 1,
         "mode": "evaluate",
         "clock": "lockstep",
@@ -73,6 +75,7 @@ VALID: dict[str, dict[str, Any]] = {
         "actions": [[0, 1, 2, 3, 4], [5, -1, 2, 3, 4]],
     },
     "htlm/episode_metrics": {
+        "run": "r1",
         "episode": 1,
         "severity": "simulated",
         "completion": 9,

@@ -291,6 +291,8 @@ SCENARIO = Schema(
     3,
     {
         "run": Text(64, r"[A-Za-z0-9_.:-]+"),
+        "nonce": _HEX16,
+        "seq": Int(0, SEQ_MAX),
         "seed": Int(0, 2**63 - 1),
         "mode": OneOf(("train", "evaluate", "deploy")),
         "clock": OneOf(("lockstep", "free")),
@@ -305,7 +307,9 @@ SCENARIO = Schema(
         "scenario": Object(),
     },
     max_bytes=256 * 1024,
-    doc="The run: the scenario (Scenario.to_dict), its layout hash, master seed, mode, clock and its period, "
+    doc="The run: its id, the nonce of the world process announcing it (new at every start) and a sequence number "
+    "that only grows over the run (also across restarts of the world), the scenario (Scenario.to_dict), its layout "
+    "hash, master seed, mode, clock and its period, "
     "operation (simulated by the world, or external: observations come from the robots), episode range and batch "
     "size B (episodes run at once); `state` turns to stopped when the world ends the run.",
 )
@@ -449,6 +453,7 @@ EPISODE_METRICS = Schema(
     "htlm/episode_metrics",
     2,
     {
+        "run": Text(64, r"[A-Za-z0-9_.:-]+"),
         "episode": _EPISODE,
         "severity": OneOf(("simulated", "reported", "unknown")),
         "completion": Int(-1, "step"),

@@ -14,6 +14,7 @@ the batch's episodes as arrays; with B = 1 a batch is one episode.
 from __future__ import annotations
 
 import math
+import secrets
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -74,6 +75,10 @@ class LockstepSettings:
     the networks of every update before the step, exactly as `htlm train`)."""
     trainer_deadline: float = 30.0
     """Longest wait for the trainer's progress, seconds; then the world goes on without it until it is heard."""
+    end_hold: float = 60.0
+    """With `pace` (training): longest wait after the last step for the trainer to report the updates of every step
+    of the run before the run is announced stopped, seconds (so that no agent stops with transitions the trainer has
+    not stored, also when the trainer was away and comes back)."""
     operation: str = "simulated"
     """simulated: the world simulates the severities and sends the observations; external: the operation is outside
     (robots observe and publish the observations themselves, an outside source may report the true levels)."""
@@ -358,6 +363,16 @@ class WorldProtocol:
         self.linger_until = math.inf
         self.first = True
         self.done = False
+        self.nonce = secrets.token_hex(8)
+        """This world process's nonce in its announcements (a restarted world has another)."""
+        self.seq = 0
+        """Sequence number of the next announcement; a restarted world continues it (`resume`)."""
+        self.resume_at: int | None = None
+        """The episode a restarted world continues at (None: the run's first)."""
+        self.next_unlogged = settings.first_episode
+        self.hold_until = math.inf
+        self.holding_for_trainer = False
+        """The first episode whose metrics are not yet out (the episode log is complete before it)."""
         self.size = 1
         """Episodes in the current batch (B, or fewer in the run's last batch)."""
         self.trained = -1
@@ -371,11 +386,23 @@ class WorldProtocol:
         self._absent_warned = -math.inf
 
     # ----- the run ------------------------------------------------------------------------------------------------
+    def resume(self, seq: int, next_episode: int) -> None:
+        """Continue a run an earlier world process of the same run announced up to sequence number `seq` and logged
+        up to (excluding) `next_episode` (its durable progress)."""
+        self.seq = seq + 1
+        self.resume_at = self.next_unlogged = next_episode
+
+    def progress(self) -> dict[str, Any]:
+        """What a restarted world needs to continue the run: its id, the last sequence number announced, the next
+        episode not yet logged."""
+        return {"run": self.settings.run_id, "seq": self.seq - 1, "next_episode": self.next_unlogged}
+
     def start(self, now: float) -> WorldEffects:
-        """Announce the run and the begin of its first episode."""
+        """Announce the run and the begin of its first episode (a restarted world's next one)."""
         out = WorldEffects()
         out.publish.append(("scenario", self.scenario_record("running")))
-        self._next_episode(self.settings.first_episode, now, out)
+        first = self.settings.first_episode if self.resume_at is None else self.resume_at
+        self._next_episode(first, now, out)
         self._progress(now, out)
         return out
 
@@ -406,6 +433,8 @@ class WorldProtocol:
             return math.inf
         if self.phase == "stopped":
             return self.linger_until
+        if self.phase == "holding":
+            return self.hold_until
         if self.gate_since is not None:  # waiting for the trainer: the agents' deadline does not run meanwhile
             gate = self.gate_since + self.settings.trainer_deadline
             return min(self.nudge_at, gate) if self.joining else gate
@@ -538,6 +567,32 @@ class WorldProtocol:
             return False
         return True
 
+    def _hold(self, now: float, out: WorldEffects) -> None:
+        """The run's last step is done: announce the stop once the trainer has reported the updates of every step
+        (training with pace), or at once, or when `end_hold` is over (said in the log)."""
+        s = self.settings
+        if self.phase != "holding":
+            return
+        if s.pace and s.mode == "train" and self.episode >= 0:
+            last = global_step(self.episode, s.batch, self.scenario.horizon, self.scenario.horizon)
+            if self.trained < last + 1:
+                if now < self.hold_until:
+                    self.holding_for_trainer = True
+                    return
+                out.counters["end_hold_timeouts"] += 1
+                out.log.append(
+                    (
+                        "warning",
+                        f"the trainer reported updates up to step {self.trained}, not the run's last ({last}), within "
+                        f"end_hold {s.end_hold:g} s; stopping the run",
+                    )
+                )
+        self.holding_for_trainer = False
+        self.phase = "stopped"
+        out.publish.append(("scenario", self.scenario_record("stopped")))
+        out.status_changed = True
+        self.linger_until = now + s.linger
+
     def _begin_wait(self) -> float:
         return self.settings.join_timeout if self.first else self.settings.begin_deadline
 
@@ -565,6 +620,9 @@ class WorldProtocol:
         s = self.settings
         if self.phase == "stopped":
             self.done = now >= self.linger_until
+            return False
+        if self.phase == "holding":
+            self._hold(now, out)
             return False
         if self.joining:
             everyone = set(range(self.scenario.n_agents))
@@ -597,10 +655,8 @@ class WorldProtocol:
     def _next_episode(self, e: int, now: float, out: WorldEffects) -> None:
         s = self.settings
         if not self.in_run(e) or self.batch_size(e) < 1:
-            self.phase = "stopped"
-            out.publish.append(("scenario", self.scenario_record("stopped")))
-            out.status_changed = True
-            self.linger_until = now + s.linger
+            self.phase, self.hold_until = "holding", now + s.end_hold
+            self._hold(now, out)
             return
         self.size = self.batch_size(e)
         if s.operation == "external":
@@ -706,7 +762,8 @@ class WorldProtocol:
         if late:
             out.counters["late_ready"] += len(late)
         out.publish.append(self._step_record(self.scenario.horizon, "end", []))
-        ms = self.ep.metrics(now)
+        ms = [{"run": self.settings.run_id, **m} for m in self.ep.metrics(now)]
+        self.next_unlogged = self.episode + self.size
         out.publish.extend(("episode_metrics", m) for m in ms)
         self.episodes_done += len(ms)
         m = ms[0]
@@ -745,8 +802,11 @@ class WorldProtocol:
     def scenario_record(self, state: str) -> dict[str, Any]:
         """The fields of the /htlm/scenario record announcing the run in `state` (running or stopped)."""
         s = self.settings
+        self.seq += 1
         return {
             "run": s.run_id,
+            "nonce": self.nonce,
+            "seq": self.seq - 1,
             "seed": s.seed,
             "mode": s.mode,
             "clock": s.clock,
@@ -765,6 +825,8 @@ class WorldProtocol:
         """(healthy, message) of the world for its diagnostics: not healthy while live agents are missing."""
         n = self.scenario.n_agents
         text = f"{self.phase} episode {self.episode} step {self.t}"
+        if self.holding_for_trainer:
+            return True, f"the run is over: waiting for the trainer's updates (trained up to step {self.trained})"
         if self.joining:
             return (
                 True,

@@ -27,6 +27,7 @@ import numpy as np
 
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
+from htlm_msgs_py.run_control import RunControl
 from htlm_world.protocol import global_step
 from htlm_world.scenario import Scenario, ScenarioError, from_dict
 
@@ -148,7 +149,11 @@ class TrainerCore:
         self.resume = resume
         self.epoch = self._next_epoch()
         self.run: str | None = None
+        self.control = RunControl()
+        """Which run the trainer follows (its `wanted` run: the node's `run` parameter)."""
         self.mode = ""
+        self.logged_upto = -1
+        """The last episode whose metrics are in the training log (they are logged once, in order)."""
         self.run_range = (0, 0)
         self.batch = 1
         self.first_step = 0
@@ -199,12 +204,25 @@ class TrainerCore:
     def on_scenario(self, rec: dict[str, Any], now: float) -> TrainerEffects:
         """A decoded /htlm/scenario record: start on the first run, follow later announcements of the same layout."""
         out = TrainerEffects()
-        if rec["run"] == self.run:
-            if rec["state"] == "stopped" and not self.stopping:
+        verdict = self.control.take(rec)
+        if verdict in ("other_run", "replay"):  # nobody but our run's world stops or switches us
+            out.rejects.append(
+                ("scenario", verdict, f"run {rec['run']} announcement {rec['seq']} (we follow {self.run})")
+            )
+            return out
+        if verdict == "stop":
+            if not self.stopping:
                 out.log.append(("info", f"run {self.run} stopped by the world"))
                 self.stopping = True
                 self.stop_at = now
             return out
+        if verdict == "update":
+            return out
+        if verdict == "restart":
+            out.log.append(("warning", f"run {self.run}: the world restarted (announcement {rec['seq']})"))
+            self.stopping = False
+            return out
+        self.logged_upto = -1  # a run joined: its episodes are logged from its first on
         try:
             sc = from_dict(rec["scenario"], "/htlm/scenario")
         except ScenarioError as e:
@@ -348,6 +366,9 @@ class TrainerCore:
             out.counters["ignored/transitions/no_scenario"] += 1
             return out
         self.last_transition_at = now
+        if self.mode != "train":  # evaluate and deploy runs are not training data
+            out.drops.append(("transitions", "not_training"))
+            return out
         if not self.in_run(rec["episode"]):
             out.drops.append(("transitions", "outside_run"))
             return out
@@ -524,9 +545,16 @@ class TrainerCore:
         out = TrainerEffects()
         if self.store is None:
             return out
+        if rec["run"] != self.run:
+            out.drops.append(("episode_metrics", "other_run"))
+            return out
         if not self.in_run(rec["episode"]):
             out.drops.append(("episode_metrics", "outside_run"))
             return out
+        if rec["episode"] <= self.logged_upto:  # a repeat (a replay, or a restarted world's): logged once
+            out.drops.append(("episode_metrics", "past"))
+            return out
+        self.logged_upto = rec["episode"]
         if self.learner is None:
             self.episodes_seen += 1
         self._write_log({"updates": self.updates, **rec})

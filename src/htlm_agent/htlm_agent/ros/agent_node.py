@@ -38,12 +38,15 @@ from htlm_msgs_py.ros import (
     PoseStamped,
     SettingsError,
     String,
+    WorldWatch,
     declare_settings,
     pose,
     run_node,
+    say_unsigned,
     spin_until_finished,
     string,
 )
+from htlm_msgs_py.run_control import RunControl
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
@@ -76,6 +79,7 @@ class AgentNode(Node):
         self.stop_signal = 0
         self.fatal: str | None = None
         # run state (set by /htlm/scenario)
+        self.control = RunControl(s.run)
         self.run: str | None = None
         self.mode = ""
         self.scenario: Scenario | None = None
@@ -111,6 +115,7 @@ class AgentNode(Node):
         self.log_file: Any = None
         self.operation = "simulated"
         self.period = 0.5
+        self.clock = "lockstep"
         self.external: ExternalObservations | None = None
         self.position: tuple[float, float] | None = None  # the robot's (x, y) in the map frame, from pose_topic
         self.pose_at = 0.0
@@ -136,6 +141,8 @@ class AgentNode(Node):
                 self.create_subscription(Odometry, s.pose_topic, self._on_pose, POSE_READER)
             else:
                 self.create_subscription(PoseStamped, s.pose_topic, self._on_pose, POSE_READER)
+        self.world = WorldWatch(self, self.health, s.world_timeout)
+        say_unsigned(self, self.signer)
         # timers
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.create_timer(s.resend_period, self._resend)
@@ -146,9 +153,23 @@ class AgentNode(Node):
         rec = self.health.decode("scenario", msg, S.SCENARIO)
         if rec is None:
             return
-        if rec["run"] == self.run:
-            if rec["state"] == "stopped" and not self.stopping:
+        verdict = self.control.take(rec)
+        if verdict in ("other_run", "replay"):  # nobody but our run's world stops or switches us
+            self.health.reject(
+                "scenario", verdict, f"run {rec['run']} announcement {rec['seq']} (we follow {self.run})"
+            )
+            return
+        self.world.heard()
+        if verdict == "stop":
+            if not self.stopping:
                 self._stop_run()
+            return
+        if verdict == "update":
+            return
+        if verdict == "restart":  # the same run from a restarted world: rejoin at its next begin
+            self.get_logger().warning(f"run {self.run}: the world restarted (announcement {rec['seq']}); rejoining")
+            self.mind = None
+            self.stopping = False
             return
         try:
             sc = from_dict(rec["scenario"], "/htlm/scenario")
@@ -171,6 +192,7 @@ class AgentNode(Node):
         self.trainer_lag = rec["trainer_lag"]
         self.operation = rec["operation"]
         self.period = rec["period"]
+        self.clock = rec["clock"]
         self.external = ExternalObservations(self.batch) if self.operation == "external" else None
         self.first_step = global_step(self.first_episode, self.batch, 1, sc.horizon)
         self.scenario = sc
@@ -288,6 +310,7 @@ class AgentNode(Node):
         rec = self.health.decode("step", msg, S.STEP, self.lim)
         if rec is None or self.scenario is None:
             return
+        self.world.heard()
         e, t, phase = rec["episode"], rec["step"], rec["phase"]
         if phase == "begin":
             if t != 0:
@@ -360,6 +383,12 @@ class AgentNode(Node):
         eff = self.mind.hear(rec["agent"], rec["episode"], rec["step"], rec["actions"], rec["levels"])
         self._apply("broadcast", eff)
 
+    def _broadcast_wait(self) -> float:
+        """Seconds to wait for a teammate's broadcast: broadcast_timeout, and under the free clock at most 40 % of
+        the period (the rest is for the update and the next action, so a dead teammate costs no one a step)."""
+        w = self.settings.broadcast_timeout
+        return min(w, 0.4 * self.period) if self.clock == "free" else w
+
     def _wait(self) -> float:
         """Seconds to wait for the robot's observation of a step (external operation)."""
         w = self.settings.observation_wait
@@ -416,7 +445,7 @@ class AgentNode(Node):
                 self._apply("tick", m.act_now(force=True))
             return
         if self.mind is not None and self.mind.pending is not None:
-            eff = self.mind.tick(time.monotonic(), self.settings.broadcast_timeout)
+            eff = self.mind.tick(time.monotonic(), self._broadcast_wait())
             if eff.transition is not None:
                 self._apply("tick", eff)
 
@@ -645,6 +674,8 @@ class AgentNode(Node):
             )
         if self.fatal is None:
             h.ok("waiting for the world" if m is None else f"episode {m.episode} step {m.current}")
+            if self.run is not None and not self.stopping:
+                self.world.check()
         h.publish()
 
 

@@ -379,7 +379,14 @@ def run_team(cfg: LaunchConfig) -> int:
                 ended_at = time.monotonic()
             if ended_at is not None:
                 if all(p.popen.poll() is not None for p in procs):
-                    code = 1 if failed else 0
+                    lost = [name for name in failed if not _rejoined(cfg, name)]
+                    for name in sorted(set(failed) - set(lost)):
+                        print(
+                            f"htlm launch: {name} was restarted and rejoined: the run finished with it",
+                            flush=True,
+                            file=sys.stderr,
+                        )
+                    code = 1 if lost else 0
                     break
                 if time.monotonic() - ended_at > cfg.grace:
                     late = [p.name for p in procs if p.popen.poll() is None]
@@ -405,6 +412,20 @@ def run_team(cfg: LaunchConfig) -> int:
         stop(procs, signal.SIGKILL, wait=1.0)  # nothing survives the launcher
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def _rejoined(cfg: LaunchConfig, name: str) -> bool:
+    """Whether agent `name`, whose process of this launch failed, played the run's last batch (a restarted
+    process of it rejoined): its absence count there is 0 in the world's log."""
+    names = [a.name for a in cfg.scenario.agents]
+    if name not in names:
+        return False
+    try:
+        lines = (cfg.run_dir / "world.jsonl").read_text().splitlines()
+        last = json.loads(lines[-1])["metrics"]
+    except (OSError, IndexError, ValueError, KeyError):
+        return False
+    return bool(last["absent"][names.index(name)] == 0)
 
 
 def summarize(run_dir: Path) -> dict[str, Any]:

@@ -63,6 +63,11 @@ class AgentSettings:
     weights_timeout: float = setting(60.0, lo=SECONDS[0], hi=SECONDS[1])
     """Training: longest wait for the trainer's weights of a step (the fixed cadence), seconds; then the agent acts
     with the newest weights it has (counted as stale_weights)."""
+    run: str = setting("")
+    """The run to join (its id); empty: the first the world announces. Announcements of any other run are rejected
+    while the joined one goes on."""
+    world_timeout: float = setting(5.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds without a record or status from the world after which the agent reports it silent (WARN)."""
     belief_episode: int = setting(0, lo=0, hi=4095)
     """Which episode of a batch the belief summary and the goal pose follow (its index in the batch)."""
     pose_topic: str = setting("")
@@ -106,6 +111,11 @@ def _topic_name(name: str) -> bool:
 @dataclass(frozen=True)
 class TrainerSettings:
     """Parameters of the trainer node (one ROS parameter per field)."""
+
+    run: str = setting("")
+    """The run to join (its id); empty: the first the world announces."""
+    world_timeout: float = setting(5.0, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds without a record or status from the world after which the trainer reports it silent (WARN)."""
 
     run_dir: str = setting("")
     """Directory of the store (transitions.bin), the checkpoint (checkpoint/) and the training log; required."""

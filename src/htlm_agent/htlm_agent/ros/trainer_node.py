@@ -28,8 +28,10 @@ from htlm_msgs_py.ros import (
     Health,
     SettingsError,
     String,
+    WorldWatch,
     declare_settings,
     run_node,
+    say_unsigned,
     spin_until_finished,
     string,
 )
@@ -64,6 +66,7 @@ class TrainerNode(Node):
             self.core.learner_settings(0)  # bad learner settings stop the node now, not when the run starts
         except ValueError as e:
             raise SettingsError(str(e)) from None
+        self.core.control.wanted = s.run
         self.health = Health(self, "htlm: trainer", self.signer)
         self.stop_signal = 0
         self.fatal: str | None = None
@@ -75,6 +78,8 @@ class TrainerNode(Node):
         self.create_subscription(String, topics.TRANSITIONS, self._on_transition, EVENTS)
         self.create_subscription(String, topics.EPISODE_METRICS, self._on_metrics, EVENTS)
         self.create_subscription(String, topics.STEP, self._on_step, EVENTS)
+        self.world = WorldWatch(self, self.health, s.world_timeout)
+        say_unsigned(self, self.signer)
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.create_timer(s.ack_period, lambda: self._apply(self.core.flush()))
         self.create_timer(0.25, lambda: self._apply(self.core.tick(time.monotonic())))
@@ -96,6 +101,8 @@ class TrainerNode(Node):
         rec = self.health.decode("scenario", msg, S.SCENARIO)
         if rec is None:
             return
+        if rec["run"] == self.core.run or self.core.run is None:
+            self.world.heard()
         self._apply(self.core.on_scenario(rec, time.monotonic()))
         sc = self.core.scenario
         if sc is not None and self.lim is None:
@@ -114,6 +121,7 @@ class TrainerNode(Node):
             return
         rec = self.health.decode("step", msg, S.STEP, self.lim)
         if rec is not None:
+            self.world.heard()
             self._apply(self.core.on_step(rec, time.monotonic()))
 
     def _on_metrics(self, msg: String) -> None:
@@ -161,6 +169,8 @@ class TrainerNode(Node):
         h.values.update({**self.core.values(), "signed": str(self.signer.enabled).lower()})
         if self.fatal is None:
             h.ok("waiting for the world" if self.core.store is None else f"{self.core.updates} updates")
+            if self.core.run is not None and not self.core.stopping:
+                self.world.check()
         h.publish()
 
 

@@ -7,6 +7,7 @@ rest of the package (and the whole model core) imports without them.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import sys
 import time
@@ -46,12 +47,14 @@ __all__ = [
     "PoseStamped",
     "SettingsError",
     "String",
+    "WorldWatch",
     "declare_settings",
     "field_docs",
     "make_executor",
     "parameter_descriptor",
     "pose",
     "qos_profile",
+    "say_unsigned",
 ]
 
 
@@ -178,6 +181,52 @@ class Health:
         arr.header.stamp = self.node.get_clock().now().to_msg()
         arr.status = [st]
         self.pub.publish(arr)
+
+
+def say_unsigned(node: Node, signer: Signer) -> None:
+    """Say at start, once, that the node runs without a team key and what that allows (README, threat model)."""
+    if not signer.enabled:
+        domain = os.environ.get("ROS_DOMAIN_ID", "0")
+        node.get_logger().warning(
+            f"unsigned: no team key (HTLM_TEAM_KEY_FILE); any participant on ROS domain {domain} can send this team "
+            "records that it accepts, including run announcements"
+        )
+
+
+class WorldWatch:
+    """Whether the world is heard: its records (`heard()`) or its status on /diagnostics ("htlm: world"). A node
+    that follows a run says on its /diagnostics (WARN, with the seconds) and in its log (every `period` seconds at
+    most) when the world has been silent for longer than `timeout` seconds."""
+
+    def __init__(self, node: Node, health: Health, timeout: float, period: float = 10.0) -> None:
+        """Listen to /diagnostics for the world's status."""
+        self.node, self.health, self.timeout, self.period = node, health, timeout, period
+        self.last = time.monotonic()
+        self.logged = -math.inf
+        node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, DIAGNOSTICS)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        if any(st.name == "htlm: world" for st in msg.status):
+            self.last = time.monotonic()
+
+    def heard(self) -> None:
+        """A record of the world arrived."""
+        self.last = time.monotonic()
+
+    def check(self) -> bool:
+        """Report a silent world (call before publishing the node's health); returns whether it is silent."""
+        now = time.monotonic()
+        silent = now - self.last
+        self.health.values["world_silent_s"] = f"{silent:.1f}"
+        if silent <= self.timeout:
+            return False
+        self.health.warn(f"the world is silent for {silent:.0f} s")
+        if now - self.logged >= self.period:
+            self.logged = now
+            self.node.get_logger().warning(
+                f"the world is silent for {silent:.0f} s (last heard at its records or status)"
+            )
+        return True
 
 
 def string(text: str) -> String:

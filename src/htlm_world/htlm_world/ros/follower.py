@@ -12,7 +12,8 @@ from rclpy.node import Node
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
-from htlm_msgs_py.ros import STATE_READER, Health, SettingsError, String, declare_settings
+from htlm_msgs_py.ros import STATE_READER, Health, SettingsError, String, declare_settings, say_unsigned
+from htlm_msgs_py.run_control import RunControl
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario, ScenarioError, from_dict
@@ -38,18 +39,23 @@ class RunFollower(Node):
         self.model: Model | None = None
         self.lim: dict[str, int] | None = None
         self.stopped = False
+        self.control = RunControl()
         self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
         self.create_timer(self.settings.diagnostics_period, self._publish_health)
+        say_unsigned(self, self.signer)
 
     def _on_scenario(self, msg: String) -> None:
         rec = self.health.decode("scenario", msg, S.SCENARIO)
         if rec is None:
             return
-        if self.run is not None:
-            if rec["run"] == self.run and rec["state"] == "stopped":
-                self.stopped = True
-            elif rec["run"] != self.run:
-                self.health.drop("scenario", "other_run")
+        verdict = self.control.take(rec)
+        if verdict in ("other_run", "replay"):
+            self.health.reject(
+                "scenario", verdict, f"run {rec['run']} announcement {rec['seq']} (we follow {self.run})"
+            )
+            return
+        if verdict != "join":
+            self.stopped = verdict == "stop" or (self.stopped and verdict == "update")
             return
         try:
             sc = from_dict(rec["scenario"], "/htlm/scenario")

@@ -69,6 +69,9 @@ class WorldSettings:
     """k of the rate limiter: step g waits until the trainer has done the updates of every step before g - k."""
     trainer_deadline: float = setting(30.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
     """Longest wait for the trainer's progress, seconds; then the world goes on without it until it is heard."""
+    end_hold: float = setting(60.0, lo=0.0, hi=SECONDS[1], tunable=True)
+    """Training: longest wait after the last step for the trainer's updates of every step before the run is announced
+    stopped, seconds (no agent stops with transitions the trainer has not stored)."""
     markers: bool = setting(True)
     """Publish the operation on /htlm/markers (visualization_msgs/MarkerArray, frame map) for RViz2 and Foxglove."""
     marker_episode: int = setting(0, lo=0, hi=4095, tunable=True)
@@ -92,7 +95,7 @@ def validate_world_settings(s: WorldSettings) -> list[str]:
         bad.append(f"clock: {s.clock!r}: operation external needs clock free (the robots' world does not wait)")
     if s.operation == "external" and s.batch != 1:
         bad.append(f"batch: {s.batch!r}: operation external runs one episode at a time (batch 1)")
-    if s.first_episode % s.batch:
+    if s.batch >= 1 and s.first_episode % s.batch:
         bad.append(f"first_episode: {s.first_episode!r} must be a multiple of batch ({s.batch})")
     if s.run_id and (len(s.run_id) > 64 or not all(c.isalnum() or c in "_.:-" for c in s.run_id)):
         bad.append(f"run_id: {s.run_id!r} may hold only letters, digits and _.:- (at most 64)")

@@ -1,0 +1,59 @@
+"""Which run a node follows, from the world's announcements on /htlm/scenario (docs/ros.md, Run control).
+
+Every announcement carries the run id, the nonce of the world process that sent it (new at every start of the
+world) and a sequence number that only grows over the whole run, also across restarts of the world (it is kept in
+the run directory). A node joins the first run it hears (or only the run it was told to join) and from then on
+follows that run alone: an announcement of another run is rejected while its own run goes on (a stop or a switch
+from anybody else cannot touch it), and an announcement of its run that is not newer than the last one it took is a
+replay and is rejected too. Only once its run has stopped may a node that stays up join the next one. With a team
+key the announcements are signed, so nobody without the key can make a newer one; without a key any participant
+of the ROS domain can (README, threat model).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass
+class RunControl:
+    """A node's view of the run it follows."""
+
+    wanted: str = ""
+    """The run id the node was told to join (empty: the first it hears)."""
+    run: str | None = None
+    nonce: str | None = None
+    seq: int = -1
+    stopped: bool = False
+
+    def take(self, rec: dict[str, Any]) -> str:
+        """Judge a decoded scenario record; returns what it means for the node:
+
+        - "join": a run to join (the node's first, or the next after its run stopped);
+        - "update": a newer announcement of the node's run (the same world);
+        - "restart": a newer announcement of the node's run from a restarted world (another nonce);
+        - "stop": the node's run stopped;
+        - "other_run" or "replay": rejected (another run while ours goes on; not newer than the last taken).
+        """
+        run, nonce, seq = rec["run"], rec["nonce"], rec["seq"]
+        if self.run is None or (run != self.run and self.stopped and not self.wanted):
+            if self.wanted and run != self.wanted:
+                return "other_run"
+            self.run, self.nonce, self.seq, self.stopped = run, nonce, seq, rec["state"] == "stopped"
+            return "join"
+        if run != self.run:
+            return "other_run"
+        if seq <= self.seq:
+            return "replay"
+        restarted = nonce != self.nonce
+        self.nonce, self.seq = nonce, seq
+        if rec["state"] == "stopped":
+            if self.stopped:
+                return "update"
+            self.stopped = True
+            return "stop"
+        if self.stopped:  # a restarted world goes on with the run
+            self.stopped = False
+            return "restart"
+        return "restart" if restarted else "update"
