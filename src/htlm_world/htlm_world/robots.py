@@ -79,7 +79,8 @@ class StandInOperation:
         caps = self.model.joint_capability(joint)
         self.levels = self.model.sample_transition(self.levels, caps, self.rng.random(self.levels.shape))
         self.t += 1
-        return self.levels[0].copy()
+        out: IntArray = self.levels[0].copy()
+        return out
 
 
 class Sensing:

@@ -10,6 +10,7 @@ observation that comes after that is late and dropped.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -83,6 +84,6 @@ class ExternalObservations:
             self.done.remove(min(self.done))
         return [Observed(key[0], key[1], got, acted)]
 
-    def _trim(self, table: dict[tuple[int, int], object]) -> None:
+    def _trim(self, table: dict[tuple[int, int], Any]) -> None:
         while len(table) > self.KEEP:
             del table[min(table)]
