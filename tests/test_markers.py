@@ -18,6 +18,7 @@ from htlm_world.scenario import builtin
 
 SC = builtin()
 MODEL = Model.build(SC)
+LAY = M.Layout(SC)
 N, P, S = SC.n_agents, SC.n_tasks, SC.n_sites
 
 
@@ -40,8 +41,8 @@ def test_marker_constants_are_those_of_visualization_msgs() -> None:
 
 
 def test_scene_has_one_marker_per_site_task_and_agent_with_stable_ids() -> None:
-    a = M.scene(SC, MODEL, [4, 3, 2, 0], [0, 1, 4, 2, 5], range(N), 3, 7)
-    b = M.scene(SC, MODEL, [1, 1, 1, 1], [5, 5, 5, 5, 5], range(N), 3, 8)
+    a = M.scene(LAY, [4, 3, 2, 0], [0, 1, 4, 2, 5], range(N), 3, 7)
+    b = M.scene(LAY, [1, 1, 1, 1], [5, 5, 5, 5, 5], range(N), 3, 8)
     assert len(a) == 2 * S + 2 * P + 2 * N + 1  # O(sites + tasks + agents)
     assert [(m.ns, m.id) for m in a] == [(m.ns, m.id) for m in b]  # an update replaces the previous one
     ns = _by_ns(a)
@@ -54,9 +55,28 @@ def test_scene_has_one_marker_per_site_task_and_agent_with_stable_ids() -> None:
     assert M.parse_status(ns["status"][0].text) == (3, 7)
 
 
+def test_an_update_builds_only_what_changed() -> None:
+    a = M.scene(LAY, [4, 3, 2, 0], [0, 1, 4, 2, 5], range(N), 3, 7)
+    b = M.scene(LAY, [4, 3, 2, 1], [0, 1, 4, 2, 2], range(N), 3, 8)
+    same = [x is y for x, y in zip(a, b, strict=True)]
+    changed = [(x.ns, x.id) for x, s in zip(a, same, strict=True) if not s]
+    assert changed == [("tasks", 3), ("task_labels", 3), ("agents", 4), ("agent_labels", 4), ("status", 0)]
+
+
+def test_accumulate_applies_updates_as_rviz_does() -> None:
+    shown: dict[tuple[str, int], M.Mark] = {}
+    a = M.scene(LAY, [4, 3, 2, 0], [0, 1, 4, 2, 5], range(N), 3, 7)
+    M.accumulate(shown, a)
+    b = M.scene(LAY, [4, 3, 2, 1], [0, 1, 4, 2, 2], range(N), 3, 8)
+    M.accumulate(shown, [y for x, y in zip(a, b, strict=True) if x is not y])  # only what changed
+    assert list(shown.values()) == b
+    M.accumulate(shown, M.DELETE_ALL)
+    assert shown == {}
+
+
 def test_tasks_show_their_level_by_colour_and_label() -> None:
     levels = [4, 3, 2, 0]
-    ns = _by_ns(M.scene(SC, MODEL, levels, [0] * N, range(N), 0, 1))
+    ns = _by_ns(M.scene(LAY, levels, [0] * N, range(N), 0, 1))
     for j, (m, lab) in enumerate(zip(ns["tasks"], ns["task_labels"], strict=True)):
         assert m.rgba == M.level_colour(levels[j], SC.levels)
         assert _nearest_site(m) == j // 2 and _nearest_site(lab) == j // 2
@@ -66,20 +86,20 @@ def test_tasks_show_their_level_by_colour_and_label() -> None:
     assert colours[0][1] > colours[0][0] and colours[4][0] > colours[4][1]  # green when done, red at the worst
     reds = [c[0] - c[1] for c in colours]
     assert reds == sorted(reds)  # redder with every level
-    unknown = _by_ns(M.scene(SC, MODEL, None, [0] * N, range(N), 0, 1))
-    assert all(m.rgba == M.UNKNOWN for m in unknown["tasks"])
-    assert all(m.text.endswith("level ?") for m in unknown["task_labels"])
+    for unknown in (None, [-1] * P):  # no levels, or -1 (external operation)
+        ns = _by_ns(M.scene(LAY, unknown, [0] * N, range(N), 0, 1))
+        assert all(m.rgba == M.UNKNOWN for m in ns["tasks"])
+        assert all(m.text.endswith("level ?") for m in ns["task_labels"])
 
 
 def test_agents_stand_at_the_site_of_their_assignment_working_or_idle() -> None:
     actions = [0, 1, 4, 2, 5]  # fire@site1, rescue@site1, idle@site1, fire@site2, idle@site2
-    lay = M.Layout(SC)
-    ns = _by_ns(M.scene(SC, MODEL, [4, 4, 4, 4], actions, [0, 1, 2, 3], 0, 1, layout=lay))
+    ns = _by_ns(M.scene(LAY, [4, 4, 4, 4], actions, [0, 1, 2, 3], 0, 1))
     agents, labels = ns["agents"], ns["agent_labels"]
     for k, a in enumerate(actions):
         site = int(MODEL.action_site[a])
         assert _nearest_site(agents[k]) == site
-        assert math.dist((agents[k].x, agents[k].y), SC.site_positions[site]) < lay.radius
+        assert math.dist((agents[k].x, agents[k].y), SC.site_positions[site]) < LAY.radius
         assert labels[k].text.startswith(SC.agents[k].name + ": ")
         assert abs(labels[k].y - agents[k].y) < 1e-9 and labels[k].x > agents[k].x  # beside its agent
     assert len({(m.x, m.y) for m in agents}) == N  # agents that share a site do not overlap
@@ -88,9 +108,8 @@ def test_agents_stand_at_the_site_of_their_assignment_working_or_idle() -> None:
 
 
 def test_without_an_action_an_agent_stays_where_it_was() -> None:
-    ht = SC.replace(mode="ht")
-    model = Model.build(ht)
-    ns = _by_ns(M.scene(ht, model, [4, 4, 4, 4], [-1, 2, -1, -1, 0], range(N), 0, 1, sites=[1, 0, 0, 1, 1]))
+    ht = M.Layout(SC.replace(mode="ht"))
+    ns = _by_ns(M.scene(ht, [4, 4, 4, 4], [-1, 2, -1, -1, 0], range(N), 0, 1, sites=[1, 0, 0, 1, 1]))
     assert [_nearest_site(m) for m in ns["agents"]] == [1, 1, 0, 1, 0]
     assert ns["agent_labels"][0].text == "agent1: no action" and ns["agents"][0].rgba == M.IDLE
 
@@ -99,14 +118,13 @@ def _drive(index: int, batch: int = 2, episodes: int = 2) -> tuple[list[tuple[An
     """Run a WorldProtocol (every agent works on task k mod p) and feed every record to a MarkerView: the updates it
     returned, as (record kind, marks)."""
     p = WorldProtocol(SC, LockstepSettings(episodes=episodes, batch=batch, linger=0.0, run_id="t"))
-    view = M.MarkerView(SC, MODEL)
+    view = M.MarkerView(SC)
     updates: list[tuple[Any, ...]] = []
 
     def feed(eff: WorldEffects) -> None:
         for kind, fields in eff.publish:
-            marks = view.on_record(kind, fields, index)
-            if marks is not None:
-                updates.append((kind, marks))
+            if view.on_record(kind, fields, index):
+                updates.append((kind, view.marks()))
 
     feed(p.start(0.0))
     feed(p.tick(0.5))  # the begin announced again: no new update
@@ -146,7 +164,7 @@ def test_render_draws_the_scene_from_above(tmp_path: Path) -> None:
     from matplotlib.image import imread
 
     out = tmp_path / "m.png"
-    M.render(M.scene(SC, MODEL, [4, 0, 4, 0], [0, 1, 4, 2, 5], range(N), 0, 3), str(out), "test")
+    M.render(M.scene(LAY, [4, 0, 4, 0], [0, 1, 4, 2, 5], range(N), 0, 3), str(out), "test")
     img = imread(str(out))
     assert img.shape[0] > 100 and img.shape[1] > 100
     rgb = img[..., :3].reshape(-1, 3)

@@ -57,11 +57,12 @@ def test_markers_show_the_chosen_episode_as_the_world_logged_it(ros_team: Any, t
     (logged,) = [w for w in team.world_episodes() if w["metrics"]["episode"] == 1]
     assert got[-1]["marks"] == [{**got[-1]["marks"][0], "action": M.DELETEALL}] and len(got[-1]["marks"]) == 1
     seen = set()
+    by: dict[tuple[str, int], M.Mark] = {}  # the scene as RViz shows it: each update replaces markers by (ns, id)
+    assert len(got[0]["marks"]) == 2 * sc.n_sites + 2 * sc.n_tasks + 2 * sc.n_agents + 1  # the whole scene first
     for rec in got[:-1]:
         assert rec["frames"] == [M.FRAME] and rec["lifetimes"] == [0.0] and rec["stamps"][0] > 0
-        marks = [M.Mark(**{**m, "rgba": tuple(m["rgba"])}) for m in rec["marks"]]
-        by = {(m.ns, m.id): m for m in marks}
-        assert len(by) == len(marks) == 2 * sc.n_sites + 2 * sc.n_tasks + 2 * sc.n_agents + 1
+        M.accumulate(by, [M.Mark(**{**m, "rgba": tuple(m["rgba"])}) for m in rec["marks"]])
+        assert len(by) == 2 * sc.n_sites + 2 * sc.n_tasks + 2 * sc.n_agents + 1
         shown = M.parse_status(by[("status", 0)].text)
         assert shown is not None and shown[0] == 1, shown  # the batch's second episode
         t = shown[1]
@@ -80,9 +81,11 @@ def test_markers_show_the_chosen_episode_as_the_world_logged_it(ros_team: Any, t
             does = ("fire", "rescue")[a % 2] if a < sc.n_tasks else "idle"
             assert by[("agent_labels", k)].text == f"{sc.agents[k].name}: {does}", (t, k, a)
             assert m.rgba == pytest.approx(M.WORKING if a < sc.n_tasks else M.IDLE, abs=1e-6)
-    assert seen >= set(range(1, sc.horizon + 1)), sorted(seen)  # every step of the episode, in order
+    # the writer keeps only the latest scene (a late RViz needs no more), so a slow reader may miss a few updates
+    assert len(seen & set(range(1, sc.horizon + 1))) >= sc.horizon // 2, sorted(seen)
     steps = [M.parse_status(r["marks"][-1]["text"]) for r in got[:-1]]
-    assert steps == sorted(steps)
+    assert steps == sorted(steps)  # in order, each with its status line
+    assert min(len(r["marks"]) for r in got[:-1]) < len(got[0]["marks"])  # later updates carry what changed
 
 
 def test_a_stopped_world_deletes_its_markers(ros_team: Any, tmp_path: Path) -> None:

@@ -1,7 +1,7 @@
 """What the operation looks like in RViz2 or Foxglove, without ROS: the world's state of one episode as a plain list
 of markers (`Mark`), which htlm_world.ros.markers turns into a visualization_msgs/MarkerArray on /htlm/markers.
 
-One update describes the whole scene, with a stable id per namespace, so each update replaces the previous one:
+Every marker has a stable id in its namespace, so a marker of an update replaces the one a viewer shows:
 
 - `sites`, `site_labels`: a flat disc at every site's position of the scenario (`site_positions`), with its name;
 - `tasks`, `task_labels`: the fire task (cube) and the rescue task (sphere) of every site, coloured by their true
@@ -11,9 +11,11 @@ One update describes the whole scene, with a stable id per namespace, so each up
   does (and "absent" when the world idled it for a missing action);
 - `status`: the episode and step shown.
 
-`MarkerView` follows the world protocol's records (htlm_world.protocol.WorldEffects.publish) and returns the markers
-to publish: the initial state when a batch begins, the state after every step of the chosen episode of the batch,
-and a single DELETEALL when the run stops. Building an update is O(sites + tasks + agents).
+`MarkerView` follows the world protocol's records (htlm_world.protocol.WorldEffects.publish) and says when the scene
+changed: the initial state when a batch begins, the state after every step of the chosen episode of the batch (the
+levels and actions of the protocol's ground truth record), and a single DELETEALL when the run stops. Following a
+record costs next to nothing; building the scene (only when someone looks) is O(sites + tasks + agents) dictionary
+look-ups, as the markers are cached by what they show.
 """
 
 from __future__ import annotations
@@ -23,7 +25,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from htlm_world.model import Model
 from htlm_world.scenario import TASK_TYPES, Scenario
 
 FRAME = "map"
@@ -107,190 +108,241 @@ def parse_status(text: str) -> tuple[int, int] | None:
     return (int(m.group(1)), int(m.group(2))) if m else None
 
 
+def accumulate(shown: dict[tuple[str, int], Mark], update: Sequence[Mark]) -> None:
+    """Apply an update to the markers a viewer shows, as RViz does: DELETEALL removes every marker, any other marker
+    is added or replaces the one of its namespace and id."""
+    for m in update:
+        if m.action == DELETEALL:
+            shown.clear()
+        else:
+            shown[(m.ns, m.id)] = m
+
+
 class Layout:
-    """Where everything of a scenario is drawn: sizes follow the distance between the closest two sites."""
+    """Where everything of a scenario is drawn, and the markers that do not change from update to update (sizes
+    follow the distance between the closest two sites). Markers are cached by what they show, so an update
+    creates only what changed: building one costs a few dictionary look-ups per site, task and agent."""
 
     def __init__(self, scenario: Scenario) -> None:
         """The layout of `scenario`'s sites, tasks and agents."""
         self.scenario = scenario
-        n = scenario.n_agents
-        pos = scenario.site_positions
+        sc = scenario
+        pos = [(float(x), float(y)) for x, y in sc.site_positions]
         gaps = [((x1 - x2) ** 2 + (y1 - y2) ** 2) ** 0.5 for i, (x1, y1) in enumerate(pos) for x2, y2 in pos[i + 1 :]]
-        self.radius_units = max(4.0, 2.0 + 0.9 * n)
+        self.radius_units = max(4.0, 2.0 + 0.9 * sc.n_agents)
         """Radius of a site's disc, in layout units (room for a column of every agent)."""
         span = min(gaps) if gaps and min(gaps) > 0 else 50.0
-        self.unit = span / (2.0 * self.radius_units + 2.0)
+        u = self.unit = span / (2.0 * self.radius_units + 2.0)
         """One layout unit, metres."""
-        self.radius = self.radius_units * self.unit
+        self.radius = self.radius_units * u
         """Radius of a site's disc, metres."""
-
-    def site(self, s: int) -> tuple[float, float]:
-        """Centre of site s."""
-        x, y = self.scenario.site_positions[s]
-        return float(x), float(y)
+        self.positions = pos
+        """(x, y) of every site."""
+        self.action_sites = list(sc.action_sites)
+        """Site of every action (Scenario.action_sites)."""
+        d = 2 * self.radius
+        self.fixed: list[Mark] = [
+            Mark("sites", s, CYLINDER, x, y, -0.05 * u, d, d, 0.1 * u, SITE) for s, (x, y) in enumerate(pos)
+        ]
+        """The sites' discs and names: the same in every update."""
+        self.fixed += [
+            Mark("site_labels", s, TEXT, x, y + 4.9 * u, 0.5 * u, sz=0.8 * u, rgba=TEXT_COLOUR, text=sc.sites[s])
+            for s, (x, y) in enumerate(pos)
+        ]
+        xs, ys = [x for x, _ in pos], [y for _, y in pos]
+        self.status_at = ((min(xs) + max(xs)) / 2, max(ys) + self.radius + 1.0 * u)
+        """Where the status line goes: above the sites."""
+        self._tasks: dict[tuple[int, int], tuple[Mark, Mark]] = {}
+        self._agents: dict[tuple[int, int, int, int, bool], tuple[Mark, Mark]] = {}
 
     def task(self, j: int) -> tuple[float, float]:
         """Centre of task j (fire to the left, rescue to the right, above the site's centre)."""
-        x, y = self.site(j // 2)
+        x, y = self.positions[j // 2]
         u = self.unit
         return x + (-1.8 if j % 2 == 0 else 1.8) * u, y + 1.8 * u
 
     def agent(self, s: int, slot: int) -> tuple[float, float]:
         """Centre of the agent in column slot `slot` of site s (slot 0 just below the site's centre)."""
-        x, y = self.site(s)
+        x, y = self.positions[s]
         u = self.unit
         return x - 3.6 * u, y - (0.2 + 0.9 * slot) * u
 
+    def task_marks(self, j: int, level: int) -> tuple[Mark, Mark]:
+        """Task j at `level` (negative: unknown): its shape and its label."""
+        got = self._tasks.get((j, level))
+        if got is None:
+            x, y = self.task(j)
+            u = self.unit
+            shape = CUBE if j % 2 == 0 else SPHERE
+            lv = None if level < 0 else level
+            state = "level ?" if lv is None else ("done" if lv == 0 else f"level {lv}")
+            got = (
+                Mark(
+                    "tasks", j, shape, x, y, 0.7 * u, 1.4 * u, 1.4 * u, 1.4 * u, level_colour(lv, self.scenario.levels)
+                ),
+                Mark(
+                    "task_labels",
+                    j,
+                    TEXT,
+                    x,
+                    y + 1.7 * u,
+                    1.6 * u,
+                    sz=0.5 * u,
+                    rgba=TEXT_COLOUR,
+                    text=f"{TASK_TYPES[j % 2]}\n{state}",
+                ),
+            )
+            self._tasks[(j, level)] = got
+        return got
+
+    def agent_marks(self, k: int, action: int, site: int, slot: int, absent: bool) -> tuple[Mark, Mark]:
+        """Agent k carrying out `action` (-1: none) at `site`, in column slot `slot`: its shape and its label."""
+        key = (k, action, site, slot, absent)
+        got = self._agents.get(key)
+        if got is None:
+            p, u = self.scenario.n_tasks, self.unit
+            x, y = self.agent(site, slot)
+            working = 0 <= action < p
+            does = TASK_TYPES[action % 2] if working else ("idle" if action >= p else "no action")
+            text = f"{self.scenario.agents[k].name}: {does}" + (" (absent)" if absent else "")
+            # text is drawn centred on its position: put the centre so that the text starts just right of the agent
+            lx = x + 0.6 * u + 0.5 * CHAR_WIDTH * 0.45 * u * len(text)
+            got = (
+                Mark("agents", k, CYLINDER, x, y, 0.5 * u, 0.7 * u, 0.7 * u, 1.0 * u, WORKING if working else IDLE),
+                Mark("agent_labels", k, TEXT, lx, y, 1.2 * u, sz=0.45 * u, rgba=TEXT_COLOUR, text=text),
+            )
+            self._agents[key] = got
+        return got
+
 
 def scene(
-    scenario: Scenario,
-    model: Model,
+    layout: Layout,
     levels: Sequence[int] | None,
     actions: Sequence[int],
     acted: Sequence[int],
     episode: int,
     step: int,
     sites: Sequence[int] | None = None,
-    layout: Layout | None = None,
 ) -> list[Mark]:
     """The markers of one episode's state.
 
     Args:
-        scenario: The scenario (sites, their positions, tasks, agents and their names).
-        model: Its model (`action_site`: the site of every action).
-        levels: (p,) true level of every task; None when unknown (external operation).
+        layout: The scenario's layout (Layout(scenario)).
+        levels: (p,) true level of every task; None or negative levels when unknown (external operation).
         actions: (N,) the assignment each agent carries out (an index into G-bar; -1: none, HT mode).
         acted: The agents whose own action was applied (any other agent was idled by the world: absent).
         episode: The episode shown.
         step: The step of `levels` (0: the initial state).
         sites: (N,) site of each agent whose action is -1 (its previous site); None: the first site.
-        layout: Where things go (built from the scenario when None).
 
     Returns:
         Every marker of the scene, namespace by namespace in NAMESPACES order, ids from 0 in each.
     """
-    sc = scenario
-    lay = layout if layout is not None else Layout(sc)
-    u, p, L = lay.unit, sc.n_tasks, sc.levels
-    out: list[Mark] = []
-    for s in range(sc.n_sites):
-        x, y = lay.site(s)
-        out.append(Mark("sites", s, CYLINDER, x, y, -0.05 * u, 2 * lay.radius, 2 * lay.radius, 0.1 * u, SITE))
-    for s, name in enumerate(sc.sites):
-        x, y = lay.site(s)
-        out.append(Mark("site_labels", s, TEXT, x, y + 4.9 * u, 0.5 * u, sz=0.8 * u, rgba=TEXT_COLOUR, text=name))
-    for j in range(p):
-        x, y = lay.task(j)
-        lv = None if levels is None else int(levels[j])
-        shape = CUBE if j % 2 == 0 else SPHERE
-        out.append(Mark("tasks", j, shape, x, y, 0.7 * u, 1.4 * u, 1.4 * u, 1.4 * u, level_colour(lv, L)))
-    for j in range(p):
-        x, y = lay.task(j)
-        lv = None if levels is None else int(levels[j])
-        state = "level ?" if lv is None or lv < 0 else ("done" if lv == 0 else f"level {lv}")
-        text = f"{TASK_TYPES[j % 2]}\n{state}"
-        out.append(Mark("task_labels", j, TEXT, x, y + 1.7 * u, 1.6 * u, sz=0.5 * u, rgba=TEXT_COLOUR, text=text))
+    sc = layout.scenario
+    tasks = [layout.task_marks(j, -1 if levels is None else int(levels[j])) for j in range(sc.n_tasks)]
     taken = [0] * sc.n_sites
     heard = set(acted)
-    agents: list[Mark] = []
-    labels: list[Mark] = []
+    agents = []
     for k, a in enumerate(actions):
         a = int(a)
         stay = int(sites[k]) if sites is not None and sites[k] >= 0 else 0  # no action: where it was
-        s = int(model.action_site[a]) if a >= 0 else stay
-        slot = taken[s]
+        s = layout.action_sites[a] if a >= 0 else stay
+        agents.append(layout.agent_marks(k, a, s, taken[s], k not in heard))
         taken[s] += 1
-        x, y = lay.agent(s, slot)
-        working = 0 <= a < p
-        does = TASK_TYPES[a % 2] if working else ("idle" if a >= p else "no action")
-        if k not in heard:
-            does += " (absent)"
-        agents.append(
-            Mark("agents", k, CYLINDER, x, y, 0.5 * u, 0.7 * u, 0.7 * u, 1.0 * u, WORKING if working else IDLE)
-        )
-        text = f"{sc.agents[k].name}: {does}"
-        # text is drawn centred on its position: put the centre so that the text starts just right of the cylinder
-        lx = x + 0.6 * u + 0.5 * CHAR_WIDTH * 0.45 * u * len(text)
-        labels.append(Mark("agent_labels", k, TEXT, lx, y, 1.2 * u, sz=0.45 * u, rgba=TEXT_COLOUR, text=text))
-    out += agents + labels
-    xs = [lay.site(s)[0] for s in range(sc.n_sites)]
-    ys = [lay.site(s)[1] for s in range(sc.n_sites)]
-    out.append(
-        Mark(
-            "status",
-            0,
-            TEXT,
-            (min(xs) + max(xs)) / 2,
-            max(ys) + lay.radius + 1.0 * u,
-            2.0 * u,
-            sz=0.8 * u,
-            rgba=TEXT_COLOUR,
-            text=status_text(episode, step, sc.horizon),
-        )
+    x, y = layout.status_at
+    u = layout.unit
+    status = Mark(
+        "status", 0, TEXT, x, y, 2.0 * u, sz=0.8 * u, rgba=TEXT_COLOUR, text=status_text(episode, step, sc.horizon)
     )
-    return out
+    return [
+        *layout.fixed,
+        *(t for t, _ in tasks),
+        *(t for _, t in tasks),
+        *(a for a, _ in agents),
+        *(a for _, a in agents),
+        status,
+    ]
 
 
 class MarkerView:
-    """Follows the world protocol's records and says which markers to publish, for one episode of each batch."""
+    """Follows the world protocol's records for one episode of each batch; `marks()` is the scene to publish."""
 
-    def __init__(self, scenario: Scenario, model: Model) -> None:
+    def __init__(self, scenario: Scenario) -> None:
         """The view of a run of `scenario`."""
         self.scenario = scenario
-        self.model = model
         self.layout = Layout(scenario)
-        self.acted: list[int] = list(range(scenario.n_agents))
+        n = scenario.n_agents
+        start = scenario.start_assignment
+        self.levels: Sequence[int] | None = scenario.initial_levels
+        """True levels of the shown episode (None: unknown)."""
+        self.actions: Sequence[int] = [start] * n
+        """The assignment each agent carries out."""
+        self.acted: Sequence[int] = range(n)
         """The agents whose actions the world applied in the latest step."""
-        self.sites: list[int] = []
+        self.sites: list[int] = [self.layout.action_sites[start] if start >= 0 else 0] * n
         """Site of each agent's latest assignment in the shown episode (where an agent with no action stays)."""
         self.shown = (-1, -1)
-        """(episode, step) of the latest update."""
+        """(episode, step) of the scene."""
+        self.stopped = False
+        """The run is over: the scene is a DELETEALL."""
+        self._marks: list[Mark] | None = None
 
-    def initial(self, episode: int) -> list[Mark]:
-        """The scene at the begin of `episode`: initial levels, every agent at its start assignment."""
-        sc = self.scenario
-        start = sc.start_assignment
-        self.sites = [int(self.model.action_site[start]) if start >= 0 else 0] * sc.n_agents
-        self.shown = (episode, 0)
-        actions = [start] * sc.n_agents
-        everyone = range(sc.n_agents)
-        return scene(sc, self.model, sc.initial_levels, actions, everyone, episode, 0, self.sites, self.layout)
-
-    def on_record(self, kind: str, fields: dict[str, Any], index: int) -> Sequence[Mark] | None:
-        """The markers to publish after the protocol's record (kind, fields), None when nothing changes.
+    def on_record(self, kind: str, fields: dict[str, Any], index: int) -> bool:
+        """Follow the protocol's record (kind, fields); returns whether the scene changed.
 
         Args:
-            kind: The record's kind (scenario, step, ground_truth, ...; the others are ignored).
+            kind: The record's kind (scenario, step, ground_truth; the others are ignored).
             fields: Its fields as the protocol returned them.
             index: Which episode of the batch to show (clipped to the batch's size).
         """
         if kind == "scenario":
-            return DELETE_ALL if fields.get("state") == "stopped" else None
+            stopped = fields.get("state") == "stopped"
+            changed, self.stopped = stopped != self.stopped, stopped
+            return changed
         if kind == "step":
             if fields["phase"] == "begin":
-                i = min(index, int(fields["size"]) - 1)
-                e = int(fields["episode"]) + i
-                return None if self.shown == (e, 0) else self.initial(e)  # the begin is announced again and again
+                e = int(fields["episode"]) + min(index, int(fields["size"]) - 1)
+                if self.shown == (e, 0):  # the begin is announced again and again while the agents join
+                    return False
+                self.begin(e)
+                return True
             if fields["phase"] == "step":
-                self.acted = list(fields["acted"])
-            return None
+                self.acted = fields["acted"]
+            return False
         if kind == "ground_truth":
             actions = fields["actions"]
             i = min(index, len(actions) - 1)
             levels = fields.get("levels")
-            return self.after_step(int(fields["episode"]) + i, int(fields["step"]), levels and levels[i], actions[i])
-        return None
+            self.after_step(int(fields["episode"]) + i, int(fields["step"]), levels[i] if levels else None, actions[i])
+            return True
+        return False
 
-    def after_step(self, episode: int, step: int, levels: Sequence[int] | None, actions: Sequence[int]) -> list[Mark]:
+    def begin(self, episode: int) -> None:
+        """The scene at the begin of `episode`: initial levels, every agent at its start assignment."""
+        sc = self.scenario
+        start = sc.start_assignment
+        self.sites = [self.layout.action_sites[start] if start >= 0 else 0] * sc.n_agents
+        self.levels, self.actions, self.acted = sc.initial_levels, [start] * sc.n_agents, range(sc.n_agents)
+        self.shown, self.stopped, self._marks = (episode, 0), False, None
+
+    def after_step(self, episode: int, step: int, levels: Sequence[int] | None, actions: Sequence[int]) -> None:
         """The scene after `step` of `episode`: true levels (None: unknown) and the applied actions (N,)."""
         if len(self.sites) != len(actions):
             self.sites = [0] * len(actions)
         for k, a in enumerate(actions):
             if a >= 0:
-                self.sites[k] = int(self.model.action_site[a])
-        self.shown = (episode, step)
-        sc = self.scenario
-        return scene(sc, self.model, levels, actions, self.acted, episode, step, self.sites, self.layout)
+                self.sites[k] = self.layout.action_sites[a]
+        self.levels, self.actions = levels, actions
+        self.shown, self.stopped, self._marks = (episode, step), False, None
+
+    def marks(self) -> Sequence[Mark]:
+        """The markers of the current scene (DELETE_ALL once the run stopped), built when first asked for."""
+        if self.stopped:
+            return DELETE_ALL
+        if self._marks is None:
+            e, t = self.shown
+            self._marks = scene(self.layout, self.levels, self.actions, self.acted, e, t, self.sites)
+        return self._marks
 
 
 def render(marks: Sequence[Mark], path: str, title: str = "") -> None:

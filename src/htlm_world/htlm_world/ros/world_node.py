@@ -79,7 +79,7 @@ class WorldNode(Node):
             sc, s.lockstep(self.run_id), Model.build(sc), lambda k: self.pub_obs[k].get_subscription_count() > 0
         )
         self.markers = (  # /htlm/markers, for RViz2 and Foxglove
-            MarkerPublisher(self, sc, self.protocol.model, lambda: self.settings.marker_episode) if s.markers else None
+            MarkerPublisher(self, sc, lambda: self.settings.marker_episode) if s.markers else None
         )
         # subscriptions
         self.create_subscription(String, topics.ACTION, self._on_action, EVENTS)
