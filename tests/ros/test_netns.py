@@ -6,15 +6,18 @@ namespaces and the network would not be tested. Skipped, with the reason, where 
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from htlm_agent.learning.transition_store import read_store
 from htlm_agent.ros.launch import LaunchConfig
 from htlm_world.scenario import builtin
 
@@ -76,58 +79,133 @@ def net() -> Iterator[Net]:
     n.down()
 
 
+def _launch(net: Net, script: str, name: str, args: list[str], run: Path) -> subprocess.Popen[bytes]:
+    """`team.sh ARGS --only NAME` inside NAME's namespace, discovering the others over the bridge (DDS on UDP)."""
+    cmd = ["ip", "netns", "exec", net.ns[name], script, *args]
+    cmd += ["--only", name, "--discovery", "subnet", "--domain-id", str(net.tag), "--run-dir", str(run), "--quiet"]
+    env = {**os.environ, "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+
+
+def _wait_team(procs: dict[str, subprocess.Popen[bytes]], run: Path, timeout: float) -> dict[str, int]:
+    """Every process's exit code (all must be 0: the failure message holds the world's output and log tail)."""
+    end = time.monotonic() + timeout
+    try:
+        codes = {name: p.wait(timeout=max(0.1, end - time.monotonic())) for name, p in procs.items()}
+    except subprocess.TimeoutExpired:
+        codes = {name: p.poll() if p.poll() is not None else -999 for name, p in procs.items()}
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    outs = {name: p.stdout.read().decode() if p.stdout else "" for name, p in procs.items()}
+    logs = run / "logs"
+    tails = {n: (logs / f"{n}.log").read_text()[-1500:] for n in procs if (logs / f"{n}.log").exists()}
+    assert codes == dict.fromkeys(procs, 0), (codes, outs["world"], tails)
+    return codes
+
+
 def test_world_trainer_and_agents_in_separate_network_namespaces(net: Net, repo_root: Path, tmp_path: Path) -> None:
-    domain, seed, episodes = net.tag, 3, 4  # two batches of 2: time for every process to discover the world
+    seed, episodes = 3, 4  # two batches of 2: time for every process to discover the world
     run = tmp_path / "run"
     script = str(repo_root / "launch_scripts" / "team.sh")
-    env = {**os.environ, "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
 
     def bridged() -> int:  # bytes the namespaces sent through the bridge
         return sum(int(Path(f"/sys/class/net/hv{net.tag}h{i}/statistics/rx_bytes").read_text()) for i in range(7))
 
     before = bridged()
-    procs = {}
-    for name in NAMES:
-        cmd = [
-            "ip",
-            "netns",
-            "exec",
-            net.ns[name],
-            script,
-            "evaluate",
-            "--policy",
-            "greedy",
-            "--seed",
-            str(seed),
-            "--episodes",
-            str(episodes),
-            "--batch",
-            "2",
-            "--only",
-            name,
-            "--discovery",
-            "subnet",
-            "--domain-id",
-            str(domain),
-            "--run-dir",
-            str(run),
-            "--quiet",
-            "--timeout",
-            "100",
-        ]
-        procs[name] = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    try:
-        codes = {name: p.wait(timeout=120) for name, p in procs.items()}
-    finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.kill()
-    outs = {name: p.stdout.read().decode() if p.stdout else "" for name, p in procs.items()}
-    world_log = (run / "logs" / "world.log").read_text() if (run / "logs" / "world.log").exists() else ""
-    assert codes == dict.fromkeys(NAMES, 0), (codes, outs["world"], world_log[-2000:])
+    args = ["evaluate", "--policy", "greedy", "--seed", str(seed), "--episodes", str(episodes), "--batch", "2"]
+    procs = {name: _launch(net, script, name, [*args, "--timeout", "100"], run) for name in NAMES}
+    _wait_team(procs, run, 120)
     team = RosTeam(tmp_path, LaunchConfig(mode="evaluate", scenario=builtin(), run_dir=run, seed=seed, batch=2))
     assert assert_same_as_in_process(team, seed, "greedy") == episodes
     assert all(sum(w["metrics"]["absent"]) == 0 for w in team.world_episodes())
     sent = bridged() - before
     assert sent > 200_000, f"only {sent} bytes crossed the bridge: the processes did not talk over the network"
     print(f"{sent} bytes crossed the bridge between the 7 namespaces")
+
+
+CUT = "agent3"
+CUT_SECONDS = 4.0
+
+
+def test_agent_cut_off_the_network_mid_training_is_idle_then_rejoins_and_loses_no_transition(
+    net: Net, repo_root: Path, tmp_path: Path
+) -> None:
+    """A training run (B = 4) where agent3's link goes down for 4 s mid-run and comes back: the world counts it
+    absent in the batches of the cut and present again later, every process exits 0, and the trainer's store keeps
+    everything it had acknowledged and ends up with every transition of every agent, once."""
+    B, batches, seed = 4, 12, 5
+    run = tmp_path / "run"
+    script = str(repo_root / "launch_scripts" / "team.sh")
+    learner = {"envs": B, "learning_starts": 60, "batch_size": 32, "memory": 20000}
+    # deadlines: short enough that the cut costs seconds, not the run (a silent agent is waited for once per step
+    # phase and begin, then no longer until heard), long enough that a slow step on a loaded machine is no absence
+    world = {"act_deadline": 1.5, "update_deadline": 1.5, "begin_deadline": 1.5}
+    args = ["train", "--seed", str(seed), "--episodes", str(B * batches), "--batch", str(B), "--eval-episodes", "0"]
+    args += [x for k, v in learner.items() for x in ("--set", f"{k}={v}")]
+    args += [x for k, v in world.items() for x in ("--world-param", f"{k}={v}")]
+    args += ["--trainer-param", "round_deadline=1.5", "--agent-param", "resend_period=0.5"]
+    args += ["--agent-param", "stop_timeout=20.0", "--agent-param", "broadcast_timeout=1.0", "--timeout", "100"]
+    procs = {name: _launch(net, script, name, args, run) for name in NAMES}
+    world_log = run / "world.jsonl"
+    store = run / "trainer" / "transitions.bin"
+
+    def logged() -> int:
+        return len(world_log.read_text().splitlines()) if world_log.exists() else 0
+
+    end = time.monotonic() + 60
+    while logged() < 2 * B:  # two batches trained: past the learner's start, every process matched
+        assert time.monotonic() < end and procs["world"].poll() is None, f"no two batches: {logged()} episodes"
+        time.sleep(0.05)
+    before = read_store(store).copy()  # whatever the trainer may have acknowledged so far: acks follow the fsync
+    dev = f"hv{net.tag}n{NAMES.index(CUT)}"
+    cut_at = logged()
+    _ip("-n", net.ns[CUT], "link", "set", dev, "down")
+    time.sleep(CUT_SECONDS)
+    _ip("-n", net.ns[CUT], "link", "set", dev, "up")
+    _ip("-n", net.ns[CUT], "route", "replace", "224.0.0.0/4", "dev", dev)  # the link's routes went with it
+    up_at = logged()
+    _wait_team(procs, run, 100)
+
+    eps = {w["metrics"]["episode"]: w for w in (json.loads(x) for x in world_log.read_text().splitlines())}
+    assert sorted(eps) == list(range(B * batches)), "every episode ran once"
+    k = NAMES.index(CUT) - 2  # agent index in the scenario
+    absent = [eps[b * B]["metrics"]["absent"] for b in range(batches)]  # one count for all B episodes of a batch
+    during = range(cut_at // B, up_at // B + 1)  # the batches in progress while the link was down
+    missed = sum(absent[b][k] for b in during)
+    assert missed > 0, f"{CUT} never absent during the cut (batches {list(during)}): {absent}"
+    assert all(absent[b][k] == 0 for b in range(cut_at // B)), f"{CUT} absent before the cut: {absent}"
+    back = [b for b in range(up_at // B + 1, batches) if absent[b][k] == 0]
+    assert back, f"{CUT} never rejoined after the cut: {absent}"
+    assert all(absent[b][k] == 0 for b in range(back[0], batches)), f"{CUT} left again after rejoining: {absent}"
+    others = [a for b in range(batches) for i, a in enumerate(absent[b]) if i != k]
+    assert max(others) <= 2, f"a teammate missed steps: {absent}"
+
+    after = read_store(store)
+    key = ["agent", "session", "seq", "row"]
+    keys = {tuple(r[f].item() for f in key) for r in after}
+    assert len(keys) == len(after), "a transition stored twice"
+    acked = {tuple(r[f].item() for f in key) for r in before}
+    assert acked <= keys, f"{len(acked - keys)} acknowledged transitions lost"
+    h = builtin().horizon
+    for i in range(5):
+        mine = after[after["agent"] == i]
+        assert len(set(mine["session"].tolist())) == 1, f"agent {i}: one process, one session"
+        seqs = sorted(set(mine["seq"].tolist()))
+        assert seqs == list(range(len(seqs))), f"agent {i}: a record missing between 0 and {seqs[-1]}"
+        steps = {(int(e), int(t)) for e, t in zip(mine["episode"].tolist(), mine["step"].tolist(), strict=True)}
+        played = {
+            (e, t)
+            for b in range(batches)
+            if absent[b][i] == 0
+            for e in range(b * B, b * B + B)
+            for t in range(1, h + 1)
+        }
+        assert played <= steps, f"agent {i}: {len(played - steps)} transitions of steps it played are missing"
+    print(
+        f"{CUT} cut for {CUT_SECONDS:g} s during batches {list(during)}: absent steps per batch "
+        f"{[absent[b][k] for b in range(batches)]}; back from batch {back[0]}; store: {len(before)} rows at the cut "
+        f"(all kept), {len(after)} at the end, {len(after[after['agent'] == k])} of them {CUT}'s"
+    )
