@@ -8,6 +8,7 @@ import math
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,16 @@ def snapshots(out: Path) -> list[str]:
     return parts[:-1]
 
 
+def wait_printed(out: Path, text: str, timeout: float) -> None:
+    """Wait until a snapshot holds `text`; fail with the last snapshot."""
+    end = time.monotonic() + timeout
+    while not any(text in s for s in snapshots(out)[-2:]):
+        if time.monotonic() > end:
+            last = (snapshots(out) or ["(none)"])[-1]
+            pytest.fail(f"htlm watch did not print {text!r} within {timeout} s; its last snapshot:\n{last}")
+        time.sleep(0.1)
+
+
 def stop_watch(watch: subprocess.Popen[bytes]) -> tuple[int, str]:
     watch.send_signal(signal.SIGINT)
     try:
@@ -39,6 +50,18 @@ def stop_watch(watch: subprocess.Popen[bytes]) -> tuple[int, str]:
         watch.kill()
         pytest.fail("htlm watch did not exit within 20 s of SIGINT")
     return watch.returncode, err.decode(errors="replace")
+
+
+def start_team(team: Any, out: Path) -> None:
+    """Start the world and the trainer, then the agents once the watch hears the world: the world runs the first batch
+    as soon as the agents are up, and a watch it has not discovered by then would miss its episodes."""
+    team.start("world", "trainer")
+
+    def heard() -> bool:
+        return any(line.startswith("world ") for s in snapshots(out)[-1:] for line in s.splitlines())
+
+    team.wait_for(heard, 30, "htlm watch to hear the world's /diagnostics")
+    team.start(*(a.name for a in team.cfg.scenario.agents))
 
 
 def completion_line(episodes: list[dict[str, Any]]) -> str:
@@ -56,30 +79,30 @@ def test_watch_shows_what_the_world_logged_with_signed_records(ros_team: Any, tm
     out = tmp_path / "watch.txt"
     watch = start_watch(team, out)
     team.wait_for(lambda: len(snapshots(out)) >= 1, 30, "the first snapshot of htlm watch")
-    team.start()
+    start_team(team, out)
     assert team.wait("world", 60) == 0
     episodes = team.world_episodes()
     assert len(episodes) == 6
     expected = completion_line(episodes)
-    team.wait_for(lambda: expected in (snapshots(out) or [""])[-1], 15, f"htlm watch to print {expected!r}")
+    wait_printed(out, expected, 15)
     code, err = stop_watch(watch)
     assert code == 0, err
     assert "Traceback" not in err
     last = out.read_text().split(SEPARATOR)[-1]  # the snapshot printed at exit
     run_id = team.run_dir.name
-    assert f"run {run_id}  scenario paper/heterogeneous  mode evaluate  seed 4  episodes 0..5  batch 2" in last
-    assert "[stopped]" in last
+    assert f"run {run_id}  scenario paper/heterogeneous  mode evaluate  seed 4  episodes 0..5  batch 2" in last, last
+    assert "[stopped]" in last, last
     # the last batch: episodes 4..5, showing index 0
-    assert "episode 4  step 30/30  phase end  (index 0 of the batch 4..5: --episode-in-batch)" in last
-    assert expected in last
+    assert "episode 4  step 30/30  phase end  (index 0 of the batch 4..5: --episode-in-batch)" in last, last
+    assert expected in last, last
     final = max(episodes, key=lambda w: w["metrics"]["episode"])["metrics"]
-    assert f"last episode 5: completion {final['completion']}" in last
+    assert f"last episode 5: completion {final['completion']}" in last, last
     for a in team.cfg.scenario.agents:
         assert any(line.strip().startswith(a.name + " ") for line in last.splitlines()), a.name
     # every record was signed and accepted: nothing rejected, and the beliefs and the truth arrived
-    assert "records received, 0 rejected" in last
-    assert "beliefs: confident level (probability), of episode 4 after step 30" in last
-    assert "true severities after step 30" in last
+    assert "records received, 0 rejected" in last, last
+    assert "beliefs: confident level (probability), of episode 4 after step 30" in last, last
+    assert "true severities after step 30" in last, last
 
 
 def test_watch_shows_a_killed_agent_as_absent(ros_team: Any, tmp_path: Path) -> None:
@@ -93,7 +116,7 @@ def test_watch_shows_a_killed_agent_as_absent(ros_team: Any, tmp_path: Path) -> 
     out = tmp_path / "watch.txt"
     watch = start_watch(team, out, "--stale-after", "3")
     team.wait_for(lambda: len(snapshots(out)) >= 1, 30, "the first snapshot of htlm watch")
-    team.start()
+    start_team(team, out)
     team.wait_for(lambda: len(team.world_episodes()) >= 2, 60, "the first batch")
     team.kill("agent5")
     assert team.wait("world", 60) == 0
@@ -101,13 +124,13 @@ def test_watch_shows_a_killed_agent_as_absent(ros_team: Any, tmp_path: Path) -> 
     names = [a.name for a in team.cfg.scenario.agents]
     missed = [sum(w["metrics"]["absent"][k] for w in episodes) for k in range(len(names))]
     assert missed[4] > 0
-    team.wait_for(lambda: completion_line(episodes) in (snapshots(out) or [""])[-1], 15, "the last episode")
+    wait_printed(out, completion_line(episodes), 15)
     code, err = stop_watch(watch)
     assert code == 0, err
     shown = out.read_text().split(SEPARATOR)
     rows = [line for s in shown for line in s.splitlines() if line.strip().startswith("agent5 ")]
     assert any(" absent " in r for r in rows), rows[-10:]  # while the world ran without it
     last = shown[-1]
-    assert "absent steps " + ", ".join(f"{a} {n}" for a, n in zip(names, missed, strict=True) if n) in last
-    assert completion_line(episodes) in last
+    assert "absent steps " + ", ".join(f"{a} {n}" for a, n in zip(names, missed, strict=True) if n) in last, last
+    assert completion_line(episodes) in last, last
     assert any("SILENT" in r for r in rows)  # its /diagnostics stopped

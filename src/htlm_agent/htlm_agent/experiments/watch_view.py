@@ -176,6 +176,7 @@ class WatchState:
 
     def _reset(self) -> None:
         self.step: dict[str, Any] | None = None
+        self.acted: set[int] | None = None
         self.truth: dict[str, Any] | None = None
         self.beliefs: dict[str, Belief] = {}
         self.stats = Stats()
@@ -234,6 +235,8 @@ class WatchState:
             rec = self._decode("step", text, S.STEP)
             if rec is not None:
                 self.step = rec
+                if rec["phase"] == "step":
+                    self.acted = set(rec["acted"])
 
     def on_ground_truth(self, text: Any) -> None:
         """A /htlm/ground_truth record: true levels and applied assignments of every episode of the batch."""
@@ -290,12 +293,10 @@ class WatchState:
         return None if self.step is None else int(self.step["episode"]) + self.shown_index()
 
     def absent(self) -> list[str]:
-        """Agents whose actions the world did not apply at the last step (they idled in their absence)."""
-        st = self.step
-        if st is None or st["phase"] != "step":
+        """Agents whose actions the world did not apply at the last step it announced (they idled in their absence)."""
+        if self.acted is None:
             return []
-        acted = set(st["acted"])
-        return [a for k, a in enumerate(self.agent_names) if k not in acted]
+        return [a for k, a in enumerate(self.agent_names) if k not in self.acted]
 
     def silent(self, now: float) -> list[str]:
         """Nodes whose last /diagnostics is older than `stale_after`."""
