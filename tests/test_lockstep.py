@@ -4,6 +4,7 @@ step; the agent's mind drops what the protocol says to drop; the trainer's durab
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 
 import numpy as np
@@ -323,6 +324,8 @@ def test_launch_specs_and_environment(tmp_path: Path) -> None:
     assert specs[2][2]["agent"] == "agent1" and specs[0][2]["mode"] == "evaluate"
     env = ros_env(cfg)
     assert env["ROS_DOMAIN_ID"] == "77" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    # no shared-memory transport unless asked for: a SIGKILLed process must not freeze the others (launch.ros_env)
+    assert env["FASTDDS_BUILTIN_TRANSPORTS"] == os.environ.get("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
     only = process_specs(dataclasses.replace(cfg, only=("agent2",)))
     assert [s[0] for s in only] == ["agent2"]
     p = write_params(tmp_path / "p.yaml", {"a": "x: y", "b": 1.5, "c": True})

@@ -59,9 +59,6 @@ def test_agent_killed_mid_episode_is_idle_then_rejoins(ros_team: Any) -> None:
     )
 
 
-# Known intermittent fault (1 of 3 full-suite runs on 2026-11-22, under load): the restarted trainer hung before its
-# first log line and never acknowledged anything. One rerun keeps CI honest about everything else until it is found.
-@pytest.mark.flaky(reruns=1)
 def test_trainer_killed_and_restarted_loses_no_acknowledged_transition(ros_team: Any) -> None:
     team = ros_team(
         mode="train",

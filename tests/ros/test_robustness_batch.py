@@ -69,7 +69,6 @@ def test_agent_killed_mid_batch_is_idle_in_every_episode_then_rejoins(ros_team: 
     print(f"killed in batch {killed_in // B} after {sc.horizon - missed} steps; rejoined at episode {rejoined[0]}")
 
 
-@pytest.mark.flaky(reruns=1)
 def test_trainer_killed_mid_batch_loses_no_acknowledged_transition(ros_team: Any) -> None:
     team = ros_team(
         mode="train",

@@ -136,6 +136,10 @@ def ros_env(cfg: LaunchConfig) -> dict[str, str]:
     else:
         env.pop("ROS_STATIC_PEERS", None)
     env.pop("ROS_LOCALHOST_ONLY", None)  # deprecated in Jazzy; the discovery range replaces it
+    # UDP only, no Fast DDS shared-memory transport: a process killed (SIGKILL, OOM) while it writes into another's
+    # shared-memory port leaves that port's interprocess mutex locked, and every later writer to it blocks for good
+    # (a restarted node hangs on start). Over UDP a dead process takes nothing with it. An explicit setting wins.
+    env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
     if cfg.key_file:
         env["HTLM_TEAM_KEY_FILE"] = str(Path(cfg.key_file).resolve())
         env.pop("HTLM_TEAM_KEY", None)
