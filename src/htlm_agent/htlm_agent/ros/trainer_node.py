@@ -117,12 +117,14 @@ class TrainerNode(Node):
             self._apply(self.core.on_transition(rec, time.monotonic()))
 
     def _on_step(self, msg: String) -> None:
-        if self.core.learner is None:
+        rec = self.health.decode("step", msg, S.STEP, self.lim)  # validated and counted even when not training
+        if rec is None:
             return
-        rec = self.health.decode("step", msg, S.STEP, self.lim)
-        if rec is not None:
-            self.world.heard()
-            self._apply(self.core.on_step(rec, time.monotonic()))
+        if self.core.learner is None:  # no scenario yet, or a run that trains nothing: the steps pace nothing here
+            self.health.drop("step", "not_training" if self.core.store is not None else "no_scenario")
+            return
+        self.world.heard()
+        self._apply(self.core.on_step(rec, time.monotonic()))
 
     def _on_metrics(self, msg: String) -> None:
         rec = self.health.decode("episode_metrics", msg, S.EPISODE_METRICS, self.lim)
