@@ -9,6 +9,7 @@ clock, the episodes), and publishes the records the protocol returns. Run: `ros2
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -20,7 +21,17 @@ from rclpy.node import Node
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
-from htlm_msgs_py.ros import EVENTS, STATE, Health, SettingsError, String, declare_settings, run_node, string
+from htlm_msgs_py.ros import (
+    EVENTS,
+    STATE,
+    Health,
+    SettingsError,
+    String,
+    declare_settings,
+    run_node,
+    say_unsigned,
+    string,
+)
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
@@ -73,10 +84,17 @@ class WorldNode(Node):
             "ground_truth": self.create_publisher(String, topics.GROUND_TRUTH, EVENTS),
             "episode_metrics": self.create_publisher(String, topics.EPISODE_METRICS, EVENTS),
         }
-        self.pub_obs = [self.create_publisher(String, topics.observation(a.name), EVENTS) for a in sc.agents]
+        external = s.operation == "external"
+        # simulated: the world sends every observation; external: the robots do, the world only listens (logs)
+        self.pub_obs = (
+            [] if external else [self.create_publisher(String, topics.observation(a.name), EVENTS) for a in sc.agents]
+        )
         # the protocol: an episode begins once every agent answered and listens to its observations
         self.protocol = WorldProtocol(
-            sc, s.lockstep(self.run_id), Model.build(sc), lambda k: self.pub_obs[k].get_subscription_count() > 0
+            sc,
+            s.lockstep(self.run_id),
+            Model.build(sc),
+            None if external else (lambda k: self.pub_obs[k].get_subscription_count() > 0),
         )
         self.markers = (  # /htlm/markers, for RViz2 and Foxglove
             MarkerPublisher(self, sc, lambda: self.settings.marker_episode) if s.markers else None
@@ -85,12 +103,50 @@ class WorldNode(Node):
         self.create_subscription(String, topics.ACTION, self._on_action, EVENTS)
         self.create_subscription(String, topics.READY, self._on_ready, EVENTS)
         self.create_subscription(String, topics.TRAINER_PROGRESS, self._on_trainer, EVENTS)
+        if external:
+            self.create_subscription(String, topics.SEVERITY, self._on_severity, EVENTS)
+            for a in sc.agents:
+                self.create_subscription(String, topics.observation(a.name), self._on_observation, EVENTS)
         # timers
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.log_file: Any = None
+        self.progress_file: Path | None = None
         if s.run_dir:
             Path(s.run_dir).mkdir(parents=True, exist_ok=True)
+            self.progress_file = Path(s.run_dir) / "world_progress.json"
+            self._resume()
             self.log_file = open(Path(s.run_dir) / "world.jsonl", "a", encoding="utf-8")  # noqa: SIM115
+
+    def _resume(self) -> None:
+        """A world restarted in the run directory of its run continues it: the next episode it had not logged, the
+        announcements' sequence after its last (world_progress.json, written durably as the run goes)."""
+        assert self.progress_file is not None
+        try:
+            old = json.loads(self.progress_file.read_text())
+        except FileNotFoundError:
+            return
+        except (OSError, ValueError) as e:
+            raise SettingsError(f"run_dir: {self.progress_file}: unreadable progress ({e}); move it away") from None
+        if not (isinstance(old, dict) and isinstance(old.get("seq"), int) and isinstance(old.get("next_episode"), int)):
+            raise SettingsError(f"run_dir: {self.progress_file}: not a world progress record: {str(old)[:200]}")
+        if old.get("run") != self.run_id:
+            return  # another run used this directory: a new run starts
+        self.protocol.resume(old["seq"], old["next_episode"])
+        self.get_logger().warning(
+            f"run {self.run_id}: the world restarted; continuing at episode {old['next_episode']} "
+            f"(announcement {old['seq'] + 1})"
+        )
+
+    def _save_progress(self) -> None:
+        """Write the protocol's progress durably (fsync, then an atomic rename)."""
+        if self.progress_file is None:
+            return
+        tmp = self.progress_file.with_suffix(".tmp")
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump(self.protocol.progress(), f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.progress_file)
 
     def _on_settings(self, new: WorldSettings) -> None:
         self.settings = new
@@ -111,6 +167,16 @@ class WorldNode(Node):
         rec = self.health.decode("trainer_progress", msg, S.TRAINER_PROGRESS, self.lim)
         if rec is not None:
             self._apply(self.protocol.on_trainer(rec, time.monotonic()))
+
+    def _on_severity(self, msg: String) -> None:
+        rec = self.health.decode("severity", msg, S.SEVERITY, self.lim)
+        if rec is not None:
+            self._apply(self.protocol.on_severity(rec, time.monotonic()))
+
+    def _on_observation(self, msg: String) -> None:
+        rec = self.health.decode("observation", msg, S.OBSERVATION, self.lim)
+        if rec is not None:
+            self._apply(self.protocol.on_observation(rec, time.monotonic()))
 
     # ----- effects out ------------------------------------------------------------------------------------------
     def _apply(self, eff: WorldEffects) -> None:
@@ -140,6 +206,9 @@ class WorldNode(Node):
             for line in eff.episode_log:
                 self.log_file.write(json.dumps(line) + "\n")
             self.log_file.flush()
+            os.fsync(self.log_file.fileno())  # once per batch: the log is durable before the progress says so
+        if eff.episode_log or any(kind == "scenario" for kind, _ in eff.publish):
+            self._save_progress()
         if eff.status_changed:
             self._publish_health()
 
@@ -160,10 +229,12 @@ class WorldNode(Node):
         self.health.message = "running"
         self.get_logger().info(
             f"run {self.run_id}: {sc.name}/{sc.team}, {sc.n_agents} agents, h={sc.horizon}, seed {s.seed}, "
-            f"mode {s.mode}, clock {s.clock}, {s.episodes or 'unlimited'} episodes in batches of {s.batch}, "
+            f"mode {s.mode}, clock {s.clock}, operation {s.operation}, "
+            f"{s.episodes or 'unlimited'} episodes in batches of {s.batch}, "
             f"pace {'on' if proto.settings.pace else 'off'}, "
             f"signing {'on' if self.signer.enabled else 'off'}"
         )
+        say_unsigned(self, self.signer)
         self._apply(proto.start(time.monotonic()))
         while not proto.done and not self.stop_signal:
             wait = proto.next_wakeup() - time.monotonic()
