@@ -9,6 +9,8 @@
 - describe: list and describe every parameter of running nodes (what `ros2 param describe` shows);
 - markers: record every visualization_msgs/MarkerArray of /htlm/markers (frames, stamps, lifetimes, plain markers)
   into a JSON file, rewritten every 0.3 s while new ones arrive.
+- flood: publish records that every receiver of one topic rejects (cut JSON, unknown schema, wrong version, a
+  value out of range), as fast as it can from a start signal until stopped, and write how many went out.
 """
 
 from __future__ import annotations
@@ -367,6 +369,48 @@ def markers(args: argparse.Namespace) -> None:
     write()
 
 
+def flood(args: argparse.Namespace) -> None:
+    """Publish records every receiver of one topic rejects, as fast as one Python process can, from the moment the
+    --go file exists until SIGTERM (or --seconds), then write how many went out."""
+    import os
+
+    from wire_fuzz import VALID
+
+    topic = args.topic
+    schema, qos = subscribed_topics("train")[topic]
+    node = Node("test_flooder")
+    pub = node.create_publisher(String, topic, qos)
+    good = json.dumps({"schema": schema.name, "v": schema.version, **VALID[schema.name]}, separators=(",", ":"))
+    bad_field = "agent" if "agent" in VALID[schema.name] else "episode"
+    texts = [  # one of each rejection reason, none merely dropped by the protocol
+        good[: len(good) // 2],  # json: cut in the middle
+        good.replace(schema.name, "htlm/nothing", 1),  # schema
+        good.replace(f'"v":{schema.version}', f'"v":{schema.version + 7}', 1),  # version
+        json.dumps({"schema": schema.name, "v": schema.version, **VALID[schema.name], bad_field: 10**6}),  # range
+    ]
+    msgs = [string(t) for t in texts]
+    end = time.monotonic() + 30
+    while time.monotonic() < end and pub.get_subscription_count() < args.subscribers:
+        _spin_for(node, 0.1)
+    matched = pub.get_subscription_count()
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    go = Path(args.go) if args.go else None
+    while not stop and go is not None and not go.exists():
+        _spin_for(node, 0.02)
+    if args.nice:
+        os.nice(args.nice)
+    sent, t0 = 0, time.monotonic()
+    end = t0 + args.seconds
+    while not stop and time.monotonic() < end:
+        for m in msgs:
+            pub.publish(m)
+        sent += len(msgs)
+    took = time.monotonic() - t0
+    out = {"sent": sent, "seconds": round(took, 3), "rate": round(sent / max(took, 1e-9)), "matched": matched}
+    Path(args.out).write_text(json.dumps(out))
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -402,6 +446,13 @@ def main() -> None:
     ds.add_argument("--nodes", required=True, help="comma-separated node names, e.g. /htlm_world,/htlm_trainer")
     mk = sub.add_parser("markers")
     mk.add_argument("--out", required=True)
+    fl = sub.add_parser("flood")
+    fl.add_argument("--out", required=True)
+    fl.add_argument("--topic", default=topics.ACTION, help="the full topic name, e.g. /htlm/action")
+    fl.add_argument("--subscribers", type=int, default=1, help="subscribers to wait for (at most 30 s)")
+    fl.add_argument("--go", default="", help="start once this file exists (empty: at once)")
+    fl.add_argument("--seconds", type=float, default=120.0, help="longest flood (SIGTERM ends it sooner)")
+    fl.add_argument("--nice", type=int, default=0, help="lower the flooder's CPU priority by this much once it floods")
     args = p.parse_args()
     faulthandler.register(signal.SIGUSR1)
     rclpy.init()
@@ -413,6 +464,7 @@ def main() -> None:
             "setparam": setparam,
             "describe": describe,
             "markers": markers,
+            "flood": flood,
         }
         cmds[args.cmd](args)
     finally:
