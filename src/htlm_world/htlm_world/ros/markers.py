@@ -22,6 +22,7 @@ from typing import Any
 
 import rclpy
 from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -173,7 +174,7 @@ def snapshot(out: str, episode: int | None, step: int | None, timeout: float) ->
 
     node.create_subscription(MarkerArray, topics.MARKERS, on_markers, STATE_READER)
     end = time.monotonic() + timeout
-    while time.monotonic() < end and not (best and exact) and not ended:
+    while time.monotonic() < end and not (best and exact) and not ended and rclpy.ok():
         rclpy.spin_once(node, timeout_sec=0.1)
     node.destroy_node()
     if not best:
@@ -197,6 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     rclpy.init()
     try:
         return snapshot(a.snapshot, a.episode, a.step, a.timeout)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 130
     finally:
         rclpy.try_shutdown()
 
