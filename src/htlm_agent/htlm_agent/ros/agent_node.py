@@ -120,6 +120,7 @@ class AgentNode(Node):
         self.position: tuple[float, float] | None = None  # the robot's (x, y) in the map frame, from pose_topic
         self.pose_at = 0.0
         self.arrived_logged = "unknown"
+        self.last_action: tuple[int, int, str, float] | None = None  # (episode, step, record, sent at)
         # publishers
         self.pub_action = self.create_publisher(String, topics.ACTION, EVENTS)
         self.pub_broadcast = self.create_publisher(String, topics.BROADCAST, EVENTS)
@@ -431,9 +432,23 @@ class AgentNode(Node):
         d = site_distance(self.scenario, self.last_site, *self.position)
         return ("yes" if d <= self.settings.arrival_radius else "no"), round(d, 3)
 
+    def _resend_action(self) -> None:
+        """Send our action of the step in progress again while the world has not applied the step (a record lost
+        in a reader's queue, e.g. under a flood of other records, costs a resend instead of the world's deadline)."""
+        m, last = self.mind, self.last_action
+        if m is None or last is None or m.pending is None or m.pending.observed_at is not None:
+            return
+        e, t, text, at = last
+        now = time.monotonic()
+        if (e, t) == (m.episode, m.pending.t) and now - at >= self.settings.action_resend:
+            self.pub_action.publish(string(text))
+            self.last_action = (e, t, text, now)
+            self.health.counters["actions_resent"] += 1
+
     def _tick(self) -> None:
         if self.external is not None:
             self._observe_external(self.external.due(time.monotonic()))
+        self._resend_action()
         m = self.mind
         if m is not None and m.deferred is not None:
             if time.monotonic() - self.deferred_since > self.settings.weights_timeout and m.policy is not None:
@@ -537,11 +552,9 @@ class AgentNode(Node):
             )
         if eff.action is not None:  # before the transition: the world and the team wait for it
             t, a = eff.action
-            self.pub_action.publish(
-                string(
-                    encode(S.ACTION, {"agent": me, "episode": mind.episode, "step": t, "actions": a.tolist()}, signer)
-                )
-            )
+            text = encode(S.ACTION, {"agent": me, "episode": mind.episode, "step": t, "actions": a.tolist()}, signer)
+            self.pub_action.publish(string(text))
+            self.last_action = (mind.episode, t, text, time.monotonic())
         if eff.ready is not None:
             self.pub_ready.publish(
                 string(encode(S.READY, {"agent": me, "episode": mind.episode, "step": eff.ready}, signer))

@@ -43,6 +43,8 @@ class AgentSettings:
     broadcast_timeout: float = setting(1.0, lo=SECONDS[0], hi=SECONDS[1])
     """Seconds to wait for the broadcasts of the teammates that acted before updating without them (keep it below
     the world's act_deadline)."""
+    action_resend: float = setting(0.5, lo=SECONDS[0], hi=SECONDS[1])
+    """Seconds after which the agent sends its action of a step again while the world has not applied the step."""
     resync_timeout: float = setting(10.0, lo=SECONDS[0], hi=SECONDS[1])
     """Seconds without any accepted world message after which the agent rejoins at the next episode start."""
     discovery_grace: float = setting(3.0, lo=SECONDS[0], hi=SECONDS[1])
