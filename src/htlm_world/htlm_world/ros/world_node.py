@@ -131,11 +131,28 @@ class WorldNode(Node):
             raise SettingsError(f"run_dir: {self.progress_file}: not a world progress record: {str(old)[:200]}")
         if old.get("run") != self.run_id:
             return  # another run used this directory: a new run starts
-        self.protocol.resume(old["seq"], old["next_episode"])
+        nxt = self._logged_until(old["next_episode"])
+        self.protocol.resume(old["seq"], nxt)
         self.get_logger().warning(
-            f"run {self.run_id}: the world restarted; continuing at episode {old['next_episode']} "
-            f"(announcement {old['seq'] + 1})"
+            f"run {self.run_id}: the world restarted; continuing at episode {nxt} (announcement {old['seq'] + 1})"
         )
+
+    def _logged_until(self, nxt: int) -> int:
+        """The episode after the last one of this run in world.jsonl, at least `nxt`: the log is made durable before
+        the progress, so a world killed between the two has logged a batch its progress does not hold yet."""
+        assert self.progress_file is not None
+        try:
+            lines = self.progress_file.with_name("world.jsonl").read_text(encoding="utf-8").splitlines()
+        except FileNotFoundError:
+            return nxt
+        for line in lines:
+            try:
+                rec = json.loads(line)
+                if rec["run"] == self.run_id:
+                    nxt = max(nxt, int(rec["metrics"]["episode"]) + 1)
+            except (ValueError, TypeError, KeyError):  # a line torn by the kill
+                continue
+        return nxt
 
     def _save_progress(self) -> None:
         """Write the protocol's progress durably (fsync, then an atomic rename)."""
