@@ -7,6 +7,10 @@
   --wrong-lengths, arrays of the wrong length instead;
 - setparam: set a parameter of a running node (what `ros2 param set` does);
 - describe: list and describe every parameter of running nodes (what `ros2 param describe` shows);
+- record: record every record text of one topic (e.g. /htlm/scenario) into a JSON list, rewritten as they arrive,
+  so that a record (signed or not) can be published again later, in this run or another;
+- publish: publish a recorded record again: as it was (a replay, signature and all) or with some fields changed
+  and encoded anew (a forgery, signed with --key if given), once every expected subscriber is matched;
 - markers: record every visualization_msgs/MarkerArray of /htlm/markers (frames, stamps, lifetimes, plain markers)
   into a JSON file, rewritten every 0.3 s while new ones arrive.
 - flood: publish records that every receiver of one topic rejects (cut JSON, unknown schema, wrong version, a
@@ -369,6 +373,69 @@ def markers(args: argparse.Namespace) -> None:
     write()
 
 
+def _topic(name: str) -> tuple[str, S.Schema, Any]:
+    """(topic, schema, QoS) of a team topic named by its last part (scenario, episode_metrics, ...)."""
+    for t, (schema, qos) in subscribed_topics("train").items():
+        if t.rsplit("/", 1)[-1] == name:
+            return t, schema, qos
+    raise SystemExit(f"no such topic: {name}")
+
+
+def record(args: argparse.Namespace) -> None:
+    from htlm_msgs_py.ros import STATE_READER
+
+    topic, _schema, qos = _topic(args.topic)
+    node = Node("test_recorder")
+    got: list[str] = []
+    out = Path(args.out)
+
+    def write() -> None:
+        tmp = out.with_suffix(".tmp")
+        tmp.write_text(json.dumps(got))
+        tmp.replace(out)
+
+    def on_record(msg: String) -> None:
+        got.append(msg.data)
+
+    node.create_subscription(String, topic, on_record, STATE_READER if qos is STATE else qos)
+    write()  # the subscription exists: the file tells the test so
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    written = 0
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        if len(got) > written:
+            written = len(got)
+            write()
+    write()
+
+
+def publish(args: argparse.Namespace) -> None:
+    from rclpy.duration import Duration
+
+    topic, schema, qos = _topic(args.topic)
+    node = Node("test_publisher")
+    pub = node.create_publisher(String, topic, qos)
+    end = time.monotonic() + 30
+    while time.monotonic() < end and pub.get_subscription_count() < args.subscribers:
+        _spin_for(node, 0.1)
+    matched = pub.get_subscription_count()
+    while args.go and not Path(args.go).exists():  # matched already; publish when the test says so
+        _spin_for(node, 0.05)
+    text = json.loads(Path(args.source).read_text())[args.index]
+    if args.set is not None:  # a forgery: the recorded fields with some changed, encoded anew
+        fields = json.loads(text)
+        for k in ("schema", "v", "sig"):
+            fields.pop(k, None)
+        fields.update(json.loads(args.set))
+        text = S.encode(schema, fields, Signer(args.key.encode()) if args.key else None)
+    pub.publish(string(text))
+    pub.wait_for_all_acked(Duration(seconds=10))
+    _spin_for(node, args.linger)
+    Path(args.out).write_text(json.dumps({"sent": 1, "matched": matched, "text": text}))
+
+
 def flood(args: argparse.Namespace) -> None:
     """Publish records every receiver of one topic rejects, as fast as one Python process can, from the moment the
     --go file exists until SIGTERM (or --seconds), then write how many went out."""
@@ -446,6 +513,19 @@ def main() -> None:
     ds.add_argument("--nodes", required=True, help="comma-separated node names, e.g. /htlm_world,/htlm_trainer")
     mk = sub.add_parser("markers")
     mk.add_argument("--out", required=True)
+    rc = sub.add_parser("record")
+    rc.add_argument("--out", required=True)
+    rc.add_argument("--topic", required=True, help="the topic's last part: scenario, episode_metrics, ...")
+    pb = sub.add_parser("publish")
+    pb.add_argument("--out", required=True)
+    pb.add_argument("--topic", required=True, help="the topic's last part: scenario, episode_metrics, ...")
+    pb.add_argument("--source", required=True, help="JSON list of record texts (what record writes), read at --go")
+    pb.add_argument("--index", type=int, default=0, help="which record of the list (negative: from the end)")
+    pb.add_argument("--set", default=None, help="JSON object of fields to change (encoded anew); none: a replay")
+    pb.add_argument("--key", default="", help="key to sign a changed record with; empty: unsigned")
+    pb.add_argument("--subscribers", type=int, default=1, help="subscribers to wait for (at most 30 s)")
+    pb.add_argument("--linger", type=float, default=1.0, help="seconds to stay up after publishing")
+    pb.add_argument("--go", default="", help="publish once this file exists (empty: at once)")
     fl = sub.add_parser("flood")
     fl.add_argument("--out", required=True)
     fl.add_argument("--topic", default=topics.ACTION, help="the full topic name, e.g. /htlm/action")
@@ -465,6 +545,8 @@ def main() -> None:
             "describe": describe,
             "markers": markers,
             "flood": flood,
+            "record": record,
+            "publish": publish,
         }
         cmds[args.cmd](args)
     finally:
