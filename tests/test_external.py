@@ -139,3 +139,22 @@ def test_sensing_is_the_model_observation_with_its_own_stream() -> None:
     assert one == [again.observe(2)]
     draws = [again.observe(2) for _ in range(400)]
     assert 0.5 < draws.count(2) / len(draws) < 1.0 and set(draws) <= set(range(model.scenario.levels))
+
+
+def test_an_agent_whose_robot_is_on_its_way_counts_its_assignment_as_idle() -> None:
+    from htlm_agent.mind.agent import AgentMind
+    from htlm_agent.mind.policies import builtin_policy
+
+    sc = builtin()
+    model = Model.build(sc)
+    policy, _eps = builtin_policy(sc, "greedy", 0)
+    there, away = AgentMind(sc, 0, 1, policy), AgentMind(sc, 0, 1, policy)
+    (_t, a), (_t2, a2) = there.begin(0).action, away.begin(0).action  # type: ignore[misc]
+    assert int(a[0]) < sc.n_tasks and a.tolist() == a2.tolist(), "greedy works on a task at step 1"
+    b_there = there.observe(0, 1, [-1], [0], worked=True).broadcast
+    b_away = away.observe(0, 1, [-1], [0], worked=False).broadcast
+    assert b_there is not None and b_away is not None
+    assert b_there[1].tolist() == a.tolist()
+    assert b_away[1].tolist() == model.idle_action(a).tolist(), "teammates hear it idle at that site"
+    assert away.prev.tolist() == a.tolist(), "the assignment stands (the robot is on its way)"
+    assert not np.allclose(there.marg, away.marg), "its belief predicts no work on the task"

@@ -130,6 +130,7 @@ CUT = "agent3"
 CUT_SECONDS = 4.0
 
 
+@pytest.mark.slow  # CI budget (43 s)
 def test_agent_cut_off_the_network_mid_training_is_idle_then_rejoins_and_loses_no_transition(
     net: Net, repo_root: Path, tmp_path: Path
 ) -> None:

@@ -135,6 +135,7 @@ def test_unsigned_announcements_of_another_run_stop_and_switch_nobody(ros_team: 
     )
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the unsigned-forgery test; the rest with -m slow
 def test_signed_announcements_of_an_earlier_run_and_older_ones_are_rejected(ros_team: Any) -> None:
     episodes = 32
     # run A: an earlier run with the same key; its signed announcements (running, stopped) are recorded
@@ -205,6 +206,7 @@ def test_signed_announcements_of_an_earlier_run_and_older_ones_are_rejected(ros_
 
 
 # ----- 2. what the trainer stores and logs ----------------------------------------------------------------------------
+@pytest.mark.slow  # CI budget: the default run keeps the unsigned-forgery test; the rest with -m slow
 def test_the_trainer_stores_nothing_in_an_evaluate_run(ros_team: Any) -> None:
     episodes = 2 * B
     team = ros_team(
@@ -233,6 +235,7 @@ def test_the_trainer_stores_nothing_in_an_evaluate_run(ros_team: Any) -> None:
 LEARNER = {"envs": B, "learning_starts": 60, "batch_size": 32, "memory": 20000}
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the unsigned-forgery test; the rest with -m slow
 def test_the_training_log_holds_each_episode_once_in_order_despite_replayed_metrics(ros_team: Any) -> None:
     episodes = 8 * B
     team = ros_team(
@@ -277,6 +280,7 @@ def test_the_training_log_holds_each_episode_once_in_order_despite_replayed_metr
 
 
 # ----- 3. the trainer away at the end of a training run ---------------------------------------------------------------
+@pytest.mark.slow  # CI budget: the default run keeps the unsigned-forgery test; the rest with -m slow
 def test_no_transition_is_lost_when_the_trainer_is_away_at_the_end(ros_team: Any) -> None:
     episodes = 5 * B
     team = ros_team(
@@ -332,6 +336,7 @@ def test_no_transition_is_lost_when_the_trainer_is_away_at_the_end(ros_team: Any
 
 
 # ----- 4. the world restarted mid-run ---------------------------------------------------------------------------------
+@pytest.mark.slow  # CI budget: the default run keeps the unsigned-forgery test; the rest with -m slow
 def test_a_restarted_world_continues_its_run_and_agents_rejoin(ros_team: Any) -> None:
     episodes = 12 * B
     team = ros_team(seed=SEED, episodes=episodes, batch=B, world_params=DIAG, agent_params=DIAG, trainer_params=DIAG)
@@ -369,6 +374,7 @@ def test_a_restarted_world_continues_its_run_and_agents_rejoin(ros_team: Any) ->
 
 
 # ----- 5. agents lost under the free clock; the launcher's exit code --------------------------------------------------
+@pytest.mark.slow  # CI budget: the default run keeps the unsigned-forgery test; the rest with -m slow
 def test_under_the_free_clock_a_dead_agent_costs_its_teammates_no_step(ros_team: Any) -> None:
     episodes, batch = 8, 2
     team = ros_team(seed=SEED, episodes=episodes, batch=batch, world_params={"clock": "free", "period": 0.2})
@@ -389,6 +395,7 @@ def test_under_the_free_clock_a_dead_agent_costs_its_teammates_no_step(ros_team:
     print(f"agent3 killed after {killed_at} episodes; absences per episode {absent}")
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the unsigned-forgery test; the rest with -m slow
 def test_the_launcher_exits_0_when_a_restarted_agent_rejoined(tmp_path: Path) -> None:
     htlm = str(Path(sys.executable).parent / "htlm")
     run, domain = tmp_path / "launch", next_domain()

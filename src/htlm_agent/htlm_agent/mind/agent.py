@@ -75,6 +75,7 @@ class _Pending:
     heard: dict[int, tuple[IntArray, IntArray]] = field(default_factory=dict)
     drawn: bool = False
     sent: IntArray | None = None  # (B,)
+    effective: IntArray | None = None  # (B,) what our action did when it differs from the assignment (not arrived)
 
 
 class AgentMind:
@@ -253,9 +254,19 @@ class AgentMind:
         self.early = {}
 
     def observe(
-        self, episode: int, t: int, levels: IntArray | list[int], acted: list[int], now: float = 0.0
+        self,
+        episode: int,
+        t: int,
+        levels: IntArray | list[int],
+        acted: list[int],
+        now: float = 0.0,
+        worked: bool = True,
     ) -> Effects:
-        """The world's observations of step t (B,): draw our channel and broadcast if our actions were applied."""
+        """The world's observations of step t (B,): draw our channel and broadcast if our actions were applied.
+
+        `worked` False (an external operation: our robot had not reached the site of its assignment): the assignment
+        stands, but it did nothing this step; our belief update and our broadcast count it as idle at that site, so
+        neither we nor our teammates predict work that was not done."""
         out = Effects()
         bad = self._where(episode)
         if bad is None and len(levels) != self.size:
@@ -284,6 +295,8 @@ class AgentMind:
         if self.me in p.acted_set:
             p.acted = True
             p.obs = np.asarray(levels, dtype=np.int64)
+            if not worked:
+                p.effective = np.asarray(self.model.idle_action(p.action), dtype=np.int64)
         else:
             if p.acted is None:
                 self.missed_steps += 1  # our action came too late
@@ -292,7 +305,7 @@ class AgentMind:
             p.obs = np.full(self.size, -1, dtype=np.int64)
         sent = self._draw(p.obs)
         if p.acted:
-            out.broadcast = (t, p.action, sent)
+            out.broadcast = (t, p.action if p.effective is None else p.effective, sent)
         if self._complete():
             self._step_done(out)
         return out
@@ -387,7 +400,7 @@ class AgentMind:
             joint[:, j] = aj
             messages[:, j] = lj
             heard[:, j] = True
-        joint[:, me] = action
+        joint[:, me] = action if p.effective is None else p.effective
         lik = bf.agent_evidence(self.model, me, joint, obs, messages, heard)
         caps = self.model.joint_capability(joint)
         self.belief, bad = bf.update(self.model, self.belief, caps, lik)

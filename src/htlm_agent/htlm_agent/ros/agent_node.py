@@ -399,7 +399,8 @@ class AgentNode(Node):
         for ob in ready:
             if self.mind is None:
                 return
-            eff = self.mind.observe(ob.episode, ob.step, ob.levels, ob.acted, time.monotonic())
+            worked = self.arrival()[0] != "no"  # a robot still on its way did not work on its task this step
+            eff = self.mind.observe(ob.episode, ob.step, ob.levels, ob.acted, time.monotonic(), worked)
             if eff.drop is None:
                 self.last_accept = time.monotonic()
             self._apply("observation", eff)
