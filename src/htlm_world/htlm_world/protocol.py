@@ -146,9 +146,9 @@ class WorldEpisode:
         """What an absent agent does in each episode: idle at the site of its previous assignment (HT mode: -1)."""
         return np.asarray(self.model.idle_action(self.prev[:, agent]), dtype=np.int64)
 
-    def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
-        """Apply T to the joint assignment: `chosen` maps agent -> its actions (B,); every other agent is absent
-        (idle in every episode)."""
+    def joint(self, chosen: dict[int, IntArray]) -> tuple[IntArray, list[int]]:
+        """The joint assignment (B, N) of a step and the agents that acted: `chosen` maps agent -> its actions (B,);
+        every other agent is absent (counted) and idle at the site of its previous assignment in every episode."""
         n = self.scenario.n_agents
         actions = np.empty((self.size, n), dtype=np.int64)
         acted = []
@@ -160,6 +160,12 @@ class WorldEpisode:
             else:
                 actions[:, k] = a
                 acted.append(k)
+        return actions, acted
+
+    def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
+        """Apply T to the joint assignment: `chosen` maps agent -> its actions (B,); every other agent is absent
+        (idle in every episode)."""
+        actions, acted = self.joint(chosen)
         nxt, obs, _caps = sample_world_step(self.model, self.levels, actions, self.rng)
         self.levels = nxt
         self.prev = np.where(actions >= 0, actions, self.prev)
@@ -217,16 +223,7 @@ class ExternalEpisode(WorldEpisode):
     def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
         """Record the joint assignment of the step (absent agents idle); nothing is simulated."""
         n = self.scenario.n_agents
-        actions = np.empty((1, n), dtype=np.int64)
-        acted = []
-        for k in range(n):
-            a = chosen.get(k)
-            if a is None:
-                actions[:, k] = self.idle_actions(k)
-                self.absent[k] += 1
-            else:
-                actions[:, k] = a
-                acted.append(k)
+        actions, acted = self.joint(chosen)
         self.prev = np.where(actions >= 0, actions, self.prev)
         self.t += 1
         self.action_log.append(actions)
