@@ -101,7 +101,8 @@ def test_watch_shows_what_the_world_logged_with_signed_records(ros_team: Any, tm
         assert any(line.strip().startswith(a.name + " ") for line in last.splitlines()), a.name
     # every record was signed and accepted: nothing rejected, and the beliefs and the truth arrived
     assert "records received, 0 rejected" in last, last
-    assert "beliefs: confident level (probability), of episode 4 after step 30" in last, last
+    # the agents' last belief records arrive in any order: the caption names one step for all, or each agent's
+    assert "beliefs: confident level (probability)" in last and "episode 4" in last, last
     assert "true severities after step 30" in last, last
 
 
