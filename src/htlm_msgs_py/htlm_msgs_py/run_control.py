@@ -57,3 +57,7 @@ class RunControl:
             self.stopped = False
             return "restart"
         return "restart" if restarted else "update"
+
+    def refused(self, rec: dict[str, Any]) -> str:
+        """The detail of a rejected announcement `rec`, for the node's counters and its warning."""
+        return f"run {rec['run']} announcement {rec['seq']} (we follow {self.run})"

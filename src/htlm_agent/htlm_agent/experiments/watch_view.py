@@ -344,15 +344,21 @@ def _header(state: WatchState) -> Text:
     return t
 
 
+def _truth_row(state: WatchState) -> int | None:
+    """The row of the shown episode in the last ground-truth record (its levels and actions), None if not there."""
+    tr, shown = state.truth, state.shown_episode()
+    if tr is not None and shown is not None and 0 <= shown - tr["episode"] < len(tr["levels"]):
+        return int(shown - tr["episode"])
+    return None
+
+
 def _tasks_table(state: WatchState) -> Table | None:
     sc = state.scenario
     if sc is None:
         return None
     shown = state.shown_episode()
     tr = state.truth
-    row = None
-    if tr is not None and shown is not None and 0 <= shown - tr["episode"] < len(tr["levels"]):
-        row = shown - tr["episode"]
+    row = _truth_row(state)
     title = "true severities" + (f" after step {tr['step']}" if tr is not None and row is not None else "")
     table = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
     table.add_column("task")
@@ -398,11 +404,8 @@ def _agents_table(state: WatchState, now: float) -> Table | None:
     sc = state.scenario
     if sc is None:
         return None
-    shown = state.shown_episode()
     tr = state.truth
-    row = None
-    if tr is not None and shown is not None and 0 <= shown - tr["episode"] < len(tr["actions"]):
-        row = shown - tr["episode"]
+    row = _truth_row(state)
     absent = set(state.absent())
     table = Table(title="agents", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
     robots = any(b.arrived != "unknown" for b in state.beliefs.values())

@@ -206,9 +206,7 @@ class TrainerCore:
         out = TrainerEffects()
         verdict = self.control.take(rec)
         if verdict in ("other_run", "replay"):  # nobody but our run's world stops or switches us
-            out.rejects.append(
-                ("scenario", verdict, f"run {rec['run']} announcement {rec['seq']} (we follow {self.run})")
-            )
+            out.rejects.append(("scenario", verdict, self.control.refused(rec)))
             return out
         if verdict == "stop":
             if not self.stopping:

@@ -156,9 +156,7 @@ class AgentNode(Node):
             return
         verdict = self.control.take(rec)
         if verdict in ("other_run", "replay"):  # nobody but our run's world stops or switches us
-            self.health.reject(
-                "scenario", verdict, f"run {rec['run']} announcement {rec['seq']} (we follow {self.run})"
-            )
+            self.health.reject("scenario", verdict, self.control.refused(rec))
             return
         self.world.heard()
         if verdict == "stop":

@@ -50,9 +50,7 @@ class RunFollower(Node):
             return
         verdict = self.control.take(rec)
         if verdict in ("other_run", "replay"):
-            self.health.reject(
-                "scenario", verdict, f"run {rec['run']} announcement {rec['seq']} (we follow {self.run})"
-            )
+            self.health.reject("scenario", verdict, self.control.refused(rec))
             return
         if verdict != "join":
             self.stopped = verdict == "stop" or (self.stopped and verdict == "update")
