@@ -81,7 +81,7 @@ def test_external_world_with_simulated_robots_completes_the_mission_with_travel(
 def test_a_robot_that_never_arrives_observes_nothing_and_the_team_finishes_without_it(ros_team: Any) -> None:
     team = _team(ros_team, episodes=1)
     sc = team.cfg.scenario
-    stuck = "agent2"  # the strongest rescuer: the others must do its work
+    stuck = "agent3"  # a fire fighter (fire 2, rescue 0): the others must do its work
     others = [f"robot_{a.name}" for a in sc.agents if a.name != stuck]
     diag = team.tmp / "diag.json"
     team.helper("diag", "--out", str(diag))
