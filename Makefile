@@ -1,8 +1,8 @@
-# The project's toolchain in one place; CI (.ci/run) runs `make lint type test`.
+# The project's toolchain in one place; CI (.ci/run) runs `make lint type test test-slow`.
 # Every target that needs the environment depends on `setup`, which returns at once when .venv is up to date.
 VENV := .venv/bin
 
-.PHONY: setup run test lint format type bench
+.PHONY: setup run test test-slow lint format type bench
 
 setup:
 	./setup.sh
@@ -12,6 +12,11 @@ run: setup
 
 test: setup
 	$(VENV)/python -m pytest -q
+
+# the tests marked slow: the fault and attack tests of the ROS runtime (kills, restarts, network cut, flood) and the
+# batch-1 variants of the equivalence tests (about 5 min)
+test-slow: setup
+	$(VENV)/python -m pytest -q -m slow
 
 lint: setup
 	$(VENV)/ruff check .

@@ -469,10 +469,22 @@ def flood(args: argparse.Namespace) -> None:
         os.nice(args.nice)
     sent, t0 = 0, time.monotonic()
     end = t0 + args.seconds
-    while not stop and time.monotonic() < end:
-        for m in msgs:
-            pub.publish(m)
-        sent += len(msgs)
+    if args.hog:  # the control: as busy as the flooder, without a record
+        while not stop and time.monotonic() < end:
+            sum(range(1000))
+    elif args.rate:  # at most --rate records/s, in bursts of the four records
+        while not stop and (now := time.monotonic()) < end:
+            if sent >= (now - t0) * args.rate:
+                time.sleep(min(len(msgs) / args.rate, 0.01))
+                continue
+            for m in msgs:
+                pub.publish(m)
+            sent += len(msgs)
+    else:
+        while not stop and time.monotonic() < end:
+            for m in msgs:
+                pub.publish(m)
+            sent += len(msgs)
     took = time.monotonic() - t0
     out = {"sent": sent, "seconds": round(took, 3), "rate": round(sent / max(took, 1e-9)), "matched": matched}
     Path(args.out).write_text(json.dumps(out))
@@ -533,6 +545,8 @@ def main() -> None:
     fl.add_argument("--go", default="", help="start once this file exists (empty: at once)")
     fl.add_argument("--seconds", type=float, default=120.0, help="longest flood (SIGTERM ends it sooner)")
     fl.add_argument("--nice", type=int, default=0, help="lower the flooder's CPU priority by this much once it floods")
+    fl.add_argument("--rate", type=float, default=0.0, help="records per second at most (0: as fast as it can)")
+    fl.add_argument("--hog", action="store_true", help="burn the CPU as the flood would, publishing nothing")
     args = p.parse_args()
     faulthandler.register(signal.SIGUSR1)
     rclpy.init()

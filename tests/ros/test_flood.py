@@ -1,15 +1,18 @@
 """Flooding, with real processes over real DDS: a stranger publishing records that its receivers reject (cut JSON,
-unknown schema, wrong version, a value out of range) as fast as it can on an event topic, while a team runs. The
-lockstep loses no step (every episode equals the in-process one, no agent absent), the receiver's /diagnostics
-counts the rejections and its warning about them is rate-limited (one every 5 s at most); the slowdown (the rate
-with and without the flood, measured in one run) is printed.
+unknown schema, wrong version, a value out of range) on /htlm/action, the topic every step of the lockstep waits on,
+while a team runs. The lockstep is timed per batch without and with the flood in one run (a ratio, never a time).
 
-The slowdown is NOT within 2x here: flooding /htlm/action from one Python process on the same 2-core machine, the
-world reads about 3,500 rejected records/s while the flood keeps its reader queue (EVENTS, keep last 1000) full, so
-a genuine action waits behind up to 1000 bad records (about 0.3 s per step, against 13 ms), and one evicted unread
-is sent again by its agent (`action_resend`, 0.5 s) instead of being lost (before the resend, every eviction cost
-the world's act_deadline). Keeping a flood from delaying genuine records needs the senders separated (one action
-topic per agent, or a per-publisher filter before the queue): not done. Slow (a flooded batch takes seconds)."""
+- At 2,000 records/s, a flood the world reads as it comes: the lockstep slows by at most 2x and loses no step (every
+  episode equals the in-process one, no agent absent), the world's /diagnostics counts every record sent, by reason,
+  and its warning about them is rate-limited (one every 5 s at most).
+- As fast as one Python process can publish (about 35,000 records/s here): every node stays up, the rejections it
+  read are counted, the warning is rate-limited and the team finishes its run once the flood stops; the slowdown is
+  printed, not bounded. On this 2-core machine such a flood stops the lockstep while it lasts: a receiving rclpy
+  process spends about 45 us of CPU per record in DDS and the executor before any HTLM code runs (HTLM's validation
+  and counting add about 12 us), the flooder about 30 us per record sent, so the flood asks more CPU of the
+  receiving host than the machine has (docs/ros.md, Faults and attacks, with the measured curve).
+
+Slow (each run floods several batches)."""
 
 from __future__ import annotations
 
@@ -17,84 +20,129 @@ import json
 import re
 import signal
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pytest
 
 from htlm_msgs_py import topics
+from htlm_world.scenario import builtin
 
 from .conftest import in_process, read_json
 
-pytestmark = [
-    pytest.mark.ros,
-    pytest.mark.timeout(400),
-    pytest.mark.slow,
-]
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(400), pytest.mark.slow]
 
 B = 8
-QUIET, FLOODED = 6, 2
-"""Batches timed without the flood (after the first, which holds the start-up) and then with it."""
+QUIET = 5
+"""Batches timed without the flood (after the first, which holds the start-up)."""
 
 
-def test_a_flood_of_rejected_records_loses_no_step_and_is_counted(ros_team: Any) -> None:
-    seed, batches = 11, 1 + QUIET + 1 + FLOODED  # the batch in progress when the flood starts is not timed
-    team = ros_team(
-        policy="greedy",
-        seed=seed,
-        episodes=batches * B,
-        batch=B,
-        world_params={"diagnostics_period": 0.2},
-    )
-    diag = team.tmp / "diag.json"
+@dataclass
+class Flood:
+    """What one flooded run measured."""
+
+    sent: dict[str, Any]
+    """The flooder's count: sent, seconds, rate."""
+    rejected: dict[str, int]
+    """The world's rejected/action/<reason> counters at the end."""
+    warnings: int
+    """The world's warnings about rejected action records."""
+    flood_seconds: float
+    slowdown: float
+    """Mean batch duration flooded / not flooded."""
+    progress: float
+    """Batches finished while flooded / the batches the same time holds unflooded."""
+    absent: int
+    """Agent-steps the world counted absent, over the run."""
+    episodes: list[dict[str, Any]]
+    """world.jsonl's episodes."""
+    seed: int
+
+
+def run_flood(ros_team: Any, flood_args: list[str], flooded: int) -> Flood:
+    """A greedy evaluate team of 1 + QUIET + 1 + `flooded` + 1 batches of B; the flood starts once the quiet batches
+    are done and ends (SIGTERM) when the flooded ones are; the batches in progress at either moment are not timed."""
+    seed, batches = 11, 1 + QUIET + 1 + flooded + 1  # the last batch, not timed, reads what the flood left queued
+    team = ros_team(policy="greedy", seed=seed, episodes=batches * B, batch=B, world_params={"diagnostics_period": 0.2})
+    here = team.tmp / team.cfg.run_dir.name  # one directory per team of the test (bench_flood.py runs several)
+    here.mkdir(exist_ok=True)
+    diag = here / "diag.json"
     team.helper("diag", "--out", str(diag))
-    go, out = team.tmp / "flood.go", team.tmp / "flood.json"
-    flooder = team.helper("flood", "--out", str(out), "--topic", topics.ACTION, "--go", str(go))
+    go, out = here / "flood.go", here / "flood.json"
+    flooder = team.helper("flood", "--out", str(out), "--topic", topics.ACTION, "--go", str(go), *flood_args)
     team.start()
     team.wait_for(lambda: len(team.world_episodes()) >= (1 + QUIET) * B, 90, "the batches without the flood")
     go.touch()
     flood_from = len(team.world_episodes()) // B + 1  # the first batch that starts flooded
     flood_at = time.monotonic()
-    assert team.wait("world", 240) == 0
+    at_go = len(team.world_episodes())
+    team.wait_for(lambda: len(team.world_episodes()) >= (batches - 1) * B or flooder.poll() is not None, 300, "flood")
+    during = len(team.world_episodes()) - at_go  # episodes the lockstep finished while flooded
+    during_seconds = time.monotonic() - flood_at
+    team.wait_for(lambda: len(team.world_episodes()) >= (batches - 1) * B, 300, "the flooded batches")
     flooder.send_signal(signal.SIGTERM)
     flooder.wait(timeout=10)
     flood_seconds = time.monotonic() - flood_at
+    assert team.wait("world", 60) == 0
     codes = team.wait_all(30)
     assert codes == dict.fromkeys(codes, 0), codes
     time.sleep(0.6)  # the diag listener hears the world's last status
     team.helpers[0].send_signal(signal.SIGTERM)
     team.helpers[0].wait(timeout=10)
 
+    team.cleanup()  # nothing of this team left running when the next one starts (bench_flood.py runs several)
     sent = read_json(out)
-    assert sent["matched"] >= 1 and sent["sent"] > 1000, sent
-    # no step lost: every episode ran all h steps with every agent, and the world's trajectories (levels,
-    # assignments, observations) are exactly the in-process ones (a starved agent may update a step without a late
-    # broadcast, so its own log is not compared)
     eps = team.world_episodes()
     assert sorted(w["metrics"]["episode"] for w in eps) == list(range(batches * B))
-    for w in eps:
-        b, i = divmod(w["metrics"]["episode"], B)
-        tr = in_process(team.cfg.scenario, seed, b, "greedy", B)
-        assert np.array_equal(tr.levels[:, i], w["levels"]) and np.array_equal(tr.actions[:, i], w["actions"])
-        assert np.array_equal(tr.observations[:, i], w["observations"]), w["metrics"]["episode"]
-    assert all(sum(w["metrics"]["absent"]) == 0 for w in eps), [w["metrics"]["absent"] for w in eps[::B]]
     seconds = {w["metrics"]["episode"] // B: w["metrics"]["seconds"] for w in eps}  # one duration per batch
     quiet = [seconds[b] for b in range(1, 1 + QUIET)]
-    flooded = [seconds[b] for b in range(flood_from, batches)]
-    assert len(flooded) >= FLOODED - 1, (flood_from, seconds)
-    ratio = (sum(flooded) / len(flooded)) / (sum(quiet) / len(quiet))
-    # the world, the topic's only subscriber, read and rejected the flood (as many as reached its queue)
+    flood = [seconds[b] for b in range(flood_from, batches - 1)]
+    assert len(flood) >= flooded - 1, (flood_from, seconds)
     world = json.loads(diag.read_text())["htlm: world"]
-    rejected = {k: int(v) for k, v in world.items() if k.startswith("rejected/action/")}
-    assert set(rejected) == {f"rejected/action/{r}" for r in ("json", "schema", "version", "range")}, world
-    assert sum(rejected.values()) > 1000, rejected
-    assert sum(rejected.values()) <= sent["sent"], (rejected, sent)
-    # one warning about the rejections every 5 s at most
-    warnings = len(re.findall(r"rejected a record on action", team.log("world")))
-    assert 1 <= warnings <= flood_seconds / 5 + 2, (warnings, flood_seconds)
-    steps_per_s = [round(B * 30 / x) for x in (sum(quiet) / len(quiet), sum(flooded) / len(flooded))]
+    result = Flood(
+        sent=sent,
+        rejected={k: int(v) for k, v in world.items() if k.startswith("rejected/action/")},
+        warnings=len(re.findall(r"rejected a record on action", team.log("world"))),
+        flood_seconds=flood_seconds,
+        slowdown=(sum(flood) / len(flood)) / (sum(quiet) / len(quiet)),
+        progress=during / B / (during_seconds / (sum(quiet) / len(quiet))),
+        absent=sum(sum(w["metrics"]["absent"]) for w in eps),
+        episodes=eps,
+        seed=seed,
+    )
+    steps_per_s = [round(B * 30 / x) for x in (sum(quiet) / len(quiet), sum(flood) / len(flood))]
     print(
         f"flood: {sent['sent']} records in {sent['seconds']:.1f} s ({sent['rate']}/s) on {topics.ACTION}; world "
-        f"rejected {sum(rejected.values())} {rejected}; {warnings} warnings in {flood_seconds:.1f} s; "
-        f"episode-steps/s without/with {steps_per_s}; slowdown {ratio:.2f}x"
+        f"rejected {sum(result.rejected.values())} {result.rejected}; {result.warnings} warnings in "
+        f"{flood_seconds:.1f} s; episode-steps/s without/with {steps_per_s}; slowdown {result.slowdown:.2f}x; "
+        f"progress while flooded {result.progress:.0%} of unflooded; "
+        f"absent agent-steps {result.absent}"
     )
+    assert sent["matched"] >= 1, sent
+    # one warning about the rejections every 5 s at most
+    assert 1 <= result.warnings <= flood_seconds / 5 + 2, (result.warnings, flood_seconds)
+    assert set(result.rejected) == {f"rejected/action/{r}" for r in ("json", "schema", "version", "range")}, world
+    return result
+
+
+def test_a_flood_the_world_reads_as_it_comes_slows_the_lockstep_at_most_2x_and_loses_no_step(ros_team: Any) -> None:
+    f = run_flood(ros_team, ["--rate", "2000"], flooded=4)
+    # every record sent reached the world and was counted, under its reason (the flooder cycles the four)
+    assert sum(f.rejected.values()) == f.sent["sent"] > 2000, (f.rejected, f.sent)
+    assert max(f.rejected.values()) - min(f.rejected.values()) <= 1, f.rejected
+    assert f.slowdown <= 2.0, f.slowdown
+    # no step lost: every episode ran all h steps with every agent, and the world's trajectories (levels,
+    # assignments, observations) are exactly the in-process ones
+    assert f.absent == 0, [w["metrics"]["absent"] for w in f.episodes[::B]]
+    for w in f.episodes:
+        b, i = divmod(w["metrics"]["episode"], B)
+        tr = in_process(builtin(), f.seed, b, "greedy", B)
+        assert np.array_equal(tr.levels[:, i], w["levels"]) and np.array_equal(tr.actions[:, i], w["actions"])
+        assert np.array_equal(tr.observations[:, i], w["observations"]), w["metrics"]["episode"]
+
+
+def test_a_flood_as_fast_as_a_process_can_publish_stops_nothing_and_is_counted(ros_team: Any) -> None:
+    f = run_flood(ros_team, ["--seconds", "12"], flooded=2)
+    assert f.sent["sent"] > 100_000, f.sent  # at least 8,000 records/s
+    assert 10_000 < sum(f.rejected.values()) <= f.sent["sent"], (f.rejected, f.sent)

@@ -15,6 +15,7 @@ say all of the above, and one msgspec JSON decoder parses and validates a record
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections.abc import Mapping
@@ -69,7 +70,10 @@ def limits(n_agents: int, n_tasks: int, n_actions: int, levels: int, horizon: in
 
 
 class WireError(ValueError):
-    """A received record that does not follow its schema. `reason` is a short code for counters."""
+    """A received record that does not follow its schema. `reason` is a short code for counters.
+
+    The message (and, for a failed validation, the bad value, looked up in the record text) is built only when
+    asked for: a flood of bad records is counted at the cost of the check, not of the explanation."""
 
     def __init__(self, reason: str, where: str | None, value: Any, path: str | None = None, detail: str = "") -> None:
         """Create the error.
@@ -81,12 +85,59 @@ class WireError(ValueError):
             path: where inside the field, for the message (e.g. "k[3]"); defaults to `where`.
             detail: what was expected, for the message.
         """
+        super().__init__()
         self.reason = reason
         self.where = where
-        self.value = value
+        self._value = value
         self.path = path or where
+        self.detail = detail
+
+    @property
+    def value(self) -> Any:
+        """The bad value."""
+        return self._value
+
+    def __str__(self) -> str:
+        """ "field 'step': range: 99 (expected `int` <= 29)"."""
         place = f"field {self.path!r}" if self.path else "record"
-        super().__init__(f"{place}: {reason}: {shown(value)}" + (f" ({detail})" if detail else ""))
+        return f"{place}: {self.reason}: {shown(self.value)}" + (f" ({self.detail})" if self.detail else "")
+
+
+class _ValidationError(WireError):
+    """A WireError of a record that parsed but failed validation; the bad value is looked up in the record text
+    (parsed again) only when asked for."""
+
+    def __init__(self, reason: str, steps: list[str | int], text: str, detail: str) -> None:
+        super().__init__(reason, str(steps[0]) if steps else None, None, join_path(steps) or None, detail)
+        self._steps, self._text, self._looked_up = steps, text, not text
+
+    @property
+    def value(self) -> Any:
+        if not self._looked_up:
+            self._looked_up = True
+            try:
+                self._value = lookup(json.loads(self._text), self._steps)
+            except (LookupError, TypeError, ValueError, RecursionError):
+                self._value = None
+        return self._value
+
+
+def record_text(data: bytes) -> str:
+    """The text of a serialized std_msgs/String (CDR: a 4-byte encapsulation header, whose second byte is 1 for
+    little endian; a uint32 length that counts the closing NUL; the UTF-8 bytes; the NUL).
+
+    Raises:
+        WireError: reason "encoding", for a payload that is not a String or text that is not UTF-8.
+    """
+    if len(data) < 9 or data[0] != 0 or data[1] > 1:
+        raise WireError("encoding", None, bytes(data[:16]), None, "not a serialized std_msgs/String")
+    n = int.from_bytes(data[4:8], "little" if data[1] == 1 else "big")
+    if n < 1 or 8 + n > len(data) or data[7 + n] != 0:
+        raise WireError("encoding", None, n, None, f"string length beyond the {len(data)}-byte payload")
+    try:
+        return bytes(data[8 : 7 + n]).decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise WireError("encoding", None, bytes(data[8 + e.start : 8 + e.end]), None, "not UTF-8") from None
 
 
 def bound(b: Bound, lim: Mapping[str, int] | None) -> int:
@@ -554,18 +605,19 @@ def _reason(steps: list[str | int], problem: str, name: str | None) -> str:
     return "range"
 
 
-def _wire_error(message: str, text: str) -> WireError:
-    """The WireError of a msgspec ValidationError message about the record `text` (parsed again for the value)."""
+@functools.lru_cache(maxsize=512)
+def _problem(message: str) -> tuple[str, tuple[str | int, ...], str, bool]:
+    """(reason, path steps, detail, whether the value exists) of a msgspec ValidationError message; cached, as a
+    flood of bad records repeats the same few messages."""
     steps, problem, name = parse_error(message)
-    value: Any = None
-    if not problem.startswith("Object missing"):
-        try:
-            value = lookup(json.loads(text), steps)
-        except (LookupError, TypeError, ValueError, RecursionError):
-            value = None
-    where = str(steps[0]) if steps else None
     detail = problem[:1].lower() + problem[1:]
-    return WireError(_reason(steps, problem, name), where, value, join_path(steps) or None, detail)
+    return _reason(steps, problem, name), tuple(steps), detail, not problem.startswith("Object missing")
+
+
+def _wire_error(message: str, text: str) -> WireError:
+    """The WireError of a msgspec ValidationError message about the record `text`."""
+    reason, steps, detail, has_value = _problem(message)
+    return _ValidationError(reason, list(steps), text if has_value else "", detail)
 
 
 def decode(

@@ -45,6 +45,7 @@ from htlm_msgs_py.ros import (
     say_unsigned,
     spin_until_finished,
     string,
+    subscribe_records,
 )
 from htlm_msgs_py.run_control import RunControl
 from htlm_msgs_py.schema import encode, limits
@@ -129,11 +130,11 @@ class AgentNode(Node):
         self.pub_goal = self.create_publisher(PoseStamped, topics.goal_pose(self.name), STATE)
         self.pub_belief = self.create_publisher(String, topics.belief(self.name), STATE)
         # subscriptions
-        self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
-        self.create_subscription(String, topics.STEP, self._on_step, EVENTS)
-        self.create_subscription(String, topics.observation(self.name), self._on_observation, EVENTS)
-        self.create_subscription(String, topics.BROADCAST, self._on_broadcast, EVENTS)
-        self.create_subscription(String, topics.TRANSITION_ACK, self._on_ack, EVENTS)
+        subscribe_records(self, topics.SCENARIO, STATE_READER, self._on_scenario)
+        subscribe_records(self, topics.STEP, EVENTS, self._on_step)
+        subscribe_records(self, topics.observation(self.name), EVENTS, self._on_observation)
+        subscribe_records(self, topics.BROADCAST, EVENTS, self._on_broadcast)
+        subscribe_records(self, topics.TRANSITION_ACK, EVENTS, self._on_ack)
         self.sub_weights: Any = None
         if s.pose_topic:
             if s.pose_type == "odometry":
@@ -150,7 +151,7 @@ class AgentNode(Node):
         self.create_timer(min(0.1, s.broadcast_timeout / 4), self._tick)
 
     # ----- the run ------------------------------------------------------------------------------------------------
-    def _on_scenario(self, msg: String) -> None:
+    def _on_scenario(self, msg: bytes) -> None:
         rec = self.health.decode("scenario", msg, S.SCENARIO)
         if rec is None:
             return
@@ -242,9 +243,7 @@ class AgentNode(Node):
         else:  # trainer: the first weights message creates the network
             self.policy = None
             if self.sub_weights is None:
-                self.sub_weights = self.create_subscription(
-                    String, topics.weights(self.name), self._on_weights, STATE_READER
-                )
+                self.sub_weights = subscribe_records(self, topics.weights(self.name), STATE_READER, self._on_weights)
 
     def _fail(self, why: str) -> None:
         self.fatal = why
@@ -305,7 +304,7 @@ class AgentNode(Node):
     def _in_run(self, episode: int) -> bool:
         return episode >= self.first_episode and (self.episodes == 0 or episode < self.first_episode + self.episodes)
 
-    def _on_step(self, msg: String) -> None:
+    def _on_step(self, msg: bytes) -> None:
         rec = self.health.decode("step", msg, S.STEP, self.lim)
         if rec is None or self.scenario is None:
             return
@@ -355,7 +354,7 @@ class AgentNode(Node):
             self.last_accept = time.monotonic()
         self._apply("step", eff)
 
-    def _on_observation(self, msg: String) -> None:
+    def _on_observation(self, msg: bytes) -> None:
         rec = self.health.decode("observation", msg, S.OBSERVATION, self.lim)
         if rec is None or self.mind is None:
             return
@@ -373,7 +372,7 @@ class AgentNode(Node):
             self.last_accept = time.monotonic()
         self._apply("observation", eff)
 
-    def _on_broadcast(self, msg: String) -> None:
+    def _on_broadcast(self, msg: bytes) -> None:
         rec = self.health.decode("broadcast", msg, S.BROADCAST, self.lim)
         if rec is None or self.mind is None:
             return
@@ -463,7 +462,7 @@ class AgentNode(Node):
             if eff.transition is not None:
                 self._apply("tick", eff)
 
-    def _on_ack(self, msg: String) -> None:
+    def _on_ack(self, msg: bytes) -> None:
         rec = self.health.decode("transition_ack", msg, S.TRANSITION_ACK, self.lim)
         if rec is None or rec["agent"] != self.index:
             return
@@ -479,7 +478,7 @@ class AgentNode(Node):
             del box[first]
             self.acked += 1
 
-    def _on_weights(self, msg: String) -> None:
+    def _on_weights(self, msg: bytes) -> None:
         rec = self.health.decode("weights", msg, S.WEIGHTS, self.lim)
         if rec is None or self.scenario is None:
             return

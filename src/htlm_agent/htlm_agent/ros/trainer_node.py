@@ -34,6 +34,7 @@ from htlm_msgs_py.ros import (
     say_unsigned,
     spin_until_finished,
     string,
+    subscribe_records,
 )
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
@@ -74,10 +75,10 @@ class TrainerNode(Node):
         self.pub_weights: list[Any] = []
         self.pub_ack = self.create_publisher(String, topics.TRANSITION_ACK, EVENTS)
         self.pub_progress = self.create_publisher(String, topics.TRAINER_PROGRESS, EVENTS)
-        self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
-        self.create_subscription(String, topics.TRANSITIONS, self._on_transition, EVENTS)
-        self.create_subscription(String, topics.EPISODE_METRICS, self._on_metrics, EVENTS)
-        self.create_subscription(String, topics.STEP, self._on_step, EVENTS)
+        subscribe_records(self, topics.SCENARIO, STATE_READER, self._on_scenario)
+        subscribe_records(self, topics.TRANSITIONS, EVENTS, self._on_transition)
+        subscribe_records(self, topics.EPISODE_METRICS, EVENTS, self._on_metrics)
+        subscribe_records(self, topics.STEP, EVENTS, self._on_step)
         self.world = WorldWatch(self, self.health, s.world_timeout)
         say_unsigned(self, self.signer)
         self.create_timer(s.diagnostics_period, self._publish_health)
@@ -97,7 +98,7 @@ class TrainerNode(Node):
         return self.core.quiet_for(time.monotonic()) > self.settings.stop_grace
 
     # ----- messages in ------------------------------------------------------------------------------------------
-    def _on_scenario(self, msg: String) -> None:
+    def _on_scenario(self, msg: bytes) -> None:
         rec = self.health.decode("scenario", msg, S.SCENARIO)
         if rec is None:
             return
@@ -108,7 +109,7 @@ class TrainerNode(Node):
         if sc is not None and self.lim is None:
             self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, self.core.batch)
 
-    def _on_transition(self, msg: String) -> None:
+    def _on_transition(self, msg: bytes) -> None:
         if self.core.store is None:  # no scenario yet: the agents send it again until acknowledged
             self.health.counters["ignored/transitions/no_scenario"] += 1
             return
@@ -116,7 +117,7 @@ class TrainerNode(Node):
         if rec is not None:
             self._apply(self.core.on_transition(rec, time.monotonic()))
 
-    def _on_step(self, msg: String) -> None:
+    def _on_step(self, msg: bytes) -> None:
         rec = self.health.decode("step", msg, S.STEP, self.lim)  # validated and counted even when not training
         if rec is None:
             return
@@ -126,7 +127,7 @@ class TrainerNode(Node):
         self.world.heard()
         self._apply(self.core.on_step(rec, time.monotonic()))
 
-    def _on_metrics(self, msg: String) -> None:
+    def _on_metrics(self, msg: bytes) -> None:
         rec = self.health.decode("episode_metrics", msg, S.EPISODE_METRICS, self.lim)
         if rec is not None:
             self._apply(self.core.on_metrics(rec))

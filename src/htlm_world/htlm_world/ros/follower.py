@@ -12,7 +12,7 @@ from rclpy.node import Node
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
-from htlm_msgs_py.ros import STATE_READER, Health, SettingsError, String, declare_settings, say_unsigned
+from htlm_msgs_py.ros import STATE_READER, Health, SettingsError, declare_settings, say_unsigned, subscribe_records
 from htlm_msgs_py.run_control import RunControl
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
@@ -40,11 +40,11 @@ class RunFollower(Node):
         self.lim: dict[str, int] | None = None
         self.stopped = False
         self.control = RunControl()
-        self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
+        subscribe_records(self, topics.SCENARIO, STATE_READER, self._on_scenario)
         self.create_timer(self.settings.diagnostics_period, self._publish_health)
         say_unsigned(self, self.signer)
 
-    def _on_scenario(self, msg: String) -> None:
+    def _on_scenario(self, msg: bytes) -> None:
         rec = self.health.decode("scenario", msg, S.SCENARIO)
         if rec is None:
             return

@@ -20,7 +20,16 @@ from nav_msgs.msg import Odometry
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
-from htlm_msgs_py.ros import EVENTS, POSE_READER, SettingsError, String, run_node, spin_until_finished, string
+from htlm_msgs_py.ros import (
+    EVENTS,
+    POSE_READER,
+    SettingsError,
+    String,
+    run_node,
+    spin_until_finished,
+    string,
+    subscribe_records,
+)
 from htlm_msgs_py.schema import encode
 from htlm_world.robots import StandInOperation, action_distance
 from htlm_world.ros.follower import RunFollower
@@ -45,8 +54,8 @@ class OperationNode(RunFollower):
         self.pending: list[tuple[int, int, list[int], float]] = []  # steps applied by the world, not yet here
         self.prev: Any = None
         self.pub = self.create_publisher(String, topics.SEVERITY, EVENTS)
-        self.create_subscription(String, topics.STEP, self._on_step, EVENTS)
-        self.create_subscription(String, topics.ACTION, self._on_action, EVENTS)
+        subscribe_records(self, topics.STEP, EVENTS, self._on_step)
+        subscribe_records(self, topics.ACTION, EVENTS, self._on_action)
         self.create_timer(0.02, self._flush)
 
     def on_run(self, rec: dict[str, Any]) -> None:
@@ -64,7 +73,7 @@ class OperationNode(RunFollower):
     def _on_odom(self, k: int, msg: Odometry) -> None:
         self.positions[k] = (float(msg.pose.pose.position.x), float(msg.pose.pose.position.y))
 
-    def _on_action(self, msg: String) -> None:
+    def _on_action(self, msg: bytes) -> None:
         rec = self.health.decode("action", msg, S.ACTION, self.lim)
         if rec is None:
             return
@@ -73,7 +82,7 @@ class OperationNode(RunFollower):
             del self.actions[min(self.actions)]
         self._flush()
 
-    def _on_step(self, msg: String) -> None:
+    def _on_step(self, msg: bytes) -> None:
         rec = self.health.decode("step", msg, S.STEP, self.lim)
         if rec is None or self.scenario is None or self.model is None:
             return

@@ -28,6 +28,7 @@ from htlm_msgs_py.ros import (
     run_node,
     spin_until_finished,
     string,
+    subscribe_records,
 )
 from htlm_msgs_py.schema import encode
 from htlm_world.robots import Drive, Sensing, action_distance
@@ -60,8 +61,8 @@ class RobotNode(RunFollower):
         self.pub_odom = self.create_publisher(Odometry, s.odom_topic or topics.odometry(self.name), ODOMETRY)
         self.pub_obs = self.create_publisher(String, s.observation_topic or topics.observation(self.name), EVENTS)
         self.create_subscription(PoseStamped, s.goal_topic or topics.goal_pose(self.name), self._on_goal, STATE_READER)
-        self.create_subscription(String, topics.ACTION, self._on_action, EVENTS)
-        self.create_subscription(String, topics.SEVERITY, self._on_severity, EVENTS)
+        subscribe_records(self, topics.ACTION, EVENTS, self._on_action)
+        subscribe_records(self, topics.SEVERITY, EVENTS, self._on_severity)
         self.create_timer(1.0 / s.rate, self._move)
 
     def on_run(self, rec: dict[str, Any]) -> None:
@@ -84,7 +85,7 @@ class RobotNode(RunFollower):
         if self.drive is not None:
             self.drive.goal = (float(msg.pose.position.x), float(msg.pose.position.y))
 
-    def _on_action(self, msg: String) -> None:
+    def _on_action(self, msg: bytes) -> None:
         rec = self.health.decode("action", msg, S.ACTION, self.lim)
         if rec is None or rec["agent"] != self.index:
             return
@@ -92,7 +93,7 @@ class RobotNode(RunFollower):
         while len(self.actions) > 64:
             del self.actions[min(self.actions)]
 
-    def _on_severity(self, msg: String) -> None:
+    def _on_severity(self, msg: bytes) -> None:
         """The true levels after step t: observe the task our agent works on if we are at its site."""
         rec = self.health.decode("severity", msg, S.SEVERITY, self.lim)
         if rec is None or self.drive is None or self.model is None or self.scenario is None:

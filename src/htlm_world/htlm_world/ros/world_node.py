@@ -31,6 +31,7 @@ from htlm_msgs_py.ros import (
     run_node,
     say_unsigned,
     string,
+    subscribe_records,
 )
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
@@ -100,13 +101,13 @@ class WorldNode(Node):
             MarkerPublisher(self, sc, lambda: self.settings.marker_episode) if s.markers else None
         )
         # subscriptions
-        self.create_subscription(String, topics.ACTION, self._on_action, EVENTS)
-        self.create_subscription(String, topics.READY, self._on_ready, EVENTS)
-        self.create_subscription(String, topics.TRAINER_PROGRESS, self._on_trainer, EVENTS)
+        subscribe_records(self, topics.ACTION, EVENTS, self._on_action)
+        subscribe_records(self, topics.READY, EVENTS, self._on_ready)
+        subscribe_records(self, topics.TRAINER_PROGRESS, EVENTS, self._on_trainer)
         if external:
-            self.create_subscription(String, topics.SEVERITY, self._on_severity, EVENTS)
+            subscribe_records(self, topics.SEVERITY, EVENTS, self._on_severity)
             for a in sc.agents:
-                self.create_subscription(String, topics.observation(a.name), self._on_observation, EVENTS)
+                subscribe_records(self, topics.observation(a.name), EVENTS, self._on_observation)
         # timers
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.log_file: Any = None
@@ -170,27 +171,27 @@ class WorldNode(Node):
         self.protocol.settings = new.lockstep(self.run_id)
 
     # ----- messages in ------------------------------------------------------------------------------------------
-    def _on_action(self, msg: String) -> None:
+    def _on_action(self, msg: bytes) -> None:
         rec = self.health.decode("action", msg, S.ACTION, self.lim)
         if rec is not None:
             self._apply(self.protocol.on_action(rec, time.monotonic()))
 
-    def _on_ready(self, msg: String) -> None:
+    def _on_ready(self, msg: bytes) -> None:
         rec = self.health.decode("ready", msg, S.READY, self.lim)
         if rec is not None:
             self._apply(self.protocol.on_ready(rec, time.monotonic()))
 
-    def _on_trainer(self, msg: String) -> None:
+    def _on_trainer(self, msg: bytes) -> None:
         rec = self.health.decode("trainer_progress", msg, S.TRAINER_PROGRESS, self.lim)
         if rec is not None:
             self._apply(self.protocol.on_trainer(rec, time.monotonic()))
 
-    def _on_severity(self, msg: String) -> None:
+    def _on_severity(self, msg: bytes) -> None:
         rec = self.health.decode("severity", msg, S.SEVERITY, self.lim)
         if rec is not None:
             self._apply(self.protocol.on_severity(rec, time.monotonic()))
 
-    def _on_observation(self, msg: String) -> None:
+    def _on_observation(self, msg: bytes) -> None:
         rec = self.health.decode("observation", msg, S.OBSERVATION, self.lim)
         if rec is not None:
             self._apply(self.protocol.on_observation(rec, time.monotonic()))
