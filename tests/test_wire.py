@@ -320,3 +320,49 @@ def test_wire_contract_imports_without_rclpy() -> None:
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
     assert r.returncode == 0, r.stderr
+
+
+def _cdr(text: str, little: bool = True) -> bytes:
+    """A std_msgs/String serialized by hand: encapsulation header, uint32 length counting the NUL, bytes, NUL."""
+    raw = text.encode("utf-8") + b"\0"
+    return bytes([0, 1 if little else 0, 0, 0]) + len(raw).to_bytes(4, "little" if little else "big") + raw
+
+
+@pytest.mark.parametrize("text", ["", '{"schema":"htlm/action"}', "niveau é, 火, 🚒"])
+def test_record_text_reads_a_serialized_string(text: str) -> None:
+    assert S.record_text(_cdr(text)) == text
+    assert S.record_text(_cdr(text, little=False)) == text
+    assert S.record_text(_cdr(text) + b"\0\0\0") == text  # padding after the string
+    serialization = pytest.importorskip("rclpy.serialization")
+    from std_msgs.msg import String
+
+    assert S.record_text(serialization.serialize_message(String(data=text))) == text  # what rclpy hands over raw
+
+
+@pytest.mark.parametrize(
+    ("data", "shown"),
+    [
+        (b"", "b''"),  # empty payload
+        (bytes([0, 1, 0, 0]) + (50).to_bytes(4, "little") + b"abc\0", "50"),  # length beyond the payload
+        (bytes([0, 1, 0, 0]) + (4).to_bytes(4, "little") + b"abcd", "4"),  # no closing NUL
+        (bytes([0, 1, 0, 0]) + (3).to_bytes(4, "little") + b"\xff\xfe\0", "b'\\xff'"),  # not UTF-8
+        (bytes([7, 7, 0, 0]) + (2).to_bytes(4, "little") + b"a\0", "b'\\x07\\x07"),  # not a CDR header
+    ],
+)
+def test_record_text_rejects_what_is_not_a_string_naming_the_bytes(data: bytes, shown: str) -> None:
+    with pytest.raises(S.WireError) as e:
+        S.record_text(data)
+    assert e.value.reason == "encoding"
+    assert shown in str(e.value)
+
+
+def test_rejections_of_a_flood_of_one_record_are_explained_alike() -> None:
+    # the msgspec message's parsing is cached; the value is looked up per record, when asked for
+    texts = [_with(S.ACTION, agent=5), _with(S.ACTION, agent=7), _with(S.ACTION, agent=5)]
+    errors = []
+    for t in texts:
+        with pytest.raises(S.WireError) as e:
+            S.decode(t, S.ACTION, PAPER_LIMITS)
+        errors.append(e.value)
+    assert [(x.reason, x.where, x.value) for x in errors] == [("range", "agent", v) for v in (5, 7, 5)]
+    assert "7" in str(errors[1]) and "5" in str(errors[2])

@@ -10,7 +10,7 @@ while a team runs. The lockstep is timed per batch without and with the flood in
   printed, not bounded. On this 2-core machine such a flood stops the lockstep while it lasts: a receiving rclpy
   process spends about 45 us of CPU per record in DDS and the executor before any HTLM code runs (HTLM's validation
   and counting add about 12 us), the flooder about 30 us per record sent, so the flood asks more CPU of the
-  receiving host than the machine has (docs/ros.md, Faults and attacks, with the measured curve).
+  receiving host than the machine has (docs/ros.md, Flooding, with the measured curve).
 
 Slow (each run floods several batches)."""
 
@@ -53,6 +53,8 @@ class Flood:
     """Mean batch duration flooded / not flooded."""
     progress: float
     """Batches finished while flooded / the batches the same time holds unflooded."""
+    expected: float
+    """The batches the time of the flood holds unflooded."""
     absent: int
     """Agent-steps the world counted absent, over the run."""
     episodes: list[dict[str, Any]]
@@ -107,6 +109,7 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int) -> Flood:
         flood_seconds=flood_seconds,
         slowdown=(sum(flood) / len(flood)) / (sum(quiet) / len(quiet)),
         progress=during / B / (during_seconds / (sum(quiet) / len(quiet))),
+        expected=during_seconds / (sum(quiet) / len(quiet)),
         absent=sum(sum(w["metrics"]["absent"]) for w in eps),
         episodes=eps,
         seed=seed,

@@ -243,9 +243,9 @@ def subscribe_records(
     bytes; `Health.decode` takes them).
 
     Records are taken serialized, skipping the conversion to a Python message, and each call of the executor drains
-    up to `drain` more from the reader's queue: reading costs about half, so a node keeps up with a publisher that
-    floods the topic with bad records for longer, and a genuine record waits behind fewer of them (docs/ros.md,
-    Faults and attacks)."""
+    up to `drain` more from the reader's queue, so a flood of bad records costs the node little beyond what Fast DDS
+    and the executor spend on each (docs/ros.md, Flooding). The text is decoded from the bytes by `Health.decode`,
+    which rejects (and counts) a payload that is not a String of UTF-8."""
     box: list[Subscription] = []
 
     def on_message(first: bytes) -> None:
