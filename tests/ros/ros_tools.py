@@ -14,7 +14,8 @@
 - markers: record every visualization_msgs/MarkerArray of /htlm/markers (frames, stamps, lifetimes, plain markers)
   into a JSON file, rewritten every 0.3 s while new ones arrive.
 - flood: publish records that every receiver of one topic rejects (cut JSON, unknown schema, wrong version, a
-  value out of range), as fast as it can from a start signal until stopped, and write how many went out.
+  value out of range, bytes that are not UTF-8), as fast as it can (or at --rate) from a start signal until stopped,
+  and write how many went out; --hog burns as much CPU without publishing.
 """
 
 from __future__ import annotations
@@ -455,7 +456,9 @@ def flood(args: argparse.Namespace) -> None:
         good.replace(f'"v":{schema.version}', f'"v":{schema.version + 7}', 1),  # version
         json.dumps({"schema": schema.name, "v": schema.version, **VALID[schema.name], bad_field: 10**6}),  # range
     ]
-    msgs = [string(t) for t in texts]
+    # and a String whose bytes are not UTF-8, serialized by hand (rclpy's String cannot hold it): encoding
+    raw = b'{"schema":"\xff\xfe"}\0'
+    msgs: list[Any] = [string(t) for t in texts] + [bytes([0, 1, 0, 0]) + len(raw).to_bytes(4, "little") + raw]
     end = time.monotonic() + 30
     while time.monotonic() < end and pub.get_subscription_count() < args.subscribers:
         _spin_for(node, 0.1)
@@ -472,7 +475,7 @@ def flood(args: argparse.Namespace) -> None:
     if args.hog:  # the control: as busy as the flooder, without a record
         while not stop and time.monotonic() < end:
             sum(range(1000))
-    elif args.rate:  # at most --rate records/s, in bursts of the four records
+    elif args.rate:  # at most --rate records/s, in bursts of the five records
         while not stop and (now := time.monotonic()) < end:
             if sent >= (now - t0) * args.rate:
                 time.sleep(min(len(msgs) / args.rate, 0.01))

@@ -1,6 +1,7 @@
 """Flooding, with real processes over real DDS: a stranger publishing records that its receivers reject (cut JSON,
-unknown schema, wrong version, a value out of range) on /htlm/action, the topic every step of the lockstep waits on,
-while a team runs. The lockstep is timed per batch without and with the flood in one run (a ratio, never a time).
+unknown schema, wrong version, a value out of range, bytes that are not UTF-8) on /htlm/action, the topic every step
+of the lockstep waits on, while a team runs. The lockstep is timed per batch without and with the flood in one run (a
+ratio, never a time).
 
 - At 2,000 records/s, a flood the world reads as it comes: the lockstep slows by at most 2x and loses no step (every
   episode equals the in-process one, no agent absent), the world's /diagnostics counts every record sent, by reason,
@@ -125,13 +126,14 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int) -> Flood:
     assert sent["matched"] >= 1, sent
     # one warning about the rejections every 5 s at most
     assert 1 <= result.warnings <= flood_seconds / 5 + 2, (result.warnings, flood_seconds)
-    assert set(result.rejected) == {f"rejected/action/{r}" for r in ("json", "schema", "version", "range")}, world
+    reasons = ("json", "schema", "version", "range", "encoding")
+    assert set(result.rejected) == {f"rejected/action/{r}" for r in reasons}, world
     return result
 
 
 def test_a_flood_the_world_reads_as_it_comes_slows_the_lockstep_at_most_2x_and_loses_no_step(ros_team: Any) -> None:
     f = run_flood(ros_team, ["--rate", "2000"], flooded=4)
-    # every record sent reached the world and was counted, under its reason (the flooder cycles the four)
+    # every record sent reached the world and was counted, under its reason (the flooder cycles the five)
     assert sum(f.rejected.values()) == f.sent["sent"] > 2000, (f.rejected, f.sent)
     assert max(f.rejected.values()) - min(f.rejected.values()) <= 1, f.rejected
     assert f.slowdown <= 2.0, f.slowdown
