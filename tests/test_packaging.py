@@ -115,6 +115,7 @@ def _run(cmd: list[str | Path], cwd: Path, env: dict[str, str], timeout: float) 
     return result.stdout
 
 
+@pytest.mark.slow  # a fresh venv with torch and the ROS wheels: about a minute (make test-slow; CI runs it)
 @pytest.mark.timeout(420)
 def test_packages_alone_install_and_run(repo_root: Path, tmp_path: Path) -> None:
     """The three packages declare every run-time dependency they import.

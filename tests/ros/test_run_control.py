@@ -139,7 +139,8 @@ def test_unsigned_announcements_of_another_run_stop_and_switch_nobody(ros_team: 
 def test_signed_announcements_of_an_earlier_run_and_older_ones_are_rejected(ros_team: Any) -> None:
     episodes = 32
     # run A: an earlier run with the same key; its signed announcements (running, stopped) are recorded
-    earlier = ros_team(seed=SEED + 1, episodes=B, batch=B)
+    # (several batches: the recorder, discovered late on a loaded machine, still gets "running" as the latest state)
+    earlier = ros_team(seed=SEED + 1, episodes=4 * B, batch=B)
     key = earlier.tmp / "team.key"
     key.write_text("a-team-key-only-the-team-knows-0123\n")
     key.chmod(0o600)

@@ -107,6 +107,7 @@ class AgentNode(Node):
         self.stop_deadline = 0.0
         self.last_accept = time.monotonic()
         self.world_ahead = (-1, -1)  # (episode, step) of the newest step record the world sent
+        self.rejoin = False  # the world restarted: take its next begin even if it interrupts our batch
         self.scenario_at = 0.0
         self.last_site = -1
         self.seq = 0
@@ -166,9 +167,14 @@ class AgentNode(Node):
             return
         if verdict == "update":
             return
-        if verdict == "restart":  # the same run from a restarted world: rejoin at its next begin
+        if verdict == "restart":  # the same run from a restarted world: take its next begin whatever our state
+            # The announcement (a transient-local sample, sent to a newly matched reader on the writer's heartbeat)
+            # may come seconds after the restarted world's first step records: by then we may already be playing
+            # its batch, which replays ours exactly (same seed and streams). So the mind is kept (dropping it would
+            # leave us deaf to the batch the world is playing: every action missing until the next begin) and the
+            # next begin is taken even if it interrupts a batch (the world began again from step 0).
             self.get_logger().warning(f"run {self.run}: the world restarted (announcement {rec['seq']}); rejoining")
-            self.mind = None
+            self.rejoin = True
             self.stopping = False
             return
         try:
@@ -325,7 +331,9 @@ class AgentNode(Node):
                     self.scenario, self.index, self.seed, self.policy, self.model, self.batch, self.mode, gate
                 )
             m = self.mind
-            force = m.episode is not None and time.monotonic() - self.last_accept > self.settings.resync_timeout
+            force = m.episode is not None and (
+                self.rejoin or time.monotonic() - self.last_accept > self.settings.resync_timeout
+            )
             # the world applied steps of our batch that we never observed (an observation lost while a restarted
             # agent's subscriptions were still being matched) and now begins the next batch: we cannot finish ours,
             # so rejoin at once instead of waiting resync_timeout
@@ -341,6 +349,7 @@ class AgentNode(Node):
                 self.health.reject("step", "length", f"batch of {size} episodes > the run's batch {self.batch}")
                 return
             eff = self.mind.begin(e, self._epsilon(e, size), force=force, size=size)
+            self.rejoin = False
         elif self.mind is None:
             return
         else:
