@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-pytestmark = [pytest.mark.ros, pytest.mark.timeout(150)]
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(150), pytest.mark.slow]  # 13 processes each: CI budget
 
 CHECKPOINT = Path(__file__).resolve().parents[1] / "data" / "policy_heterogeneous_seed0"
 """The five Q-networks of `htlm train --seed 0` (default budget; agents.pt and meta.json of its checkpoint)."""

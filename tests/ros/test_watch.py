@@ -127,6 +127,12 @@ def test_watch_shows_a_killed_agent_as_absent(ros_team: Any, tmp_path: Path) -> 
     missed = [sum(w["metrics"]["absent"][k] for w in episodes) for k in range(len(names))]
     assert missed[4] > 0
     wait_printed(out, completion_line(episodes), 15)
+    # its /diagnostics stopped with it: shown SILENT once older than --stale-after (the run may end sooner)
+    team.wait_for(
+        lambda: any("SILENT" in line for s in snapshots(out)[-2:] for line in s.splitlines() if "agent5 " in line),
+        15,
+        "htlm watch to show agent5 SILENT",
+    )
     code, err = stop_watch(watch)
     assert code == 0, err
     shown = out.read_text().split(SEPARATOR)
