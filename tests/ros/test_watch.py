@@ -23,7 +23,9 @@ def start_watch(team: Any, out: Path, *args: str) -> subprocess.Popen[bytes]:
     """`htlm watch --plain` on the team's domain (its environment: domain, discovery, team key)."""
     cmd = [sys.executable, "-m", "htlm_agent.cli", "watch", "--plain", "--every", "0.5", "--width", "160", *args]
     with out.open("wb") as f:
-        return subprocess.Popen(cmd, env=team.env(), stdout=f, stderr=subprocess.PIPE)
+        p = subprocess.Popen(cmd, env=team.env(), stdout=f, stderr=subprocess.PIPE)
+    team.helpers.append(p)  # killed with the team if the test fails before stopping it
+    return p
 
 
 def snapshots(out: Path) -> list[str]:
@@ -111,7 +113,7 @@ def test_watch_shows_a_killed_agent_as_absent(ros_team: Any, tmp_path: Path) -> 
     team = ros_team(
         policy="greedy",
         seed=2,
-        episodes=6,
+        episodes=16,  # several batches after the first: the kill comes once the watch has heard agent5
         batch=2,
         world_params={"act_deadline": 1.0, "begin_deadline": 1.0},
     )
@@ -120,6 +122,16 @@ def test_watch_shows_a_killed_agent_as_absent(ros_team: Any, tmp_path: Path) -> 
     team.wait_for(lambda: len(snapshots(out)) >= 1, 30, "the first snapshot of htlm watch")
     start_team(team, out)
     team.wait_for(lambda: len(team.world_episodes()) >= 2, 60, "the first batch")
+    # the watch has heard agent5's /diagnostics (its row in the nodes table), so it can show them stop
+    team.wait_for(
+        lambda: any(
+            line.strip().startswith("agent5 ") and line.rstrip().endswith(" ago")
+            for s in snapshots(out)[-1:]
+            for line in s.splitlines()
+        ),
+        30,
+        "htlm watch to hear agent5's /diagnostics",
+    )
     team.kill("agent5")
     assert team.wait("world", 60) == 0
     episodes = team.world_episodes()
