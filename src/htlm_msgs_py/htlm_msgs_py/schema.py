@@ -107,8 +107,8 @@ class _ValidationError(WireError):
     """A WireError of a record that parsed but failed validation; the bad value is looked up in the record text
     (parsed again) only when asked for."""
 
-    def __init__(self, reason: str, steps: list[str | int], text: str, detail: str) -> None:
-        super().__init__(reason, str(steps[0]) if steps else None, None, join_path(steps) or None, detail)
+    def __init__(self, reason: str, steps: tuple[str | int, ...], path: str, text: str, detail: str) -> None:
+        super().__init__(reason, str(steps[0]) if steps else None, None, path or None, detail)
         self._steps, self._text, self._looked_up = steps, text, not text
 
     @property
@@ -116,7 +116,7 @@ class _ValidationError(WireError):
         if not self._looked_up:
             self._looked_up = True
             try:
-                self._value = lookup(json.loads(self._text), self._steps)
+                self._value = lookup(json.loads(self._text), list(self._steps))
             except (LookupError, TypeError, ValueError, RecursionError):
                 self._value = None
         return self._value
@@ -135,7 +135,7 @@ def record_text(data: bytes) -> str:
     if n < 1 or 8 + n > len(data) or data[7 + n] != 0:
         raise WireError("encoding", None, n, None, f"string length beyond the {len(data)}-byte payload")
     try:
-        return bytes(data[8 : 7 + n]).decode("utf-8")
+        return data[8 : 7 + n].decode("utf-8")
     except UnicodeDecodeError as e:
         raise WireError("encoding", None, bytes(data[8 + e.start : 8 + e.end]), None, "not UTF-8") from None
 
@@ -606,18 +606,19 @@ def _reason(steps: list[str | int], problem: str, name: str | None) -> str:
 
 
 @functools.lru_cache(maxsize=512)
-def _problem(message: str) -> tuple[str, tuple[str | int, ...], str, bool]:
-    """(reason, path steps, detail, whether the value exists) of a msgspec ValidationError message; cached, as a
-    flood of bad records repeats the same few messages."""
+def _problem(message: str) -> tuple[str, tuple[str | int, ...], str, str, bool]:
+    """(reason, path steps, path text, detail, whether the value exists) of a msgspec ValidationError message;
+    cached, as a flood of bad records repeats the same few messages."""
     steps, problem, name = parse_error(message)
     detail = problem[:1].lower() + problem[1:]
-    return _reason(steps, problem, name), tuple(steps), detail, not problem.startswith("Object missing")
+    has_value = not problem.startswith("Object missing")  # a missing field has no value
+    return _reason(steps, problem, name), tuple(steps), join_path(steps), detail, has_value
 
 
 def _wire_error(message: str, text: str) -> WireError:
     """The WireError of a msgspec ValidationError message about the record `text`."""
-    reason, steps, detail, has_value = _problem(message)
-    return _ValidationError(reason, list(steps), text if has_value else "", detail)
+    reason, steps, path, detail, has_value = _problem(message)
+    return _ValidationError(reason, steps, path, text if has_value else "", detail)
 
 
 def decode(

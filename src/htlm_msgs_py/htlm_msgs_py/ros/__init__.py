@@ -246,11 +246,9 @@ def subscribe_records(
     up to `drain` more from the reader's queue, so a flood of bad records costs the node little beyond what Fast DDS
     and the executor spend on each (docs/ros.md, Flooding). The text is decoded from the bytes by `Health.decode`,
     which rejects (and counts) a payload that is not a String of UTF-8."""
-    box: list[Subscription] = []
 
     def on_message(first: bytes) -> None:
         callback(first)
-        sub = box[0]
         with sub.handle:
             for _ in range(drain):
                 got = sub.handle.take_message(String, True)
@@ -258,8 +256,8 @@ def subscribe_records(
                     return
                 callback(got[0])
 
-    box.append(node.create_subscription(String, topic, on_message, qos, raw=True))
-    return box[0]
+    sub = node.create_subscription(String, topic, on_message, qos, raw=True)
+    return sub
 
 
 def string(text: str) -> String:
