@@ -1,0 +1,124 @@
+"""The paper's scenario pinned bit for bit: simulator, beliefs, rewards, a fixed-seed training run's networks, the
+lockstep protocol's records and logs, markers. The digests in tests/data/paper_pinned.json were taken from the code
+before task kinds became data (issue 18); the scenario file `paper` must keep reproducing them exactly.
+
+To take the digests anew after a change that is meant to change the numbers: `python tests/test_paper_pinned.py`
+(prints the JSON to store), and say why in the commit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from htlm_agent.baselines.heuristics import GreedyPolicy, RandomPolicy
+from htlm_agent.experiments.evaluate import _log_lines, evaluate_run
+from htlm_agent.experiments.train import train
+from htlm_agent.learning.checkpoint import load_checkpoint
+from htlm_agent.learning.settings import Settings
+from htlm_agent.mind.policies import DecentralizedPolicy, builtin_policy
+from htlm_agent.runtime.team import Team, rollout
+from htlm_world.scenario import Scenario, builtin, load
+
+PINNED = Path(__file__).parent / "data" / "paper_pinned.json"
+
+TINY = Settings(
+    episodes=64,
+    envs=16,
+    learning_starts=64,
+    batch_size=32,
+    memory=2_000,
+    hidden=(16, 16),
+    validate_every=32,
+    validate_episodes=8,
+    eval_episodes=16,
+    checkpoint_every=0,
+)
+
+
+def _digest(*parts: Any) -> str:
+    h = hashlib.sha256()
+    for x in parts:
+        if isinstance(x, np.ndarray):
+            h.update(str(x.dtype).encode() + str(x.shape).encode())
+            h.update(np.ascontiguousarray(x).tobytes())
+        else:
+            h.update(json.dumps(x, sort_keys=True).encode())
+    return h.hexdigest()[:24]
+
+
+def _rollout_digest(sc: Scenario, policy: Any, batch: int, seed: int) -> str:
+    team = Team(sc, batch, seed)
+    tr = rollout(team, policy)
+    parts = [tr.levels, tr.actions, tr.observations, tr.messages, tr.rewards, team.sites, team.marg]
+    parts += [tr.extra[k] for k in sorted(tr.extra)]
+    return _digest(*parts)
+
+
+def _scenarios() -> dict[str, Scenario]:
+    return {
+        "heterogeneous": builtin(),
+        "semi": builtin("semi-heterogeneous", reassign="high"),
+        "homogeneous-ht": builtin("homogeneous", idle_incentive=0.0, mode="ht"),
+        "first-calibration": load("first-calibration"),
+    }
+
+
+def digests(tmp: Path) -> dict[str, str]:
+    """Every pinned digest (a few seconds)."""
+    torch.set_num_threads(1)
+    out: dict[str, str] = {}
+    for name, sc in _scenarios().items():
+        out[f"rollout/random/{name}"] = _rollout_digest(sc, RandomPolicy(sc, seed=5), 16, 3)
+        out[f"rollout/greedy/{name}"] = _rollout_digest(sc, GreedyPolicy(sc), 16, 4)
+    sc = builtin()
+    pols = [builtin_policy(sc, "random", i)[0] for i in range(sc.n_agents)]
+    dp = DecentralizedPolicy(pols, 7, 1.0)
+    dp.begin(0)
+    out["rollout/epsilon/batch1"] = _rollout_digest(sc, dp, 1, 7)
+    ev = evaluate_run(GreedyPolicy(sc), sc, episodes=12, seed=1, policy_name="greedy")
+    out["evaluate/log"] = _digest(_log_lines(ev, "pinned", 0))
+    run = train(sc, TINY, tmp / "train", progress=False, tensorboard=False)
+    ck = load_checkpoint(tmp / "train")
+    out["train/weights"] = _digest(*[w for ws in ck.weights for w in ws])
+    out["train/metrics"] = _digest(run.metrics)
+    return out
+
+
+def test_the_paper_scenario_is_pinned_bit_for_bit(tmp_path: Path) -> None:
+    want = json.loads(PINNED.read_text())
+    want.pop("protocol/logs")
+    got = digests(tmp_path)
+    assert got.keys() == want.keys()
+    differ = {k: (got[k], want[k]) for k in want if got[k] != want[k]}
+    assert not differ, f"digests that changed (got, pinned): {differ}"
+
+
+def _protocol_digest() -> str:
+    from test_world_protocol import _loopback_run  # the one-process protocol with one AgentMind per agent
+
+    sc = builtin()
+    pols = [builtin_policy(sc, "random", i)[0] for i in range(sc.n_agents)]
+    world_log, agent_logs = _loopback_run(sc, 3, 0, 3, pols, 1.0, batch=2)
+    return _digest(world_log, {str(k): v for k, v in agent_logs.items()})
+
+
+def test_the_lockstep_records_are_pinned() -> None:
+    want = json.loads(PINNED.read_text())
+    assert _protocol_digest() == want["protocol/logs"]
+
+
+if __name__ == "__main__":  # print the digests to pin
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        found = digests(Path(d))
+    found["protocol/logs"] = _protocol_digest()
+    json.dump(found, sys.stdout, indent=1, sort_keys=True)
+    print()
