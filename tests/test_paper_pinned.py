@@ -90,7 +90,11 @@ def digests(tmp: Path) -> dict[str, str]:
     run = train(sc, TINY, tmp / "train", progress=False, tensorboard=False)
     ck = load_checkpoint(tmp / "train")
     out["train/weights"] = _digest(*[w for ws in ck.weights for w in ws])
-    out["train/metrics"] = _digest(run.metrics)
+    metrics = json.loads(json.dumps(run.metrics))
+    for a in metrics.get("agents", []):  # how capabilities are named changed with task kinds as data (issue 18)
+        for key in ("fire", "rescue", "capabilities"):
+            a.pop(key, None)
+    out["train/metrics"] = _digest(metrics)
     return out
 
 

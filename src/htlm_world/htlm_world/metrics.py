@@ -47,7 +47,7 @@ def episode_metrics(sc: Scenario, levels: IntArray, actions: IntArray) -> Episod
     p = sc.n_tasks
     comp, failed = completion_step(levels)
     idle = (actions >= p) | (actions < 0)  # (h, B, N)
-    total_cap = np.array([a.fire + a.rescue for a in sc.agents], dtype=np.float64)  # (N,)
+    total_cap = np.array([sc.total_capability(i) for i in range(n)], dtype=np.float64)  # (N,)
     agent_unused = (idle * total_cap).sum(axis=0) / h  # (B, N)
     unused = agent_unused.sum(axis=1) / n
     mean_cap = total_cap.mean()
@@ -84,24 +84,25 @@ def mean_se(x: FloatArray | IntArray) -> tuple[float, float]:
 
 @dataclass(frozen=True)
 class Importance:
-    """Agent importance (Eqs. 6-9): per agent capabilities C, usage U, score zeta; per task type omega."""
+    """Agent importance (Eqs. 6-9): per agent capabilities C, usage U, score zeta; per kind of task omega."""
 
-    capability: FloatArray  # (N, K) C_fire, C_rescue
+    capability: FloatArray  # (N, K) C_k, the agent's capability on every kind
     usage: FloatArray  # (N, K) u_k (Eq. 7)
     omega: FloatArray  # (K,) task urgency weights (Eqs. 8-9)
     zeta: FloatArray  # (N,) importance (Eq. 6)
 
 
 def importance(sc: Scenario, actions: IntArray) -> Importance:
-    """Agent importance from the greedy policy's actions (h, E, N) over E episodes (Eqs. 6-9)."""
+    """Agent importance from the greedy policy's actions (h, E, N) over E episodes (Eqs. 6-9, over the K kinds)."""
     e = actions.shape[1]
-    p = sc.n_tasks
+    p, kinds = sc.n_tasks, sc.n_kinds
+    task_kind = np.array([k for _, k in sc.tasks] + [-1], dtype=np.int64)  # [-1]: not working on a task
     working = (actions >= 0) & (actions < p)
-    ttype = np.where(working, actions % 2, -1)  # 0 fire, 1 rescue
-    caps = np.array([[a.fire, a.rescue] for a in sc.agents], dtype=np.float64)  # (N, K)
-    counts = np.stack([(ttype == k).sum(axis=(0, 1)) for k in range(2)], axis=1)  # (N, K) over episodes, steps
+    ttype = task_kind[np.where(working, actions, p)]  # the kind worked on, -1 when idle
+    caps = np.array(sc.capability_table(), dtype=np.float64).reshape(sc.n_agents, kinds)  # (N, K)
+    counts = np.stack([(ttype == k).sum(axis=(0, 1)) for k in range(kinds)], axis=1)  # (N, K) over episodes, steps
     usage = caps * counts / e  # Eq. 7
     omega_bar = counts.sum(axis=0).astype(np.float64)  # Eq. 8
-    omega = omega_bar / omega_bar.sum() if omega_bar.sum() > 0 else np.zeros(2)  # Eq. 9
+    omega = omega_bar / omega_bar.sum() if omega_bar.sum() > 0 else np.zeros(kinds)  # Eq. 9
     zeta = usage @ omega  # Eq. 6
     return Importance(capability=caps, usage=usage, omega=omega, zeta=zeta)

@@ -14,64 +14,71 @@ from htlm_world.scenario import Scenario
 from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
-def p_drop_table(sc: Scenario) -> FloatArray:
-    """p_drop(c, l) for c in 0..capability_max and l in 0..L-1 (docs/model.md, Transition T)."""
+def p_drop_table(sc: Scenario, p_drop: tuple[float, ...] | None = None) -> FloatArray:
+    """p_drop(c, l) for c in 0..capability_max and l in 0..L-1 (docs/model.md, Transition T), from the drop
+    probabilities by margin `p_drop` (default: the scenario's)."""
     cm, L = sc.capability_max, sc.levels
+    drops = sc.p_drop if p_drop is None else p_drop
     table = np.zeros((cm + 1, L))
     for c in range(1, cm + 1):
         for lv in range(1, L):
             margin = c - lv
-            k = 0 if margin >= 0 else min(-margin, len(sc.p_drop) - 1)
-            table[c, lv] = sc.p_drop[k]
+            k = 0 if margin >= 0 else min(-margin, len(drops) - 1)
+            table[c, lv] = drops[k]
     return table
 
 
-def fire_table(sc: Scenario) -> FloatArray:
-    """T_fire[c, f, f']: next fire level given joint fire capability c and level f (docs/model.md)."""
+def kind_table(sc: Scenario, k: int) -> FloatArray:
+    """T_k[c, g, l, l']: next level l' of a task of kind k at level l, given the joint capability c on it and the
+    level g of the task it depends on at its site (docs/model.md, Transition T). g has L entries when the kind
+    depends on another, else one (g = 0)."""
+    kind = sc.kinds[k]
     cm, L = sc.capability_max, sc.levels
-    pd = p_drop_table(sc)
-    t = np.zeros((cm + 1, L, L))
+    pd = p_drop_table(sc, kind.p_drop or None)
+    gates = L if kind.depends_on else 1
+    dd = kind.double_drop
+    t = np.zeros((cm + 1, gates, L, L))
     for c in range(cm + 1):
-        t[c, 0, 0] = 1.0
-        for f in range(1, L):
-            if c == 0:
-                up = min(L - 1, f + 1)
-                t[c, f, up] += sc.fire_growth
-                t[c, f, f] += 1.0 - sc.fire_growth
-            else:
-                t[c, f, f - 1] += pd[c, f]
-                t[c, f, f] += 1.0 - pd[c, f]
-    return t
-
-
-def rescue_table(sc: Scenario) -> FloatArray:
-    """T_rescue[c, f, r, r']: next rescue level given capability c, the site's fire f and rescue level r."""
-    cm, L = sc.capability_max, sc.levels
-    pd = p_drop_table(sc)
-    t = np.zeros((cm + 1, L, L, L))
-    for c in range(cm + 1):
-        for f in range(L):
-            t[c, f, 0, 0] = 1.0
-            for r in range(1, L):
-                p = pd[c, r]
-                if f > sc.rescue_block_fire or c == 0:
-                    t[c, f, r, r] = 1.0
-                elif f <= sc.rescue_double_fire and c >= r and r >= sc.rescue_double_min_level:
-                    t[c, f, r, r - 2] += sc.rescue_double_share * p
-                    t[c, f, r, r - 1] += (1.0 - sc.rescue_double_share) * p
-                    t[c, f, r, r] += 1.0 - p
+        for g in range(gates):
+            t[c, g, 0, 0] = 1.0
+            for lv in range(1, L):
+                p = pd[c, lv]
+                if c == 0:  # unattended: grows with the kind's growth probability
+                    up = min(L - 1, lv + 1)
+                    t[c, g, lv, up] += kind.growth
+                    t[c, g, lv, lv] += 1.0 - kind.growth
+                elif kind.blocked_above is not None and g > kind.blocked_above:
+                    t[c, g, lv, lv] = 1.0
+                elif (
+                    dd is not None
+                    and c >= lv >= dd.min_level
+                    and (dd.gate_at_most is None or g <= dd.gate_at_most)
+                ):
+                    t[c, g, lv, lv - 2] += dd.share * p
+                    t[c, g, lv, lv - 1] += (1.0 - dd.share) * p
+                    t[c, g, lv, lv] += 1.0 - p
                 else:
-                    t[c, f, r, r - 1] += p
-                    t[c, f, r, r] += 1.0 - p
+                    t[c, g, lv, lv - 1] += p
+                    t[c, g, lv, lv] += 1.0 - p
     return t
 
 
-def observation_table(sc: Scenario) -> FloatArray:
-    """O[s, l, z]: probability of observing z when the true level is l, for sensing s (docs/model.md)."""
+def accuracy(sc: Scenario, k: int, sensing: int) -> float:
+    """Observation accuracy of an agent with `sensing` on a task of kind k: min(1, base + slope * sensing), with
+    the kind's own base and slope where it has them."""
+    kind = sc.kinds[k]
+    base = sc.sensing_base if kind.sensing_base is None else kind.sensing_base
+    slope = sc.sensing_slope if kind.sensing_slope is None else kind.sensing_slope
+    return min(1.0, base + slope * sensing)
+
+
+def observation_table(sc: Scenario, k: int = 0) -> FloatArray:
+    """O_k[s, l, z]: probability of observing z when the true level of a task of kind k is l, for sensing s
+    (docs/model.md)."""
     cm, L = sc.capability_max, sc.levels
     t = np.zeros((cm + 1, L, L))
     for s in range(cm + 1):
-        acc = min(1.0, sc.sensing_base + sc.sensing_slope * s)
+        acc = accuracy(sc, k, s)
         for lv in range(L):
             nbrs = [n for n in (lv - 1, lv + 1) if 0 <= n < L]
             t[s, lv, lv] = acc
@@ -85,10 +92,10 @@ def keep_probability(sc: Scenario, comm: int) -> float:
     return min(1.0, sc.channel_base + comm / sc.capability_max) if sc.channel else 1.0
 
 
-def information_table(sc: Scenario) -> FloatArray:
-    """I[s, comm, l, m] = tau O_s(m | l) + (1 - tau) / L: likelihood of a teammate's message (docs/model.md)."""
+def information_table(sc: Scenario, obs: FloatArray) -> FloatArray:
+    """I[s, comm, l, m] = tau O_s(m | l) + (1 - tau) / L: likelihood of a teammate's message (docs/model.md), for
+    the observation table `obs` of one accuracy class."""
     cm, L = sc.capability_max, sc.levels
-    obs = observation_table(sc)
     t = np.zeros((cm + 1, cm + 1, L, L))
     for comm in range(cm + 1):
         tau = keep_probability(sc, comm)
@@ -98,54 +105,83 @@ def information_table(sc: Scenario) -> FloatArray:
 
 @dataclass(frozen=True)
 class Model:
-    """All tables of one scenario, computed once."""
+    """All tables of one scenario, computed once. Tasks are numbered as `Scenario.tasks`; a task's kind decides
+    its transition table and its accuracy class (kinds with the same observation accuracy share one class)."""
 
     scenario: Scenario
-    fire: FloatArray  # (C+1, L, L)
-    rescue: FloatArray  # (C+1, L, L, L)
-    obs: FloatArray  # (C+1, L, L)
-    info: FloatArray  # (C+1, C+1, L, L)
-    fire_cdf: FloatArray  # cumulative fire rows, for inverse-CDF sampling
-    rescue_cdf: FloatArray
-    obs_cdf: FloatArray
-    transition_cdf: FloatArray  # (rows, L): the fire rows (c, f), then the rescue rows (c, f, r), flat
+    kind_tables: tuple[FloatArray, ...]  # per kind (C+1, G_k, L, L), G_k = L if the kind depends on another, else 1
+    obs: FloatArray  # (classes, C+1, L, L) O of every accuracy class
+    info: FloatArray  # (classes, C+1, C+1, L, L) I of every accuracy class
+    obs_cdf: FloatArray  # (classes, C+1, L, L) cumulative rows of obs, for inverse-CDF sampling
+    transition_cdf: FloatArray  # (rows, L): every kind's cumulative rows (c, g, l), kind after kind, flat
+    transition_pdf: FloatArray  # (rows, L): the same rows as probabilities
     agent_caps: IntArray  # (N, |G|) capability each agent brings to each element of G-bar (0 for idle)
     task_caps: IntArray  # (N, |G|+1, p) capability agent i brings to every task under action a (row |G|: none)
     sensing: IntArray  # (N,)
     comm: IntArray  # (N,)
     keep: FloatArray  # (N,) tau of each agent's channel
-    task_type: IntArray  # (p,) 0 fire, 1 rescue
+    task_kind: IntArray  # (p,) kind index
     task_site: IntArray  # (p,)
+    task_gate: IntArray  # (p,) the task at the same site this one depends on; p (a level-0 stand-in) when none
+    task_block: IntArray  # (p,) no progress while the task it depends on is above this level (L: never blocked)
+    task_class: IntArray  # (p,) accuracy class of every task (row block of obs and info)
+    task_row: IntArray  # (p,) first row of the task's kind in transition_cdf
+    task_gates: IntArray  # (p,) G of the task's kind (1 or L)
+    site_task: IntArray  # (S, K) the task of kind k at site s; -1 when the site has none
     action_site: IntArray  # (|G|,)
 
     @staticmethod
     def build(sc: Scenario) -> Model:
         """Compute every table of scenario sc."""
-        fire, rescue, obs = fire_table(sc), rescue_table(sc), observation_table(sc)
-        p, na = sc.n_tasks, sc.n_actions
+        L, p, na = sc.levels, sc.n_tasks, sc.n_actions
+        tables = tuple(kind_table(sc, k) for k in range(sc.n_kinds))
+        accs = [tuple(accuracy(sc, k, s) for s in range(sc.capability_max + 1)) for k in range(sc.n_kinds)]
+        classes = list(dict.fromkeys(accs))
+        kind_class = [classes.index(a) for a in accs]
+        first_kind = [kind_class.index(c) for c in range(len(classes))]
+        obs = np.stack([observation_table(sc, k) for k in first_kind])
+        rows = np.cumsum([0] + [t.shape[0] * t.shape[1] * L for t in tables])
+        site_task = np.full((sc.n_sites, sc.n_kinds), -1, dtype=np.int64)
+        for j, (s, k) in enumerate(sc.tasks):
+            site_task[s, k] = j
+        names = list(sc.kind_names)
+        task_kind = np.array([k for _, k in sc.tasks], dtype=np.int64).reshape(p)
+        task_site = np.array([s for s, _ in sc.tasks], dtype=np.int64).reshape(p)
+        gate = np.full(p, p, dtype=np.int64)
+        for j, (s, k) in enumerate(sc.tasks):
+            dep = sc.kinds[k].depends_on
+            if dep and site_task[s, names.index(dep)] >= 0:
+                gate[j] = site_task[s, names.index(dep)]
         caps = np.zeros((sc.n_agents, na), dtype=np.int64)
         for i, a in enumerate(sc.agents):
-            for j in range(p):
-                caps[i, j] = a.fire if j % 2 == 0 else a.rescue
+            for j, (_, k) in enumerate(sc.tasks):
+                caps[i, j] = a.capability(sc.kinds[k].uses)
         task_caps = np.zeros((sc.n_agents, na + 1, p), dtype=np.int64)
         task_caps[:, np.arange(p), np.arange(p)] = caps[:, :p]
         return Model(
             scenario=sc,
-            fire=fire,
-            rescue=rescue,
+            kind_tables=tables,
             obs=obs,
-            info=information_table(sc),
-            fire_cdf=_cdf(fire),
-            rescue_cdf=_cdf(rescue),
+            info=np.stack([information_table(sc, o) for o in obs]),
             obs_cdf=_cdf(obs),
-            transition_cdf=np.concatenate([_cdf(fire).reshape(-1, sc.levels), _cdf(rescue).reshape(-1, sc.levels)]),
+            transition_cdf=np.concatenate([_cdf(t).reshape(-1, L) for t in tables]),
+            transition_pdf=np.concatenate([t.reshape(-1, L) for t in tables]),
             agent_caps=caps,
             task_caps=task_caps,
             sensing=np.array([a.sensing for a in sc.agents], dtype=np.int64),
             comm=np.array([a.comm for a in sc.agents], dtype=np.int64),
             keep=np.array([keep_probability(sc, a.comm) for a in sc.agents]),
-            task_type=np.arange(p, dtype=np.int64) % 2,
-            task_site=np.arange(p, dtype=np.int64) // 2,
+            task_kind=task_kind,
+            task_site=task_site,
+            task_gate=gate,
+            task_block=np.array(
+                [L if k.blocked_above is None or not k.depends_on else k.blocked_above for k in sc.kinds],
+                dtype=np.int64,
+            )[task_kind],
+            task_class=np.array(kind_class, dtype=np.int64)[task_kind],
+            task_row=rows[:-1].astype(np.int64)[task_kind],
+            task_gates=np.array([t.shape[1] for t in tables], dtype=np.int64)[task_kind],
+            site_task=site_task,
             action_site=np.array(sc.action_sites, dtype=np.int64),
         )
 
@@ -187,26 +223,36 @@ class Model:
         out: IntArray = np.minimum(caps, sc.capability_max).reshape(actions.shape[:-1] + (sc.n_tasks,))
         return out
 
+    def _rows(self, levels: IntArray, caps: IntArray) -> IntArray:
+        """Every task's row of the transition tables: (..., p) levels and capabilities -> (..., p) rows."""
+        gate_levels = np.concatenate([levels, np.zeros(levels.shape[:-1] + (1,), dtype=levels.dtype)], axis=-1)
+        gate = gate_levels[..., self.task_gate]  # the level of the task each depends on (0 when none)
+        out: IntArray = (caps * self.task_gates + gate) * self.scenario.levels + levels + self.task_row
+        return out
+
+    def blocked(self, levels: IntArray) -> BoolArray:
+        """(..., p) levels -> (..., p) whether each task is held back by the task it depends on (its level above the
+        kind's `blocked_above`): the one definition of the rule for anyone judging levels (true or believed)."""
+        ext = np.concatenate([levels, np.zeros(levels.shape[:-1] + (1,), dtype=levels.dtype)], axis=-1)
+        out: BoolArray = ext[..., self.task_gate] > self.task_block
+        return out
+
     def transition_rows(self, levels: IntArray, caps: IntArray) -> FloatArray:
         """Distribution of every task's next level: (..., p) levels and capabilities -> (..., p, L)."""
-        fire_lv = levels[..., 0::2]
-        out = np.empty(levels.shape + (self.scenario.levels,))
-        out[..., 0::2, :] = self.fire[caps[..., 0::2], fire_lv]
-        out[..., 1::2, :] = self.rescue[caps[..., 1::2], fire_lv, levels[..., 1::2]]
+        out: FloatArray = self.transition_pdf[self._rows(levels, caps)]
         return out
 
     def sample_transition(self, levels: IntArray, caps: IntArray, u: FloatArray) -> IntArray:
         """Next levels of T by inverse CDF from uniforms u of shape (..., p) (docs/model.md, Transition T)."""
-        L = self.scenario.levels
-        fire_lv = levels[..., 0::2]
-        rows = np.empty_like(levels)  # every task's row of transition_cdf
-        rows[..., 0::2] = caps[..., 0::2] * L + fire_lv
-        rows[..., 1::2] = (caps[..., 1::2] * L + fire_lv) * L + levels[..., 1::2] + self.fire_cdf.shape[0] * L
-        return _inverse_cdf(self.transition_cdf, rows, u)
+        return _inverse_cdf(self.transition_cdf, self._rows(levels, caps), u)
 
-    def sample_observation(self, true_level: IntArray, sensing: IntArray, u: FloatArray) -> IntArray:
-        """Observed levels of O by inverse CDF: true levels, sensing and uniforms of one shape."""
-        return _inverse_cdf(self.obs_cdf, sensing * self.scenario.levels + true_level, u)
+    def sample_observation(
+        self, task: IntArray, true_level: IntArray, sensing: IntArray, u: FloatArray
+    ) -> IntArray:
+        """Observed levels of O by inverse CDF: the observed tasks, their true levels, the observers' sensing and
+        uniforms, all of one shape."""
+        L, cm = self.scenario.levels, self.scenario.capability_max
+        return _inverse_cdf(self.obs_cdf, (self.task_class[task] * (cm + 1) + sensing) * L + true_level, u)
 
     def apply_channel(self, level: IntArray, keep: FloatArray, u_keep: FloatArray, u_level: FloatArray) -> IntArray:
         """The simulated channel: with probability 1 - tau replace the level by a uniformly random one."""

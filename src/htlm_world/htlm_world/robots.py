@@ -93,9 +93,9 @@ class Sensing:
         self.agent = agent
         self.rng = seeds.robot_sensing(seed, agent, episode)
 
-    def observe(self, true_level: int) -> int:
-        """The observed level of a task whose true level is `true_level`."""
+    def observe(self, task: int, true_level: int) -> int:
+        """The observed level of task `task` whose true level is `true_level`."""
         z = self.model.sample_observation(
-            np.array([true_level]), self.model.sensing[self.agent : self.agent + 1], self.rng.random(1)
+            np.array([task]), np.array([true_level]), self.model.sensing[self.agent : self.agent + 1], self.rng.random(1)
         )
         return int(z[0])

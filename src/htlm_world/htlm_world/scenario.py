@@ -7,10 +7,12 @@ bad value stops loading with a message naming the file, the field and the value.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 from typing import Any, Literal
 
@@ -18,17 +20,11 @@ import yaml
 
 from htlm_msgs_py.validation import ConversionError, convert
 
-TEAMS: dict[str, tuple[tuple[int, int], ...]] = {
-    "heterogeneous": ((3, 1), (3, 2), (2, 0), (0, 1), (1, 1)),
-    "semi-heterogeneous": ((3, 1), (3, 1), (1, 1), (2, 2), (2, 2)),
-    "homogeneous": ((2, 1),) * 5,
-}
-"""(fire, rescue) capability of agents 1..5 in each team of docs/model.md."""
-
 REASSIGN_COSTS: dict[str, float] = {"none": 0.0, "medium": -1.0, "high": -4.0}
 """Traversing cost tc of the reassignment penalty T_RP, by level name (docs/model.md)."""
 
-TASK_TYPES: tuple[str, str] = ("fire", "rescue")
+DEFAULT_SCENARIO = "paper"
+"""The shipped scenario that files are read over: a key a file leaves out keeps its value there."""
 
 
 class ScenarioError(ValueError):
@@ -59,53 +55,105 @@ class RewardParams:
 
 
 @dataclass(frozen=True)
+class DoubleDrop:
+    """Two-level drops of a kind: part of its drop probability takes the task down two levels at once."""
+
+    share: float = 0.5
+    """Share of the drop probability that is a two-level drop when one is possible."""
+    min_level: int = 2
+    """A two-level drop is possible only from at least this level, and only with joint capability >= the level."""
+    gate_at_most: int | None = None
+    """With `depends_on`: only while the task it depends on (same site) is at most this level; None: any level."""
+
+
+@dataclass(frozen=True)
+class KindSpec:
+    """A kind of task and its dynamics (docs/model.md, Transition T): the scenario file's `kinds` entries."""
+
+    name: str
+    """Kind name (task names are kind@site)."""
+    capability: str = ""
+    """The agent capability this kind uses; empty: the kind's own name."""
+    growth: float = 0.0
+    """Probability that an unfinished task nobody works on grows one level in a step."""
+    p_drop: tuple[float, ...] = ()
+    """Own drop probabilities by capability margin (as the scenario's `p_drop`); empty: the scenario's."""
+    depends_on: str = ""
+    """A kind at the same site that this one waits on (no cycles); empty: none. A site without that kind's task
+    does not hold this one back."""
+    blocked_above: int | None = None
+    """With `depends_on`: no progress while the task it depends on is above this level; None: never blocked."""
+    double_drop: DoubleDrop | None = None
+    """Two-level drops; None: one level at most."""
+    sensing_base: float | None = None
+    """Own observation accuracy at sensing 0; None: the scenario's `sensing_base`."""
+    sensing_slope: float | None = None
+    """Own accuracy gained per sensing level; None: the scenario's `sensing_slope`."""
+
+    @property
+    def uses(self) -> str:
+        """The capability name agents bring to tasks of this kind."""
+        return self.capability or self.name
+
+
+@dataclass(frozen=True)
+class SiteSpec:
+    """A site: where it is and the tasks it holds (one per kind at most), each with its start level."""
+
+    name: str
+    """Site name (idle locations are idle@site)."""
+    tasks: dict[str, int]
+    """Start level of every task of the site, by kind name."""
+    position: tuple[float, float] = (0.0, 0.0)
+    """(x, y) in metres in the map frame, for goal poses and markers."""
+
+    def __hash__(self) -> int:
+        return hash((self.name, tuple(sorted(self.tasks.items())), self.position))
+
+
+@dataclass(frozen=True)
 class AgentSpec:
-    """One agent: capabilities 0..capability_max and optional own reward parameters (preferences)."""
+    """One agent: a capability level 0..capability_max per capability name, sensing, communication and optionally
+    its own reward parameters (preferences)."""
 
     name: str
     """Agent name, used in topic names and reports."""
-    fire: int
-    """Fire-fighting capability."""
-    rescue: int
-    """Rescue capability."""
+    capabilities: dict[str, int] = field(default_factory=dict)
+    """Level of every capability the agent has (capabilities it leaves out are 0)."""
     sensing: int = 3
-    """Sensing capability s: observation accuracy min(1, 0.5 + 0.1 s)."""
+    """Sensing capability s: observation accuracy min(1, sensing_base + sensing_slope s)."""
     comm: int = 3
-    """Communication capability: a message stays intact with probability comm / capability_max."""
+    """Communication capability: a message stays intact with probability tau (docs/model.md, Information I)."""
     reward: RewardParams | None = None
     """This agent's own reward parameters; None shares the scenario's."""
+
+    def __hash__(self) -> int:
+        return hash((self.name, tuple(sorted(self.capabilities.items())), self.sensing, self.comm, self.reward))
+
+    def capability(self, name: str) -> int:
+        """The agent's level of capability `name` (0 when it has none)."""
+        return self.capabilities.get(name, 0)
 
 
 @dataclass(frozen=True)
 class Scenario:
-    """Every number of the HTLM model (docs/model.md). Defaults are the scenario "paper", heterogeneous team."""
+    """Every number of the HTLM model (docs/model.md). The kinds, sites and agents come from a scenario file; the
+    numbers default to the paper's."""
 
     name: str = "paper"
     """Scenario name, written into every report and checkpoint."""
-    sites: tuple[str, ...] = ("site1", "site2")
-    """Sites; each has a fire task, a rescue task and one idle location."""
-    site_positions: tuple[tuple[float, float], ...] = ((0.0, 0.0), (50.0, 0.0))
-    """(x, y) in metres of each site in the map frame, for goal poses."""
+    kinds: tuple[KindSpec, ...] = ()
+    """The kinds of task, in the order tasks of a site are numbered."""
+    sites: tuple[SiteSpec, ...] = ()
+    """The sites, each with its tasks and one idle location."""
     levels: int = 5
-    """L, number of severity levels 0..L-1."""
-    initial_levels: tuple[int, ...] = (4, 4, 4, 4)
-    """Level of every task at the start (order fire@site1, rescue@site1, fire@site2, ...)."""
+    """L, number of severity levels 0..L-1 (the same for every kind)."""
     horizon: int = 30
     """h, steps per episode; episodes always run all h steps."""
     capability_max: int = 5
     """Cap on capabilities and on the joint capability on a task."""
     p_drop: tuple[float, ...] = (0.90, 0.60, 0.35, 0.15, 0.05)
     """p_drop by margin m = c - l: m >= 0, m = -1, -2, -3, m <= -4 (last entry for all lower margins)."""
-    fire_growth: float = 0.10
-    """Probability that an unattended burning fire grows one level."""
-    rescue_block_fire: int = 2
-    """Rescue makes no progress while its site's fire is above this level."""
-    rescue_double_fire: int = 1
-    """Rescue can drop two levels only while its site's fire is at most this level."""
-    rescue_double_min_level: int = 2
-    """Rescue can drop two levels only from at least this level."""
-    rescue_double_share: float = 0.5
-    """Share of the drop probability that is a two-level drop when a double drop is possible."""
     sensing_base: float = 0.65
     """Observation accuracy at sensing 0."""
     sensing_slope: float = 0.1
@@ -114,12 +162,10 @@ class Scenario:
     """Simulate the communication channel (random replacement of broadcast levels); off for real robots."""
     channel_base: float = 0.2
     """Channel reliability added to comm / capability_max: tau = min(1, channel_base + comm / capability_max)."""
-    agents: tuple[AgentSpec, ...] = tuple(
-        AgentSpec(name=f"agent{i + 1}", fire=f, rescue=r) for i, (f, r) in enumerate(TEAMS["heterogeneous"])
-    )
+    agents: tuple[AgentSpec, ...] = ()
     """The team."""
-    team: str = "heterogeneous"
-    """Name of the team (informational when agents are given explicitly)."""
+    team: str = ""
+    """Name of the team (one of the file's `teams`, or informational when agents are given explicitly)."""
     reward: RewardParams = field(default_factory=RewardParams)
     """Reward parameters shared by every agent without its own."""
     gamma: float = 0.95
@@ -136,9 +182,41 @@ class Scenario:
         return len(self.sites)
 
     @property
+    def site_names(self) -> tuple[str, ...]:
+        """Names of the sites in index order."""
+        return tuple(site.name for site in self.sites)
+
+    @property
+    def site_positions(self) -> tuple[tuple[float, float], ...]:
+        """(x, y) of every site in the map frame."""
+        return tuple(site.position for site in self.sites)
+
+    @property
+    def kind_names(self) -> tuple[str, ...]:
+        """Names of the kinds in index order."""
+        return tuple(k.name for k in self.kinds)
+
+    @property
+    def n_kinds(self) -> int:
+        """K, number of kinds."""
+        return len(self.kinds)
+
+    @property
+    def tasks(self) -> tuple[tuple[int, int], ...]:
+        """(site, kind) of every task in index order: site by site, the kinds of a site in the order of `kinds`."""
+        return tuple(
+            (s, k) for s, site in enumerate(self.sites) for k, kind in enumerate(self.kinds) if kind.name in site.tasks
+        )
+
+    @property
     def n_tasks(self) -> int:
-        """p = 2 S: fire and rescue at every site."""
-        return 2 * len(self.sites)
+        """p, the number of tasks over all sites."""
+        return sum(len(site.tasks) for site in self.sites)
+
+    @property
+    def initial_levels(self) -> tuple[int, ...]:
+        """Start level of every task in index order."""
+        return tuple(self.sites[s].tasks[self.kinds[k].name] for s, k in self.tasks)
 
     @property
     def n_idle(self) -> int:
@@ -157,14 +235,22 @@ class Scenario:
 
     @property
     def action_names(self) -> tuple[str, ...]:
-        """Names of G-bar in index order: fire@site1, rescue@site1, ..., idle@site1, ..."""
-        tasks = [f"{t}@{s}" for s in self.sites for t in TASK_TYPES]
-        return tuple(tasks + [f"idle@{s}" for s in self.sites][: self.n_idle])
+        """Names of G-bar in index order: kind@site for every task, then idle@site for every idle location."""
+        tasks = [f"{self.kinds[k].name}@{self.sites[s].name}" for s, k in self.tasks]
+        return tuple(tasks + [f"idle@{s}" for s in self.site_names][: self.n_idle])
 
     @property
     def action_sites(self) -> tuple[int, ...]:
         """Site index of every element of G-bar."""
-        return tuple([j // 2 for j in range(self.n_tasks)] + list(range(self.n_idle)))
+        return tuple([s for s, _ in self.tasks] + list(range(self.n_idle)))
+
+    def total_capability(self, i: int) -> int:
+        """Agent i's capability summed over the capabilities the kinds use (each counted once)."""
+        return sum(self.agents[i].capability(c) for c in dict.fromkeys(k.uses for k in self.kinds))
+
+    def capability_table(self) -> list[list[int]]:
+        """(N, K) every agent's capability on every kind."""
+        return [[a.capability(k.uses) for k in self.kinds] for a in self.agents]
 
     @property
     def start_assignment(self) -> int:
@@ -202,7 +288,7 @@ class Scenario:
         """Hash of the knowledge-state and action layout, to refuse checkpoints of another layout."""
         layout = {
             "mode": self.mode,
-            "sites": list(self.sites),
+            "sites": list(self.site_names),
             "levels": self.levels,
             "actions": list(self.action_names),
             "n_agents": self.n_agents,
@@ -219,83 +305,195 @@ def _to_plain(x: Any) -> Any:
     return x
 
 
-def make_team(team: str, **reward: Any) -> tuple[AgentSpec, ...]:
-    """The agents of a built-in team of docs/model.md."""
-    if team not in TEAMS:
-        raise ScenarioError(f"unknown team {team!r}; choose one of {sorted(TEAMS)}")
-    return tuple(AgentSpec(name=f"agent{i + 1}", fire=f, rescue=r) for i, (f, r) in enumerate(TEAMS[team]))
-
-
 def builtin(
     team: str = "heterogeneous",
     idle_incentive: float = 1.0,
     reassign: str = "medium",
     mode: Literal["htlm", "ht"] = "htlm",
 ) -> Scenario:
-    """The built-in scenario "paper" with a team of docs/model.md and the given load-management settings."""
+    """The shipped scenario "paper" with one of its teams and the given load-management settings."""
     if reassign not in REASSIGN_COSTS:
         raise ScenarioError(f"unknown reassignment level {reassign!r}; choose one of {list(REASSIGN_COSTS)}")
-    reward = RewardParams(idle_incentive=idle_incentive, reassign_cost=REASSIGN_COSTS[reassign])
-    sc = Scenario(agents=make_team(team), team=team, reward=reward, mode=mode)
-    validate(sc, "<builtin>")
-    return sc
+    reward = {"idle_incentive": idle_incentive, "reassign_cost": REASSIGN_COSTS[reassign]}
+    return from_dict({"team": team, "reward": reward, "mode": mode}, "<builtin>")
 
 
 # ----- loading and validation -------------------------------------------------------------------------------------
 
+SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
+"""The scenario files shipped with the package; `load` also takes their names (`load("warehouse")`)."""
 
-def from_dict(data: Any, src: str = "<dict>") -> Scenario:
-    """Build and validate a scenario from plain data. A `team:` key without `agents:` picks a built-in team.
+_AGENT_FIELDS = frozenset(f.name for f in dataclasses.fields(AgentSpec))
+
+_LEGACY_KIND_KEYS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "fire_growth": ("fire", ("growth",)),
+    "rescue_block_fire": ("rescue", ("blocked_above",)),
+    "rescue_double_fire": ("rescue", ("double_drop", "gate_at_most")),
+    "rescue_double_min_level": ("rescue", ("double_drop", "min_level")),
+    "rescue_double_share": ("rescue", ("double_drop", "share")),
+}
+"""Keys of the first file format (before kinds were data, still in older checkpoints): the paper's kinds' rules as
+top-level numbers, read into the `kinds` entry they belong to."""
+
+
+@cache
+def _file_data(path: Path) -> Any:
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ScenarioError(f"{path}: cannot read scenario file: {e.strerror}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ScenarioError(f"{path}: not valid YAML: {e}") from None
+
+
+def _base_data() -> dict[str, Any]:
+    """The plain data of the default scenario file, which every file is read over (a fresh copy)."""
+    data = _file_data(SCENARIO_DIR / f"{DEFAULT_SCENARIO}.yaml")
+    assert isinstance(data, dict), "the default scenario file is a mapping"
+    return copy.deepcopy(data)
+
+
+def team_names(path: str | Path | None = None) -> list[str]:
+    """Names of the teams a scenario file declares under `teams` (the default scenario's when it has none)."""
+    data = _base_data()
+    if path is not None:
+        own = _file_data(_resolve(path))
+        if isinstance(own, dict) and "teams" in own:
+            data = own
+    teams = data.get("teams") or {}
+    return list(teams) if isinstance(teams, dict) else []
+
+
+def from_dict(data: Any, src: str = "<dict>", team: str | None = None) -> Scenario:
+    """Build and validate a scenario from plain data, read over the default scenario file: a top-level key the data
+    leaves out keeps its value there. Without `agents`, the team named by `team` (argument, else key) is taken from
+    `teams` (the data's, else the default's).
 
     Raises:
-        ScenarioError: naming src, the field and the bad value.
+        ScenarioError: naming src, the field path and the bad value.
     """
     if not isinstance(data, dict):
         raise ScenarioError(f"{src}: top level: expected a mapping, got {type(data).__name__} {data!r}")
-    data = dict(data)
-    if "reassign" in data:  # convenience: a level name instead of reward.reassign_cost
-        level = data.pop("reassign")
+    own = copy.deepcopy(data)
+    if team is not None:
+        own["team"] = team
+        own.pop("agents", None)
+    if "reassign" in own:  # convenience: a level name instead of reward.reassign_cost
+        level = own.pop("reassign")
         if level not in REASSIGN_COSTS:
             raise ScenarioError(f"{src}: reassign: {level!r} is not one of {list(REASSIGN_COSTS)}")
-        data.setdefault("reward", {})
-        data["reward"] = {**data["reward"], "reassign_cost": REASSIGN_COSTS[level]}
-    if "team" in data and "agents" not in data:
-        if data["team"] not in TEAMS:
-            raise ScenarioError(f"{src}: team: {data['team']!r} is not one of {sorted(TEAMS)}")
-        data["agents"] = [dataclasses.asdict(a) for a in make_team(data["team"])]
+        reward = own.get("reward") if isinstance(own.get("reward"), dict) else {}
+        own["reward"] = {**reward, "reassign_cost": REASSIGN_COSTS[level]}
+    merged = {**_base_data(), **own}
+    if "agents" in own and "team" not in own:
+        merged.pop("team", None)  # a team of the file's own
+    _upgrade(merged, own, src)
+    teams = merged.pop("teams", None)
+    if "agents" not in merged:
+        name = merged.get("team", "")
+        if not isinstance(teams, dict) or name not in teams:
+            known = sorted(teams) if isinstance(teams, dict) else []
+            raise ScenarioError(f"{src}: team: {name!r} is not one of the scenario's teams {known}")
+        merged["agents"] = copy.deepcopy(teams[name])
+    merged["agents"] = _agent_capabilities(merged["agents"], src)
     try:
-        sc = convert(data, Scenario, src)
+        sc = convert(merged, Scenario, src)
     except ConversionError as e:
         raise ScenarioError(str(e)) from None
     validate(sc, src)
     return sc
 
 
-SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
-"""The scenario files shipped with the package; `load` also takes their names (`load("first-calibration")`)."""
+def _agent_capabilities(agents: Any, src: str) -> Any:
+    """Agents entries with capability levels written as keys of their own (`{name: a1, lift: 3}`) moved into
+    `capabilities`."""
+    if not isinstance(agents, list):
+        return agents
+    out = []
+    for i, a in enumerate(agents):
+        if isinstance(a, dict):
+            a = dict(a)
+            caps = dict(a.get("capabilities") or {}) if isinstance(a.get("capabilities", {}), dict) else None
+            if caps is None:
+                raise ScenarioError(f"{src}: agents[{i}].capabilities: {a['capabilities']!r} is not a mapping")
+            for key in [k for k in a if k not in _AGENT_FIELDS]:
+                caps[key] = a.pop(key)
+            a["capabilities"] = caps
+        out.append(a)
+    return out
+
+
+def _upgrade(merged: dict[str, Any], own: dict[str, Any], src: str) -> None:
+    """Read the first file format's keys into today's: `sites` as a list of names (every kind at every site),
+    `initial_levels` (start levels in task order), `site_positions`, and the paper's kind rules as top-level keys."""
+    kinds = merged.get("kinds")
+    if not isinstance(kinds, list) or not all(isinstance(k, dict) and "name" in k for k in kinds):
+        return  # convert names the problem
+    for key in [k for k in _LEGACY_KIND_KEYS if k in merged]:
+        kind_name, path = _LEGACY_KIND_KEYS[key]
+        value = merged.pop(key)
+        entry = next((k for k in kinds if k["name"] == kind_name), None)
+        if entry is None:
+            raise ScenarioError(f"{src}: {key}: {value!r} sets a rule of kind {kind_name!r}, which is not a kind here")
+        for step in path[:-1]:
+            if not isinstance(entry.get(step), dict):
+                entry[step] = {}
+            entry = entry[step]
+        entry[path[-1]] = value
+    sites = merged.get("sites")
+    positions = merged.pop("site_positions", None)
+    levels = merged.pop("initial_levels", None)
+    if isinstance(sites, list) and sites and all(isinstance(x, str) for x in sites):
+        names = [k["name"] for k in kinds]
+        if levels is None:
+            raise ScenarioError(f"{src}: initial_levels: needed with sites given by name (start level of every task)")
+        merged["sites"] = [{"name": x, "tasks": dict.fromkeys(names, 0)} for x in sites]
+        if positions is None:
+            positions = [[50.0 * s, 0.0] for s in range(len(sites))]
+    sites = merged.get("sites")
+    if not isinstance(sites, list) or not all(isinstance(x, dict) for x in sites):
+        return
+    if positions is not None:
+        if not isinstance(positions, list) or len(positions) != len(sites):
+            n = len(positions) if isinstance(positions, list) else positions
+            raise ScenarioError(f"{src}: site_positions: {n} positions for {len(sites)} sites")
+        for site, pos in zip(sites, positions, strict=True):
+            site["position"] = pos
+    if levels is not None:
+        order = [k["name"] for k in kinds]
+        slots = [(site, kind) for site in sites for kind in order if kind in (site.get("tasks") or {})]
+        if not isinstance(levels, list) or len(levels) != len(slots):
+            n = len(levels) if isinstance(levels, list) else 1
+            raise ScenarioError(
+                f"{src}: initial_levels: {levels!r} has {n} entries, the scenario has {len(slots)} tasks"
+            )
+        for (site, kind), lv in zip(slots, levels, strict=True):
+            site["tasks"][kind] = lv
 
 
 def named_scenarios() -> list[str]:
-    """Names of the shipped scenario files (paper: the defaults written out; first-calibration: the model's first
-    numbers, kept for comparison)."""
+    """Names of the shipped scenario files."""
     return sorted(f.stem for f in SCENARIO_DIR.glob("*.yaml"))
 
 
-def load(path: str | Path) -> Scenario:
-    """Load a scenario YAML file, or a shipped scenario by name (keys a file omits keep the defaults of "paper")."""
+def _resolve(path: str | Path) -> Path:
     p = Path(path)
     if not p.exists() and p.suffix == "" and p.name in named_scenarios():
         p = SCENARIO_DIR / f"{p.name}.yaml"
-    try:
-        text = p.read_text()
-    except OSError as e:
+    if not p.exists():
         hint = f" (or name a shipped scenario: {', '.join(named_scenarios())})" if p.suffix == "" else ""
-        raise ScenarioError(f"{p}: cannot read scenario file: {e.strerror}{hint}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ScenarioError(f"{p}: not valid YAML: {e}") from None
-    return from_dict({} if data is None else data, str(p))
+        raise ScenarioError(f"{p}: cannot read scenario file: No such file or directory{hint}")
+    return p
+
+
+def load(path: str | Path, team: str | None = None) -> Scenario:
+    """Load a scenario YAML file, or a shipped scenario by name (keys a file omits keep the values of the default
+    scenario file); `team` picks one of the file's `teams`."""
+    p = _resolve(path)
+    data = _file_data(p)
+    return from_dict({} if data is None else data, str(p), team)
 
 
 def _check_prob(src: str, where: str, x: float) -> None:
@@ -306,57 +504,133 @@ def _check_prob(src: str, where: str, x: float) -> None:
 def validate(sc: Scenario, src: str) -> None:
     """Check every value of a scenario; raise ScenarioError naming src, the field and the value."""
     cmax = sc.capability_max
-    if not sc.sites:
-        raise ScenarioError(f"{src}: sites: {list(sc.sites)!r}: at least one site is needed")
-    if len(set(sc.sites)) != len(sc.sites):
-        raise ScenarioError(f"{src}: sites: {list(sc.sites)!r}: site names must be unique")
-    if len(sc.site_positions) != len(sc.sites):
-        raise ScenarioError(f"{src}: site_positions: {len(sc.site_positions)} positions for {len(sc.sites)} sites")
     if sc.levels < 2:
         raise ScenarioError(f"{src}: levels: {sc.levels!r} must be at least 2")
-    if len(sc.initial_levels) != sc.n_tasks:
-        raise ScenarioError(
-            f"{src}: initial_levels: {list(sc.initial_levels)!r} has {len(sc.initial_levels)} entries, "
-            f"the scenario has {sc.n_tasks} tasks"
-        )
-    for k, lv in enumerate(sc.initial_levels):
-        if not 0 <= lv < sc.levels:
-            raise ScenarioError(f"{src}: initial_levels[{k}]: {lv!r} is out of range 0..{sc.levels - 1}")
     if sc.horizon < 1:
         raise ScenarioError(f"{src}: horizon: {sc.horizon!r} must be at least 1")
     if cmax < 1:
         raise ScenarioError(f"{src}: capability_max: {cmax!r} must be at least 1")
-    if not sc.p_drop:
-        raise ScenarioError(f"{src}: p_drop: needs at least one entry")
-    for k, x in enumerate(sc.p_drop):
-        _check_prob(src, f"p_drop[{k}]", x)
-    for name in ("fire_growth", "rescue_double_share", "sensing_base", "channel_base"):
+    _check_drops(src, "p_drop", sc.p_drop)
+    for name in ("sensing_base", "channel_base"):
         _check_prob(src, name, getattr(sc, name))
     if not 0.0 <= sc.sensing_slope <= 1.0:
         raise ScenarioError(f"{src}: sensing_slope: {sc.sensing_slope!r} is not in [0, 1]")
     if not 0.0 <= sc.gamma <= 1.0:
         raise ScenarioError(f"{src}: gamma: {sc.gamma!r} is not in [0, 1]")
+    _validate_kinds(sc, src)
+    _validate_sites(sc, src)
     if not sc.agents:
         raise ScenarioError(f"{src}: agents: [] is an agent count of zero; a team needs at least one agent")
     names = [a.name for a in sc.agents]
     if len(set(names)) != len(names):
         raise ScenarioError(f"{src}: agents: names must be unique, got {names!r}")
+    uses = {k.uses for k in sc.kinds}
     for i, a in enumerate(sc.agents):
         if not a.name or not a.name.replace("_", "").isalnum() or not a.name[0].isalpha():
             raise ScenarioError(
                 f"{src}: agents[{i}].name: {a.name!r} must start with a letter and hold only letters, digits, _"
             )
-        for cap in ("fire", "rescue", "sensing", "comm"):
-            v = getattr(a, cap)
+        for cap, v in a.capabilities.items():
+            if cap not in uses:
+                raise ScenarioError(
+                    f"{src}: agents[{i}].capabilities.{cap}: {v!r}: no kind uses capability {cap!r} "
+                    f"(the kinds use {sorted(uses)})"
+                )
+        for cap, v in [*a.capabilities.items(), ("sensing", a.sensing), ("comm", a.comm)]:
+            where = cap if cap in ("sensing", "comm") else f"capabilities.{cap}"
             if not 0 <= v <= cmax:
-                raise ScenarioError(f"{src}: agents[{i}].{cap}: {v!r} is out of range 0..{cmax}")
+                raise ScenarioError(f"{src}: agents[{i}].{where}: {v!r} is out of range 0..{cmax}")
         if a.reward is not None:
             _validate_reward(a.reward, sc.levels, src, f"agents[{i}].reward")
+    present = {sc.kinds[k].name for _, k in sc.tasks}
+    for k, kind in enumerate(sc.kinds):
+        if kind.name in present and all(a.capability(kind.uses) == 0 for a in sc.agents):
+            raise ScenarioError(
+                f"{src}: kinds[{k}]: {kind.name!r}: no agent can work on it (no agent has capability "
+                f"{kind.uses!r} above 0), yet sites hold tasks of it"
+            )
     _validate_reward(sc.reward, sc.levels, src, "reward")
     if sc.initial_assignment >= sc.n_actions or sc.initial_assignment < -1:
         raise ScenarioError(
             f"{src}: initial_assignment: {sc.initial_assignment!r} is out of range -1..{sc.n_actions - 1}"
         )
+
+
+def _check_drops(src: str, where: str, p_drop: tuple[float, ...]) -> None:
+    if not p_drop:
+        raise ScenarioError(f"{src}: {where}: needs at least one entry")
+    for k, x in enumerate(p_drop):
+        _check_prob(src, f"{where}[{k}]", x)
+
+
+def _validate_kinds(sc: Scenario, src: str) -> None:
+    """Names unique, dependencies on known kinds without cycles, levels in range, probabilities in [0, 1]."""
+    if not sc.kinds:
+        raise ScenarioError(f"{src}: kinds: []: at least one kind of task is needed")
+    names = [k.name for k in sc.kinds]
+    top = sc.levels - 1
+    for k, kind in enumerate(sc.kinds):
+        at = f"kinds[{k}]"
+        if not kind.name or "@" in kind.name or names.count(kind.name) > 1:
+            raise ScenarioError(f"{src}: {at}.name: {kind.name!r} must be a unique, non-empty name without '@'")
+        _check_prob(src, f"{at}.growth", kind.growth)
+        if kind.p_drop:
+            _check_drops(src, f"{at}.p_drop", kind.p_drop)
+        for name in ("sensing_base", "sensing_slope"):
+            value = getattr(kind, name)
+            if value is not None:
+                _check_prob(src, f"{at}.{name}", value)
+        if kind.depends_on and kind.depends_on not in names:
+            raise ScenarioError(f"{src}: {at}.depends_on: {kind.depends_on!r} is not a kind (kinds: {names})")
+        if kind.depends_on == kind.name:
+            raise ScenarioError(f"{src}: {at}.depends_on: {kind.depends_on!r}: a kind cannot depend on itself")
+        if kind.blocked_above is not None:
+            if not kind.depends_on:
+                raise ScenarioError(f"{src}: {at}.blocked_above: {kind.blocked_above!r} needs depends_on")
+            if not 0 <= kind.blocked_above <= top:
+                raise ScenarioError(f"{src}: {at}.blocked_above: {kind.blocked_above!r} is out of range 0..{top}")
+        dd = kind.double_drop
+        if dd is not None:
+            _check_prob(src, f"{at}.double_drop.share", dd.share)
+            if not 2 <= dd.min_level <= top:
+                raise ScenarioError(
+                    f"{src}: {at}.double_drop.min_level: {dd.min_level!r} is out of range 2..{top} "
+                    "(two levels down from it must stay >= 0)"
+                )
+            if dd.gate_at_most is not None:
+                if not kind.depends_on:
+                    raise ScenarioError(f"{src}: {at}.double_drop.gate_at_most: {dd.gate_at_most!r} needs depends_on")
+                if not 0 <= dd.gate_at_most <= top:
+                    raise ScenarioError(
+                        f"{src}: {at}.double_drop.gate_at_most: {dd.gate_at_most!r} is out of range 0..{top}"
+                    )
+    for k, kind in enumerate(sc.kinds):  # follow every chain of depends_on: a cycle comes back to a kind seen
+        seen = [kind.name]
+        nxt = kind.depends_on
+        while nxt:
+            if nxt in seen:
+                chain = " -> ".join([*seen, nxt])
+                raise ScenarioError(f"{src}: kinds[{k}].depends_on: {kind.depends_on!r} closes a cycle: {chain}")
+            seen.append(nxt)
+            nxt = sc.kinds[names.index(nxt)].depends_on
+
+
+def _validate_sites(sc: Scenario, src: str) -> None:
+    """At least one site, unique names, tasks of known kinds with start levels in range."""
+    if not sc.sites:
+        raise ScenarioError(f"{src}: sites: []: at least one site is needed")
+    names = list(sc.site_names)
+    kinds = list(sc.kind_names)
+    for s, site in enumerate(sc.sites):
+        if not site.name or "@" in site.name or names.count(site.name) > 1:
+            raise ScenarioError(f"{src}: sites[{s}].name: {site.name!r} must be a unique, non-empty name without '@'")
+        if not site.tasks:
+            raise ScenarioError(f"{src}: sites[{s}].tasks: {{}}: a site needs at least one task")
+        for kind, lv in site.tasks.items():
+            if kind not in kinds:
+                raise ScenarioError(f"{src}: sites[{s}].tasks.{kind}: {lv!r}: {kind!r} is not a kind (kinds: {kinds})")
+            if not 0 <= lv < sc.levels:
+                raise ScenarioError(f"{src}: sites[{s}].tasks.{kind}: {lv!r} is out of range 0..{sc.levels - 1}")
 
 
 def _validate_reward(r: RewardParams, levels: int, src: str, where: str) -> None:

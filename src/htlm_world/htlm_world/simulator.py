@@ -43,8 +43,8 @@ def sample_world_step(
     nxt = model.sample_transition(levels, caps, u_t)
     u_o = rng.random((b, n))
     working = (actions >= 0) & (actions < p)
-    task = np.where(working, actions, 0) + p * np.arange(b)[:, None]
-    z = model.sample_observation(nxt.reshape(-1)[task], model.sensing, u_o)
+    task = np.where(working, actions, 0)
+    z = model.sample_observation(task, nxt.reshape(-1)[task + p * np.arange(b)[:, None]], model.sensing, u_o)
     return nxt, np.where(working, z, -1), caps
 
 

@@ -63,7 +63,7 @@ class GreedyPolicy:
         for i in range(scenario.n_agents):
             home = i % s
             sites = [home] + [x for x in range(s) if x != home]
-            self.order.append([2 * site + kind for site in sites for kind in (0, 1)])
+            self.order.append([int(j) for site in sites for j in self.model.site_task[site] if j >= 0])
 
     def act(self, ctx: Context) -> IntArray:
         """One action per agent from its own row of the Context."""
@@ -73,13 +73,12 @@ class GreedyPolicy:
         stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
         out = stay.astype(np.int64)
         chosen = np.zeros((b, n), dtype=bool)
+        blocked = self.model.blocked(lv)  # (B, N, p) as each agent believes
         for i in range(n):
             for j in self.order[i]:
                 if self.model.agent_caps[i, j] == 0:
                     continue
-                ok = lv[:, i, j] > 0
-                if j % 2 == 1:
-                    ok &= lv[:, i, j - 1] <= sc.rescue_block_fire
+                ok = (lv[:, i, j] > 0) & ~blocked[:, i, j]
                 take = ok & ~chosen[:, i]
                 out[take, i] = j
                 chosen[:, i] |= take

@@ -90,11 +90,12 @@ def format_metrics(m: dict[str, Any]) -> str:
         f"{m['unused_capability']['se']:.3f} (fraction {m['unused_fraction']['mean']:.1%})",
         f"team idle count before completion {m['idle_before_completion']['mean']:.2f} · team reassignment count "
         f"before completion {m['reassign_before_completion']['mean']:.2f}",
-        f"{'agent':<10} {'fire':>4} {'rescue':>6} {'unused':>8} {'fraction':>8} {'idle<=c':>8} {'reassign<=c':>11}",
+        f"{'agent':<10} {'capabilities':<20} {'unused':>8} {'fraction':>8} {'idle<=c':>8} {'reassign<=c':>11}",
     ]
     for a in m["agents"]:
+        caps = " ".join(f"{k} {v}" for k, v in a["capabilities"].items())
         lines.append(
-            f"{a['agent'] + (' (off)' if a['inactive'] else ''):<10} {a['fire']:>4} {a['rescue']:>6} "
+            f"{a['agent'] + (' (off)' if a['inactive'] else ''):<10} {caps:<20} "
             f"{a['unused_capability']['mean']:>8.3f} {a['unused_fraction']['mean']:>8.1%} "
             f"{a['idle_before_completion']['mean']:>8.2f} {a['reassign_before_completion']['mean']:>11.2f}"
         )

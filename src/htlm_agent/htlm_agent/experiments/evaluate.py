@@ -109,13 +109,12 @@ def summarize(
     false_completion = float((em.failed & believed_complete).mean()) if believed_complete is not None else None
     agents = []
     for i, a in enumerate(scenario.agents):
-        cap = a.fire + a.rescue
+        cap = scenario.total_capability(i)
         unused = em.agent_unused[:, i]
         agents.append(
             {
                 "agent": a.name,
-                "fire": a.fire,
-                "rescue": a.rescue,
+                "capabilities": {k.name: a.capability(k.uses) for k in scenario.kinds},
                 "inactive": i in inactive,
                 "unused_capability": _ms(unused),
                 "unused_fraction": _ms(unused / cap) if cap > 0 else {"mean": 0.0, "se": 0.0},
@@ -353,22 +352,22 @@ def plot_completion(ev: Evaluation, path: Path) -> None:
 
 
 def importance_table(policy: Policy, scenario: Scenario, episodes: int = 500, seed: int = 0) -> dict[str, Any]:
-    """The agent importance table (Eqs. 6-9) from `episodes` greedy episodes: per agent C_fire, C_rescue, U_fire,
-    U_rescue, ζ; per task type ω."""
+    """The agent importance table (Eqs. 6-9) from `episodes` greedy episodes: per agent C_k and U_k for every kind k
+    (keys "C_<kind>", "U_<kind>") and ζ; per kind ω ("omega", by kind name)."""
     imp = importance(scenario, run_episodes(policy, scenario, episodes, seed).actions)
+    kinds = scenario.kind_names
     return {
         "scenario": scenario.name,
         "team": scenario.team,
         "episodes": episodes,
         "seed": seed,
-        "omega": {"fire": float(imp.omega[0]), "rescue": float(imp.omega[1])},
+        "kinds": list(kinds),
+        "omega": {k: float(imp.omega[j]) for j, k in enumerate(kinds)},
         "agents": [
             {
                 "agent": a.name,
-                "C_fire": float(imp.capability[i, 0]),
-                "C_rescue": float(imp.capability[i, 1]),
-                "U_fire": float(imp.usage[i, 0]),
-                "U_rescue": float(imp.usage[i, 1]),
+                **{f"C_{k}": float(imp.capability[i, j]) for j, k in enumerate(kinds)},
+                **{f"U_{k}": float(imp.usage[i, j]) for j, k in enumerate(kinds)},
                 "zeta": float(imp.zeta[i]),
             }
             for i, a in enumerate(scenario.agents)
@@ -376,22 +375,25 @@ def importance_table(policy: Policy, scenario: Scenario, episodes: int = 500, se
     }
 
 
+def importance_columns(table: dict[str, Any]) -> list[str]:
+    """The per-agent columns of an importance table: C_k for every kind, then U_k for every kind."""
+    kinds = table.get("kinds") or list(table["omega"])
+    return [f"C_{k}" for k in kinds] + [f"U_{k}" for k in kinds]
+
+
 def format_importance(table: dict[str, Any]) -> str:
     """The importance table as text, the most important agent's row marked."""
     rows = table["agents"]
+    cols = importance_columns(table)
     top = max(range(len(rows)), key=lambda i: rows[i]["zeta"]) if rows else -1
-    lines = [f"{'agent':<10} {'C_fire':>6} {'C_rescue':>8} {'U_fire':>8} {'U_rescue':>8} {'zeta':>8}"]
+    widths = [max(8, len(c)) for c in cols]
+    lines = [f"{'agent':<10} " + " ".join(f"{c:>{w}}" for c, w in zip(cols, widths, strict=True)) + f" {'zeta':>8}"]
     for i, r in enumerate(rows):
         mark = " *" if i == top else ""
-        lines.append(
-            f"{r['agent']:<10} {r['C_fire']:>6.0f} {r['C_rescue']:>8.0f} {r['U_fire']:>8.2f} "
-            f"{r['U_rescue']:>8.2f} {r['zeta']:>8.2f}{mark}"
-        )
-    om = table["omega"]
-    lines.append(
-        f"omega_fire = {om['fire']:.2f}, omega_rescue = {om['rescue']:.2f}  "
-        f"({table['team']}, {table['episodes']} episodes; * most important)"
-    )
+        cells = [f"{r[c]:>{w}.0f}" if c.startswith("C_") else f"{r[c]:>{w}.2f}" for c, w in zip(cols, widths, strict=True)]
+        lines.append(f"{r['agent']:<10} " + " ".join(cells) + f" {r['zeta']:>8.2f}{mark}")
+    om = ", ".join(f"omega_{k} = {v:.2f}" for k, v in table["omega"].items())
+    lines.append(f"{om}  ({table['team']}, {table['episodes']} episodes; * most important)")
     return "\n".join(lines)
 
 
@@ -403,18 +405,9 @@ def write_importance(table: dict[str, Any], out_dir: str | Path) -> dict[str, Pa
     paths["json"].write_text(json.dumps(table, indent=2) + "\n")
     with paths["csv"].open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["agent", "C_fire", "C_rescue", "U_fire", "U_rescue", "zeta", "omega_fire", "omega_rescue"])
+        cols = importance_columns(table)
+        omega = table["omega"]
+        w.writerow(["agent", *cols, "zeta", *[f"omega_{k}" for k in omega]])
         for r in table["agents"]:
-            w.writerow(
-                [
-                    r["agent"],
-                    r["C_fire"],
-                    r["C_rescue"],
-                    r["U_fire"],
-                    r["U_rescue"],
-                    r["zeta"],
-                    table["omega"]["fire"],
-                    table["omega"]["rescue"],
-                ]
-            )
+            w.writerow([r["agent"], *[r[c] for c in cols], r["zeta"], *omega.values()])
     return paths

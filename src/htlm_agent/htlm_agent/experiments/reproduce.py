@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from htlm_agent.baselines.registry import make_baseline
-from htlm_agent.experiments.evaluate import evaluate, evaluate_run, importance_table
+from htlm_agent.experiments.evaluate import evaluate, evaluate_run, importance_columns, importance_table
 from htlm_agent.experiments.progress import Progress
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
@@ -630,17 +630,18 @@ def write_report(out: Path, data: dict[str, Any], command: str, wall: float) -> 
     ]
     for team, r in inact.items():
         t = r["importance"]
+        cols = importance_columns(t)
+        omega = ", ".join(f"ω_{k} = {v:.2f}" for k, v in t["omega"].items())
         lines += [
-            f"**{team}** (ω_fire = {t['omega']['fire']:.2f}, ω_rescue = {t['omega']['rescue']:.2f}; seed "
-            f"{t['seed']}; ζ mean over seeds in the last column)",
+            f"**{team}** ({omega}; seed {t['seed']}; ζ mean over seeds in the last column)",
             "",
-            "| agent | C_fire | C_rescue | U_fire | U_rescue | ζ | ζ (seeds) |",
-            "|---|---|---|---|---|---|---|",
+            "| agent | " + " | ".join(cols) + " | ζ | ζ (seeds) |",
+            "|---" * (len(cols) + 3) + "|",
         ]
         for i, a in enumerate(t["agents"]):
+            cells = [f"{a[c]:.0f}" if c.startswith("C_") else f"{a[c]:.2f}" for c in cols]
             lines.append(
-                f"| {a['agent']} | {a['C_fire']:.0f} | {a['C_rescue']:.0f} | {a['U_fire']:.2f} | "
-                f"{a['U_rescue']:.2f} | {a['zeta']:.2f} | {r['zeta_mean_over_seeds'][i]:.2f} ± "
+                f"| {a['agent']} | " + " | ".join(cells) + f" | {a['zeta']:.2f} | {r['zeta_mean_over_seeds'][i]:.2f} ± "
                 f"{r['zeta_se_over_seeds'][i]:.2f} |"
             )
         lines.append("")

@@ -198,8 +198,8 @@ class AgentMind:
         self.pending = None
         self.deferred = None
         self.early = {}
-        self.belief = bf.initial_belief(self.model, size)[:, self.me]  # (B, S, L, L)
-        self.marg = bf.marginals(self.belief)  # (B, p, L)
+        self.belief = bf.initial_belief(self.model, size)[:, self.me]  # (B, S, L, ..., L)
+        self.marg = bf.marginals(self.model, self.belief)  # (B, p, L)
         self.prev = np.full(size, sc.start_assignment, dtype=np.int64)
         self.known = np.full((size, self.n), sc.start_assignment, dtype=np.int64)
         b = episode // self.batch
@@ -405,7 +405,7 @@ class AgentMind:
         caps = self.model.joint_capability(joint)
         self.belief, bad = bf.update(self.model, self.belief, caps, lik)
         self.impossible += int(bad.sum())
-        self.marg = bf.marginals(self.belief)
+        self.marg = bf.marginals(self.model, self.belief)
         prev = np.broadcast_to(self.prev[:, None], (size, n))
         marg = np.broadcast_to(self.marg[:, None], (size, n, *self.marg.shape[1:]))
         r, parts = reward(self.model, self.tables, prev, marg, joint)

@@ -1,14 +1,17 @@
-"""The belief filter of docs/model.md (Eq. 2 of the paper): per-site joint belief over (fire, rescue) levels.
+"""The belief filter of docs/model.md (Eq. 2 of the paper): per-site joint belief over the levels of the site's tasks.
 
-Vectorized over a batch of episodes and the agents of a team: beliefs have shape (B, N, S, L, L).
+A site's belief is a joint distribution over one level per kind of the scenario (K "slots", in the order of
+`Scenario.kinds`); a kind the site has no task of is a slot certain of level 0 that nothing changes. Vectorized over
+a batch of episodes and the agents of a team: beliefs have shape (B, N, S, L, ..., L) with K level axes.
 
 Every number is computed with the same floating-point operations in the same order as the plain formulas (a
-prediction is the sum over the previous level, in increasing order, of belief x T; the posterior is prediction x
-fire likelihood x rescue likelihood, normalised by numpy's pairwise sum of the site's L·L entries; marginals as
-numpy sums them), so results do not depend on the batch shape: one agent's row at batch 1 (the ROS agents,
-`AgentMind`) equals its row in a batch of the in-process `Team` bit for bit. What makes it fast keeps those numbers:
+prediction applies each kind's factor of T in turn, the kinds that depend on another first, each the sum over the
+previous level, in increasing order, of belief x T; the posterior is prediction x the likelihood of every slot in
+slot order, normalised by numpy's pairwise sum of the site's L^K entries; marginals as numpy sums them), so results
+do not depend on the batch shape: one agent's row at batch 1 (the ROS agents, `AgentMind`) equals its row in a
+batch of the in-process `Team` bit for bit. What makes it fast keeps those numbers:
 
-- the site-major layout (L·L, S, ...) of `to_sites`: every operation runs over long contiguous rows of episodes;
+- the site-major layout (L^K, S, ...) of `to_sites`: every operation runs over long contiguous rows of episodes;
 - T is banded (a level moves by at most a few steps), so a prediction adds only the terms whose table entry can be
   non-zero; the others are exact zeros, and adding +0.0 to a non-negative sum changes no bit;
 - the likelihood of any combination of evidence comes from a table computed once with the same products
@@ -28,7 +31,8 @@ from htlm_world.scenario import Scenario
 from htlm_world.types import Belief, BoolArray, FloatArray, IntArray, Marginals
 
 EVIDENCE_TABLE_LIMIT = 1 << 21
-"""Largest evidence table (N · (L+1)^N · L entries) kept in memory; beyond it the likelihood is multiplied out."""
+"""Largest evidence table (classes · N · (L+1)^N · L entries) kept in memory; beyond it the likelihood is
+multiplied out."""
 
 
 @dataclass(frozen=True)
@@ -47,12 +51,12 @@ class Band:
 
 @dataclass(frozen=True)
 class Bands:
-    """One factor of T (rescue or fire) as bands, in the order their terms are added. The L·L entries of a site
-    (row-major (first level, second level)) are grouped in units of `width` consecutive entries that share their
-    coefficients: single entries for rescue, whole rows of one fire level for fire (its T ignores the rescue level)."""
+    """One kind's factor of T as bands, in the order their terms are added. The L^K entries of a site (row-major
+    over the slots) are grouped in units of `width` consecutive entries that share their coefficients (entries that
+    differ only in slots after both the kind's own and the one it depends on)."""
 
     width: int
-    """Entries per unit (1 or L)."""
+    """Entries per unit (a power of L)."""
     bands: tuple[Band, ...]
     """The bands whose coefficients can be non-zero, in the order their terms are added."""
     starts: bool
@@ -60,32 +64,29 @@ class Bands:
     ones: int
     """From this unit on, the first band's coefficient is 1.0 for every capability: its terms are copies."""
     table: FloatArray
-    """(C+1, rows) the coefficients of every band's output units, by joint capability."""
+    """(C+2, rows) the coefficients of every band's output units, by joint capability (row C+1: no task, 1.0)."""
 
     @staticmethod
-    def build(coef: FloatArray, offsets: list[int], levels: int) -> Bands:
-        """Bands of a factor given as coef[c, out, in] over flat entries of a site's L·L block.
+    def build(tabs: list[tuple[int, FloatArray]], levels: int) -> Bands:
+        """Bands of a factor given as its coefficient rows.
 
         Args:
-            coef: (C+1, L·L, L·L) coefficient of input entry `in` in output entry `out`.
-            offsets: the flat offsets in the order of the original sum (increasing summed level).
+            tabs: (offset, tab) in the order of the original sum (increasing summed level): tab[c, out] is the
+                coefficient of input entry out + offset in output entry out, for every capability c.
             levels: L.
         """
-        n = levels * levels
-        tabs = []
-        for off in offsets:
-            tab = np.zeros((coef.shape[0], n))
-            for out in range(n):
-                if 0 <= out + off < n:
-                    tab[:, out] = coef[:, out, out + off]
-            tabs.append(tab)
-        rows_shared = all(off % levels == 0 for off in offsets) and all(
-            (t.reshape(t.shape[0], levels, levels) == t.reshape(t.shape[0], levels, levels)[..., :1]).all()
-            for t in tabs
-        )
-        width = levels if rows_shared else 1
+        n = tabs[0][1].shape[1] if tabs else 1
+        width = 1
+        w = n // levels
+        while w > 1:
+            if all(off % w == 0 for off, _ in tabs) and all(
+                (t.reshape(t.shape[0], -1, w) == t.reshape(t.shape[0], -1, w)[..., :1]).all() for _, t in tabs
+            ):
+                width = w
+                break
+            w //= levels
         found: list[tuple[int, int, int, FloatArray]] = []
-        for off, tab in zip(offsets, tabs, strict=True):
+        for off, tab in tabs:
             units = tab[:, ::width]
             nz = np.flatnonzero((units != 0.0).any(axis=0))
             if nz.size:
@@ -106,7 +107,8 @@ class Bands:
         for off, lo, hi, _ in found:
             bands.append(Band(off, lo, hi, row))
             row += hi - lo
-        table = np.concatenate([f[3] for f in found], axis=1) if found else np.zeros((coef.shape[0], 0))
+        rows = tabs[0][1].shape[0] if tabs else 1
+        table = np.concatenate([f[3] for f in found], axis=1) if found else np.zeros((rows, 0))
         return Bands(width, tuple(bands), starts, ones, np.ascontiguousarray(table))
 
     def coefficients(self, caps: IntArray) -> FloatArray:
@@ -143,58 +145,99 @@ class FilterTables:
 
     levels: int
     """L."""
-    rescue: Bands
-    """The rescue factor of T: entry (f, r') from entries (f, r), summed over r in increasing order."""
-    fire: Bands
-    """The fire factor of T: entry (f', r') from entries (f, r'), summed over f in increasing order."""
+    kinds: int
+    """K, the slots of a site's joint belief."""
+    factors: tuple[tuple[int, Bands], ...]
+    """(slot, its factor of T) in the order the prediction applies them: a kind before the kind it depends on
+    (whose slot still holds the current level when the dependent's factor reads it)."""
+    slot_task: IntArray
+    """(K, S) the task of every slot of every site; p (a stand-in: capability C+1, likelihood 1) where the site has
+    no task of that kind."""
+    absent: int
+    """The capability index of a slot without a task (C+1): its factor is the identity."""
     base: int
     """L + 1: the evidence code of a task holds one digit per agent, 0 for no report, else the level + 1."""
     powers: IntArray
     """(N,) base^k, the place of agent k's digit."""
     evidence: FloatArray | None
-    """(N · base^N, L) likelihood of every code for every receiving agent (row i · base^N + code), the product of
-    the reports' likelihood rows in increasing agent order (O for the receiver's own report, I for others');
-    None when larger than EVIDENCE_TABLE_LIMIT."""
+    """(classes · N · base^N, L) likelihood of every code for every receiving agent and accuracy class (row
+    (class · N + i) · base^N + code), the product of the reports' likelihood rows in increasing agent order (O for the
+    receiver's own report, I for others'); None when larger than EVIDENCE_TABLE_LIMIT."""
     by_level: FloatArray | None
-    """(L, N · base^N) the evidence table, level-major."""
+    """(L, classes · N · base^N) the evidence table, level-major."""
 
     @staticmethod
     def build(model: Model) -> FilterTables:
         """Compute the tables of `model`."""
         sc = model.scenario
-        L, n = sc.levels, sc.n_agents
-        cmax = model.rescue.shape[0]
-        eye = np.eye(L)
-        # rescue: out (f, r'), in (f, r), coefficient T_rescue[c, f, r, r']
-        rescue = np.einsum("cfrs,fg->cfsgr", model.rescue, eye).reshape(cmax, L * L, L * L)
-        # fire: out (f', r'), in (f, r'), coefficient T_fire[c, f, f']
-        fire = np.einsum("cfg,sr->cgsfr", model.fire, eye).reshape(cmax, L * L, L * L)
-        r_off = sorted({d for d in range(-(L - 1), L) if _band_nonzero(rescue, d)})
-        f_off = sorted({d for d in range(-(L - 1) * L, L * L, L) if _band_nonzero(fire, d)})
+        L, n, K = sc.levels, sc.n_agents, sc.n_kinds
+        names = list(sc.kind_names)
+        gate = [names.index(k.depends_on) if k.depends_on else -1 for k in sc.kinds]
+        depth = []
+        for k in range(K):
+            d, g = 0, gate[k]
+            while g >= 0:
+                d, g = d + 1, gate[g]
+            depth.append(d)
+        order = sorted(range(K), key=lambda k: (-depth[k], -k))
+        factors = tuple((k, _factor_bands(model.kind_tables[k], k, gate[k], K, L)) for k in order)
+        slot_task = np.where(model.site_task >= 0, model.site_task, sc.n_tasks).T.copy()
         base = L + 1
         powers = base ** np.arange(n, dtype=np.int64)
-        size = n * base**n * L
+        size = model.obs.shape[0] * n * base**n * L
         ev = _evidence_table(model, base) if size <= EVIDENCE_TABLE_LIMIT else None
         return FilterTables(
             levels=L,
-            rescue=Bands.build(rescue, r_off, L),
-            fire=Bands.build(fire, f_off, L),
+            kinds=K,
+            factors=factors,
+            slot_task=slot_task,
+            absent=sc.capability_max + 1,
             base=base,
             powers=powers,
             evidence=ev,
             by_level=None if ev is None else np.ascontiguousarray(ev.T),
         )
 
+    def slot_caps(self, caps: IntArray) -> list[IntArray]:
+        """Every slot's joint capabilities (S, ...) of task-major capabilities (p, ...)."""
+        ext = np.concatenate([caps, np.full((1,) + caps.shape[1:], self.absent, dtype=caps.dtype)])
+        return [ext[self.slot_task[k]] for k in range(self.kinds)]
 
-def _band_nonzero(coef: FloatArray, off: int) -> bool:
-    n = coef.shape[1]
-    return any(bool((coef[:, out, out + off] != 0.0).any()) for out in range(n) if 0 <= out + off < n)
+    def slot_likelihoods(self, lik: FloatArray, axis: int) -> list[FloatArray]:
+        """Every slot's likelihood of task-major likelihoods: the task axis `axis` of `lik` replaced by the sites
+        (S), a slot without a task weighing every level 1."""
+        ones = np.ones(lik.shape[:axis] + (1,) + lik.shape[axis + 1 :])
+        ext = np.concatenate([lik, ones], axis=axis)
+        return [np.take(ext, self.slot_task[k], axis=axis) for k in range(self.kinds)]
 
 
-def _report_tables(model: Model, receiver: int) -> list[FloatArray]:
-    """The likelihood table (L true levels, L reported levels) of every agent's report as `receiver` weighs it."""
+def _factor_bands(table: FloatArray, slot: int, gate: int, kinds: int, levels: int) -> Bands:
+    """The bands of one kind's factor of T over a site's L^K entries: output entry (.., l', ..) takes the input
+    entries (.., l, ..) of the same other levels with coefficient T[c, g, l, l'], g the level of the slot `gate`
+    (the kind it depends on; -1: none, g = 0). Capability row C+1 is the identity (a site without this task)."""
+    L, K = levels, kinds
+    cmax = table.shape[0]
+    full = np.concatenate([table, np.broadcast_to(np.eye(L), (1,) + table.shape[1:])], axis=0)
+    idx = np.indices((L,) * K).reshape(K, -1)
+    out_level = idx[slot]
+    g = idx[gate] if gate >= 0 else np.zeros_like(out_level)
+    stride = L ** (K - 1 - slot)
+    tabs = []
+    for delta in range(-(L - 1), L):
+        in_level = out_level + delta
+        ok = (in_level >= 0) & (in_level < L)
+        tab = np.zeros((cmax + 1, out_level.size))
+        tab[:, ok] = full[:, g[ok], in_level[ok], out_level[ok]]
+        if (tab != 0.0).any():
+            tabs.append((delta * stride, tab))
+    return Bands.build(tabs, L)
+
+
+def _report_tables(model: Model, receiver: int, cls: int) -> list[FloatArray]:
+    """The likelihood table (L true levels, L reported levels) of every agent's report on a task of accuracy class
+    `cls` as `receiver` weighs it."""
     return [
-        model.obs[model.sensing[k]] if k == receiver else model.info[model.sensing[k], model.comm[k]]
+        model.obs[cls, model.sensing[k]] if k == receiver else model.info[cls, model.sensing[k], model.comm[k]]
         for k in range(model.scenario.n_agents)
     ]
 
@@ -203,20 +246,22 @@ def _evidence_table(model: Model, base: int) -> FloatArray:
     n, L = model.scenario.n_agents, model.scenario.levels
     codes = np.arange(base**n, dtype=np.int64)
     ones = np.ones((L, 1))
-    # every agent's report row of every code, as a teammate's message (I) and as the receiver's own observation
-    # (O); digit 0 (no report) gives a row of ones, and x * 1.0 is x
-    heard, own = [], []
-    for k in range(n):
-        digit = (codes // base**k) % base
-        heard.append(np.hstack([ones, model.info[model.sensing[k], model.comm[k]]])[:, digit].T)
-        own.append(np.hstack([ones, model.obs[model.sensing[k]]])[:, digit].T)
-    out = np.empty((n, codes.size, L))
-    for i in range(n):
-        lik = np.ones((codes.size, L))
+    classes = model.obs.shape[0]
+    out = np.empty((classes, n, codes.size, L))
+    for c in range(classes):
+        # every agent's report row of every code, as a teammate's message (I) and as the receiver's own observation
+        # (O); digit 0 (no report) gives a row of ones, and x * 1.0 is x
+        heard, own = [], []
         for k in range(n):
-            lik *= own[k] if k == i else heard[k]
-        out[i] = lik
-    return out.reshape(n * codes.size, L)
+            digit = (codes // base**k) % base
+            heard.append(np.hstack([ones, model.info[c, model.sensing[k], model.comm[k]]])[:, digit].T)
+            own.append(np.hstack([ones, model.obs[c, model.sensing[k]]])[:, digit].T)
+        for i in range(n):
+            lik = np.ones((codes.size, L))
+            for k in range(n):
+                lik *= own[k] if k == i else heard[k]
+            out[c, i] = lik
+    return out.reshape(classes * n * codes.size, L)
 
 
 _BY_MODEL: dict[int, tuple[weakref.ref[Model], FilterTables]] = {}
@@ -247,35 +292,40 @@ def _same_tables(a: Model, b: Model) -> bool:
     """Whether two models hold the tables the filter is computed from."""
     return all(
         np.array_equal(getattr(a, name), getattr(b, name))
-        for name in ("fire", "rescue", "obs", "info", "sensing", "comm")
+        for name in ("transition_pdf", "obs", "info", "sensing", "comm", "site_task")
     )
 
 
 # ----- layouts --------------------------------------------------------------------------------------------------
 
 
-def to_sites(belief: Belief) -> FloatArray:
-    """The site-major view (L·L, S, ...) of beliefs (..., S, L, L) (a view when the layout allows)."""
-    k = belief.ndim - 3
-    flat = belief.reshape(belief.shape[:-2] + (-1,))
+def to_sites(belief: Belief, kinds: int) -> FloatArray:
+    """The site-major view (L^K, S, ...) of beliefs (..., S, L, ..., L) with K level axes (a view when the layout
+    allows)."""
+    k = belief.ndim - kinds - 1
+    flat = belief.reshape(belief.shape[: k + 1] + (-1,))
     return flat.transpose(k + 1, k, *range(k))
 
 
-def from_sites(x: FloatArray) -> Belief:
-    """The inverse of `to_sites`: beliefs (..., S, L, L) of site-major x (L·L, S, ...), a view of x."""
-    L, k = math.isqrt(x.shape[0]), x.ndim - 2
-    return x.reshape((L, L) + x.shape[1:]).transpose(*range(3, 3 + k), 2, 0, 1)
+def from_sites(x: FloatArray, levels: int, kinds: int) -> Belief:
+    """The inverse of `to_sites`: beliefs (..., S, L, ..., L) of site-major x (L^K, S, ...), a view of x."""
+    k = x.ndim - 2
+    grid = x.reshape((levels,) * kinds + x.shape[1:])
+    return grid.transpose(*range(kinds + 1, kinds + 1 + k), kinds, *range(kinds))
 
 
 def initial_belief(model: Model, batch: int) -> Belief:
-    """b0: certain of the initial levels, for every agent of every episode. (Also computes the model's
-    `filter_tables` if not yet done, so that the first step of an episode does not wait for them.)"""
+    """b0: certain of the initial levels (level 0 in the slots of kinds a site has no task of), for every agent
+    of every episode. (Also computes the model's `filter_tables` if not yet done, so that the first step of an
+    episode does not wait for them.)"""
     filter_tables(model)
     sc = model.scenario
     L = sc.levels
-    b = np.zeros((batch, sc.n_agents, sc.n_sites, L, L))
+    b = np.zeros((batch, sc.n_agents, sc.n_sites) + (L,) * sc.n_kinds)
+    start = sc.initial_levels
     for s in range(sc.n_sites):
-        b[:, :, s, sc.initial_levels[2 * s], sc.initial_levels[2 * s + 1]] = 1.0
+        at = tuple(start[j] if j >= 0 else 0 for j in model.site_task[s])
+        b[(slice(None), slice(None), s, *at)] = 1.0
     return b
 
 
@@ -285,21 +335,25 @@ def initial_belief(model: Model, batch: int) -> Belief:
 def predict_sites(
     tables: FilterTables,
     x: FloatArray,
-    fire_caps: IntArray,
-    rescue_caps: IntArray,
+    caps: list[IntArray],
     out: FloatArray | None = None,
     work: tuple[FloatArray, FloatArray] | None = None,
 ) -> FloatArray:
-    """`predict` on site-major beliefs x (L·L, S, ...) with capabilities (S, ...) broadcastable against x[0].
+    """`predict` on site-major beliefs x (L^K, S, ...) with every slot's capabilities (S, ...) broadcastable
+    against x[0] (`FilterTables.slot_caps`).
 
     Args:
         out: where to write the prediction (shaped like x); a new array when None.
         work: two scratch arrays shaped like x; new ones when None.
     """
     tmp, part = work if work is not None else (np.empty_like(x), np.empty_like(x))
-    tables.rescue.apply(x, tables.rescue.coefficients(rescue_caps), tmp, part)
     pred = np.empty_like(x) if out is None else out
-    return tables.fire.apply(tmp, tables.fire.coefficients(fire_caps), pred, part)
+    src = x
+    last = len(tables.factors) - 1
+    for i, (slot, bands) in enumerate(tables.factors):
+        dst = pred if (last - i) % 2 == 0 else tmp  # the last factor writes into pred
+        src = bands.apply(src, bands.coefficients(caps[slot]), dst, part)
+    return pred
 
 
 def pairwise_sum(x: FloatArray, lo: int = 0, n: int | None = None, out: FloatArray | None = None) -> FloatArray:
@@ -335,18 +389,16 @@ def pairwise_sum(x: FloatArray, lo: int = 0, n: int | None = None, out: FloatArr
 def update_sites(
     tables: FilterTables,
     x: FloatArray,
-    fire_caps: IntArray,
-    rescue_caps: IntArray,
-    fire_lik: FloatArray,
-    rescue_lik: FloatArray,
+    caps: list[IntArray],
+    liks: list[FloatArray],
     out: FloatArray | None = None,
     work: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, BoolArray]:
-    """`update` on site-major beliefs x (L·L, S, ...).
+    """`update` on site-major beliefs x (L^K, S, ...).
 
     Args:
-        fire_caps, rescue_caps: (S, ...) joint capabilities, broadcastable against x[0].
-        fire_lik, rescue_lik: (L, S, ...) likelihood of every fire / rescue level, broadcastable against x[0].
+        caps: every slot's (S, ...) joint capabilities, broadcastable against x[0].
+        liks: every slot's (L, S, ...) likelihood of every level, broadcastable against x[0].
         out: where to write the new beliefs (shaped like x, not overlapping it); a new array when None.
         work: two scratch arrays shaped like x; new ones when None.
 
@@ -354,13 +406,15 @@ def update_sites(
         The new site-major beliefs and the (S, ...) mask of sites whose evidence had zero probability (they keep
         the prediction).
     """
-    L = tables.levels
+    L, K = tables.levels, tables.kinds
     post, part = work if work is not None else (np.empty_like(x), np.empty_like(x))
     pred = np.empty_like(x) if out is None else out  # the prediction, then the posterior
-    predict_sites(tables, x, fire_caps, rescue_caps, pred, (post, part))
-    grid = (L, L) + x.shape[1:]
-    # (prediction x fire likelihood) x rescue likelihood in one pass: einsum multiplies its operands left to right
-    np.einsum("gs...,g...,s...->gs...", pred.reshape(grid), fire_lik, rescue_lik, out=post.reshape(grid))
+    predict_sites(tables, x, caps, pred, (post, part))
+    grid = (L,) * K + x.shape[1:]
+    # prediction x every slot's likelihood in slot order, in one pass: einsum multiplies its operands left to right
+    axes = "gstuvwxyz"[:K]
+    spec = ",".join([f"{axes}...", *[f"{a}..." for a in axes]]) + f"->{axes}..."
+    np.einsum(spec, pred.reshape(grid), *liks, out=post.reshape(grid))
     z = pairwise_sum(post)
     bad: BoolArray = z <= 0.0
     if bad.any():  # those sites keep the prediction
@@ -370,17 +424,23 @@ def update_sites(
     return pred, bad
 
 
-def marginals_sites(x: FloatArray, out: tuple[FloatArray, FloatArray] | None = None) -> tuple[FloatArray, FloatArray]:
-    """Fire and rescue marginals (L, S, ...) of site-major beliefs x (L·L, S, ...), summed as `marginals` does;
-    written into `out` (fire, rescue) when given."""
-    L = math.isqrt(x.shape[0])
-    grid = x.reshape((L, L) + x.shape[1:])
-    fire_out, rescue = out if out is not None else (None, np.empty(grid.shape[1:]))
-    fire = pairwise_sum(grid.swapaxes(0, 1), out=fire_out)  # numpy sums the contiguous last axis pairwise
-    np.copyto(rescue, grid[0])  # and the other axis one level after the other
-    for f in range(1, L):
-        rescue += grid[f]
-    return fire, rescue
+def marginals_sites(x: FloatArray, levels: int, kinds: int) -> list[FloatArray]:
+    """Every slot's marginals (L, S, ...) of site-major beliefs x (L^K, S, ...), each the pairwise sum over the
+    other slots' entries in row-major order."""
+    L, K = levels, kinds
+    grid = x.reshape((L,) * K + x.shape[1:])
+    out = []
+    for k in range(K):
+        others = np.moveaxis(grid, k, K - 1).reshape((L ** (K - 1), L) + x.shape[1:])
+        out.append(pairwise_sum(others))
+    return out
+
+
+def task_marginals(model: Model, slots: list[FloatArray]) -> FloatArray:
+    """The marginals (L, p, ...) of every task, in task order, of every slot's marginals (L, S, ...)."""
+    stacked = np.stack(slots)  # (K, L, S, ...)
+    out: FloatArray = stacked[model.task_kind, :, model.task_site]  # (p, L, ...)
+    return out.swapaxes(0, 1)
 
 
 # ----- the evidence ---------------------------------------------------------------------------------------------
@@ -398,7 +458,7 @@ def evidence_codes(
     messages: IntArray,
 ) -> IntArray:
     """Every agent's evidence code of every task, all messages delivered: (B, N) -> (N, p, B) rows of
-    `FilterTables.evidence` (receiver i's code plus i · base^N)."""
+    `FilterTables.evidence` (receiver i's code plus (class · N + i) · base^N)."""
     sc = model.scenario
     t = filter_tables(model)
     p, n = sc.n_tasks, sc.n_agents
@@ -415,6 +475,8 @@ def evidence_codes(
     codes: IntArray = np.einsum("kjb,kb->kjb", onehot, own_digit - msg_digit)  # the receiver's own report
     codes += shared
     codes += (np.arange(n, dtype=np.int64) * t.base**n)[:, None, None]
+    if model.obs.shape[0] > 1:
+        codes += (model.task_class * (n * t.base**n))[None, :, None]
     return codes
 
 
@@ -429,7 +491,7 @@ def agent_codes(
     """Agent `agent`'s evidence code of every task (B, p): rows of `FilterTables.evidence` (see `agent_evidence`)."""
     sc = model.scenario
     t = filter_tables(model)
-    p = sc.n_tasks
+    p, n = sc.n_tasks, sc.n_agents
     levels = messages.copy()
     levels[:, agent] = own_observation
     ok = levels >= 0
@@ -442,7 +504,9 @@ def agent_codes(
         _check_levels(levels, ok & onehot.any(axis=-1), sc.levels)
     digit = np.where(ok, levels + 1, 0) * t.powers
     codes: IntArray = np.einsum("bkj,bk->bj", onehot, digit)
-    codes += agent * t.base**sc.n_agents
+    codes += agent * t.base**n
+    if model.obs.shape[0] > 1:
+        codes += model.task_class * (n * t.base**n)
     return codes
 
 
@@ -460,15 +524,18 @@ def _agent_evidence_product(
     p = sc.n_tasks
     lik = np.ones((b, p, sc.levels))
     rows = np.arange(b)
-    for k, table in enumerate(_report_tables(model, agent)):
+    tables = [_report_tables(model, agent, c) for c in range(model.obs.shape[0])]
+    for k in range(sc.n_agents):
         works = (actions[:, k] >= 0) & (actions[:, k] < p)
         task = np.where(works, actions[:, k], 0)
         level = own_observation if k == agent else messages[:, k]
         if k != agent and heard is not None:
             works = works & heard[:, k]
         ok = works & (level >= 0)
-        if ok.any():
-            lik[rows[ok], task[ok]] *= table[:, level[ok]].T
+        for c, by_agent in enumerate(tables):
+            sel = ok & (model.task_class[task] == c)
+            if sel.any():
+                lik[rows[sel], task[sel]] *= by_agent[k][:, level[sel]].T
     return lik
 
 
@@ -482,8 +549,9 @@ def agent_evidence(
 ) -> FloatArray:
     """Likelihood of agent `agent`'s evidence of one step for every task level: (B, p, L).
 
-    Its own observation is weighed with O, teammate k's message with I_k (docs/model.md, Information I); the
-    likelihood of a task is the product of its reports' rows in increasing agent order.
+    Its own observation is weighed with O, teammate k's message with I_k (docs/model.md, Information I), each of
+    the accuracy class of the task's kind; the likelihood of a task is the product of its reports' rows in
+    increasing agent order.
 
     Args:
         actions: (B, N) the joint assignment of the step (as the agent knows it).
@@ -498,21 +566,16 @@ def agent_evidence(
     return out
 
 
-def evidence_sites(
-    model: Model, actions: IntArray, observations: IntArray, messages: IntArray
-) -> tuple[FloatArray, FloatArray]:
-    """Every agent's evidence, all messages delivered, for `update_sites`: fire and rescue likelihoods
-    (L, S, N, B) of (B, N) actions, observations and messages (views of one (L, N, p, B) array)."""
-    sc = model.scenario
+def evidence_sites(model: Model, actions: IntArray, observations: IntArray, messages: IntArray) -> list[FloatArray]:
+    """Every agent's evidence, all messages delivered, for `update_sites`: every slot's likelihoods (L, S, N, B)
+    of (B, N) actions, observations and messages."""
     tables = filter_tables(model)
-    b, n = actions.shape
     if tables.by_level is None:
         lik = evidence(model, actions, observations, messages)  # (B, N, p, L)
         sites = np.ascontiguousarray(lik.transpose(3, 1, 2, 0))  # (L, N, p, B)
     else:
         sites = np.take(tables.by_level, evidence_codes(model, actions, observations, messages), axis=1)
-    grid = sites.reshape((sc.levels, n, sc.n_sites, 2, b)).transpose(0, 2, 1, 3, 4)  # (L, S, N, 2, B)
-    return grid[:, :, :, 0], grid[:, :, :, 1]
+    return [x.swapaxes(1, 2) for x in tables.slot_likelihoods(sites, axis=2)]  # (L, S, N, B)
 
 
 def evidence(model: Model, actions: IntArray, observations: IntArray, messages: IntArray) -> FloatArray:
@@ -527,32 +590,28 @@ def evidence(model: Model, actions: IntArray, observations: IntArray, messages: 
     return out
 
 
-# ----- the filter on (..., S, L, L) beliefs -------------------------------------------------------------------
-
-
-def _site_caps(caps: IntArray) -> tuple[IntArray, IntArray]:
-    """Fire and rescue capabilities (S, ...) of (..., p) capabilities."""
-    k = caps.ndim - 1
-    return caps[..., 0::2].transpose(k, *range(k)), caps[..., 1::2].transpose(k, *range(k))
+# ----- the filter on (..., S, L, ..., L) beliefs ----------------------------------------------------------------
 
 
 def predict(model: Model, belief: Belief, caps: IntArray) -> Belief:
     """Predict every site's belief with T (Eq. 2, sum over s of T(s, a, s') b(s)).
 
     Args:
-        belief: (..., S, L, L) over (fire, rescue).
+        belief: (..., S, L, ..., L) with K level axes.
         caps: (..., p) joint capabilities each belief assumes for the step.
     """
-    fire_caps, rescue_caps = _site_caps(caps)
-    x = predict_sites(filter_tables(model), to_sites(belief), fire_caps, rescue_caps)
-    return np.ascontiguousarray(from_sites(x))
+    sc = model.scenario
+    tables = filter_tables(model)
+    k = caps.ndim - 1
+    x = predict_sites(tables, to_sites(belief, sc.n_kinds), tables.slot_caps(caps.transpose(k, *range(k))))
+    return np.ascontiguousarray(from_sites(x, sc.levels, sc.n_kinds))
 
 
 def update(model: Model, belief: Belief, caps: IntArray, likelihood: FloatArray) -> tuple[Belief, np.ndarray]:
     """One step of Eq. 2: predict with T, multiply by the evidence, normalise.
 
     Args:
-        belief: (..., S, L, L), e.g. (B, N, S, L, L) for a team or (B, S, L, L) for one agent.
+        belief: (..., S, L, ..., L), e.g. (B, N, S, L, L) for a team or (B, S, L, L) for one agent (K = 2).
         caps: (..., p) joint capabilities each belief assumes for the step.
         likelihood: (..., p, L) from `evidence` or `agent_evidence`.
 
@@ -560,24 +619,23 @@ def update(model: Model, belief: Belief, caps: IntArray, likelihood: FloatArray)
         The new belief and a (...) mask of agents whose evidence had zero probability: they keep the prediction
         (docs/model.md), and the caller counts the event.
     """
-    fire_caps, rescue_caps = _site_caps(caps)
-    k = likelihood.ndim - 2
-    to_levels = (k + 1, k, *range(k))  # (..., S, L) -> (L, S, ...)
+    sc = model.scenario
+    tables = filter_tables(model)
+    k = caps.ndim - 1
+    to_levels = (k + 1, k, *range(k))  # (..., p, L) -> (L, p, ...)
     post, bad = update_sites(
-        filter_tables(model),
-        to_sites(belief),
-        fire_caps,
-        rescue_caps,
-        likelihood[..., 0::2, :].transpose(to_levels),
-        likelihood[..., 1::2, :].transpose(to_levels),
+        tables,
+        to_sites(belief, sc.n_kinds),
+        tables.slot_caps(caps.transpose(k, *range(k))),
+        tables.slot_likelihoods(likelihood.transpose(to_levels), axis=1),
     )
-    return np.ascontiguousarray(from_sites(post)), np.asarray(bad.any(axis=0), dtype=np.bool_)
+    return np.ascontiguousarray(from_sites(post, sc.levels, sc.n_kinds)), np.asarray(bad.any(axis=0), dtype=np.bool_)
 
 
-def marginals(belief: Belief) -> Marginals:
-    """Per-task marginals (..., p, L) in task order fire@site1, rescue@site1, fire@site2, ..."""
-    fire, rescue = marginals_sites(to_sites(belief))  # (L, S, ...)
-    out = np.stack([fire, rescue], axis=2)  # (L, S, 2, ...)
-    lead = belief.shape[:-3]
-    k = len(lead)
-    return np.ascontiguousarray(out.transpose(*range(3, 3 + k), 1, 2, 0)).reshape(lead + (-1, belief.shape[-1]))
+def marginals(model: Model, belief: Belief) -> Marginals:
+    """Per-task marginals (..., p, L) in task order (`Scenario.tasks`)."""
+    sc = model.scenario
+    slots = marginals_sites(to_sites(belief, sc.n_kinds), sc.levels, sc.n_kinds)  # each (L, S, ...)
+    out = task_marginals(model, slots)  # (L, p, ...)
+    k = out.ndim - 2
+    return np.ascontiguousarray(out.transpose(*range(2, 2 + k), 1, 0))

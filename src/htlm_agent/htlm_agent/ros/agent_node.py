@@ -427,7 +427,7 @@ class AgentNode(Node):
         if arrived != self.arrived_logged and arrived != "unknown":
             self.arrived_logged = arrived
             assert self.scenario is not None
-            site = self.scenario.sites[self.last_site]
+            site = self.scenario.site_names[self.last_site]
             self.get_logger().info(
                 f"robot at site {site}" if arrived == "yes" else f"robot on its way to site {site} ({distance:g} m)"
             )

@@ -94,16 +94,18 @@ class Team:
         self.reset()
 
     def _new_sites(self) -> FloatArray:
-        """Site-major beliefs (L*L, S, N, B): the episodes innermost, so that every operation of the filter runs
-        over long contiguous rows and the capability coefficients of a step (L*L, S, 1, B) broadcast over agents."""
+        """Site-major beliefs (L^K, S, N, B): the episodes innermost, so that every operation of the filter runs
+        over long contiguous rows and the capability coefficients of a step (L^K, S, 1, B) broadcast over agents."""
         sc = self.scenario
-        return np.empty((sc.levels * sc.levels, sc.n_sites, sc.n_agents, self.batch))
+        return np.empty((sc.levels**sc.n_kinds, sc.n_sites, sc.n_agents, self.batch))
 
     @property
     def belief(self) -> FloatArray:
-        """Every agent's belief (B, N, S, L, L): a view of the site-major beliefs the filter keeps (`belief.to_sites`
-        of the (N, B) agent-major batch), so writing into it changes the team's beliefs until the next step."""
-        view: FloatArray = bf.from_sites(self.sites).swapaxes(0, 1)
+        """Every agent's belief (B, N, S, L, ..., L): a view of the site-major beliefs the filter keeps
+        (`belief.to_sites` of the (N, B) agent-major batch), so writing into it changes the team's beliefs until the
+        next step."""
+        sc = self.scenario
+        view: FloatArray = bf.from_sites(self.sites, sc.levels, sc.n_kinds).swapaxes(0, 1)
         return view
 
     def reset(self) -> FloatArray:
@@ -112,7 +114,7 @@ class Team:
         self.sim.reset()
         b0 = bf.initial_belief(self.model, self.batch)
         self.sites = self._new_sites()
-        self.sites[...] = bf.to_sites(b0.swapaxes(0, 1))
+        self.sites[...] = bf.to_sites(b0.swapaxes(0, 1), sc.n_kinds)
         self.prev = np.full((self.batch, sc.n_agents), sc.start_assignment, dtype=np.int64)
         self.marg = self._marginals()
         self.t = 0
@@ -122,9 +124,8 @@ class Team:
     def _marginals(self) -> FloatArray:
         """Per-task marginals (B, N, p, L) of the beliefs (`belief.marginals`)."""
         sc = self.scenario
-        out = np.empty((sc.n_agents, sc.n_sites, 2, sc.levels, self.batch))  # (N, S, 2, L, B)
-        bf.marginals_sites(self.sites, (out[:, :, 0].transpose(2, 1, 0, 3), out[:, :, 1].transpose(2, 1, 0, 3)))
-        return np.ascontiguousarray(out.transpose(4, 0, 1, 2, 3)).reshape(self.batch, sc.n_agents, sc.n_tasks, -1)
+        slots = bf.marginals_sites(self.sites, sc.levels, sc.n_kinds)  # each (L, S, N, B)
+        return np.ascontiguousarray(bf.task_marginals(self.model, slots).transpose(3, 2, 1, 0))
 
     def knowledge(self) -> FloatArray:
         """Current knowledge states (B, N, K)."""
@@ -158,11 +159,9 @@ class Team:
         """
         actions = self.force_inactive(np.asarray(actions, dtype=np.int64))
         res = self.sim.step(actions)
-        fire_lik, rescue_lik = bf.evidence_sites(self.model, actions, res.observations, res.messages)  # (L, S, N, B)
-        caps = res.caps.T[:, None, :]  # (p, 1, B): every agent assumes the joint capabilities of the step
-        self.sites, bad_site = bf.update_sites(
-            self.filter, self.sites, caps[0::2], caps[1::2], fire_lik, rescue_lik, self._new_sites(), self._work
-        )
+        liks = bf.evidence_sites(self.model, actions, res.observations, res.messages)  # each (L, S, N, B)
+        caps = self.filter.slot_caps(res.caps.T[:, None, :])  # (S, 1, B): every agent assumes the step's joint
+        self.sites, bad_site = bf.update_sites(self.filter, self.sites, caps, liks, self._new_sites(), self._work)
         bad = np.asarray(bad_site.any(axis=0).T, dtype=np.bool_)  # (B, N)
         self.impossible_count += int(bad.sum())
         self.marg = self._marginals()

@@ -107,7 +107,7 @@ class RobotNode(RunFollower):
             return
         if self.sensing is None or self.sensing_episode != e:
             self.sensing, self.sensing_episode = Sensing(self.model, self.index, self.seed, e), e
-        z = self.sensing.observe(int(rec["levels"][0][a]))
+        z = self.sensing.observe(a, int(rec["levels"][0][a]))
         fields = {"agent": self.index, "episode": e, "step": t, "tasks": [a], "levels": [z], "acted": [self.index]}
         self.pub_obs.publish(string(encode(S.OBSERVATION, fields, self.signer)))
         self.sent += 1
