@@ -9,14 +9,13 @@ import pytest
 
 from htlm_world.scenario import (
     REASSIGN_COSTS,
-    TEAMS,
     RewardParams,
-    Scenario,
     ScenarioError,
     builtin,
     from_dict,
     load,
     named_scenarios,
+    team_names,
 )
 
 PAPER_YAML = Path(__file__).resolve().parent.parent / "src" / "htlm_world" / "htlm_world" / "scenarios" / "paper.yaml"
@@ -32,7 +31,8 @@ MODEL_MD_TEAMS = {
 def test_builtin_teams(team: str) -> None:
     sc = builtin(team)
     assert sc.team == team
-    assert [(a.fire, a.rescue) for a in sc.agents] == MODEL_MD_TEAMS[team]
+    assert [(a.capability("fire"), a.capability("rescue")) for a in sc.agents] == MODEL_MD_TEAMS[team]
+    assert sc.capability_table() == [list(c) for c in MODEL_MD_TEAMS[team]]
     assert [a.name for a in sc.agents] == [f"agent{i}" for i in range(1, 6)]
     assert all(a.sensing == 3 and a.comm == 3 and a.reward is None for a in sc.agents)
     assert sc.n_agents == 5 and sc.n_tasks == 4 and sc.n_idle == 2 and sc.n_actions == 6
@@ -40,13 +40,19 @@ def test_builtin_teams(team: str) -> None:
     assert sc.action_sites == (0, 0, 1, 1, 0, 1)
     assert sc.start_assignment == 4  # idle@site1
     assert sc.initial_levels == (4, 4, 4, 4) and sc.levels == 5 and sc.horizon == 30
-    assert sc.p_drop == (0.90, 0.60, 0.35, 0.15, 0.05) and sc.fire_growth == 0.10
+    assert sc.p_drop == (0.90, 0.60, 0.35, 0.15, 0.05)
+    fire, rescue = sc.kinds
+    assert (fire.name, fire.growth, fire.depends_on, fire.double_drop) == ("fire", 0.10, "", None)
+    assert (rescue.name, rescue.growth, rescue.depends_on, rescue.blocked_above) == ("rescue", 0.0, "fire", 2)
+    assert rescue.double_drop is not None
+    assert (rescue.double_drop.share, rescue.double_drop.min_level, rescue.double_drop.gate_at_most) == (0.5, 2, 1)
+    assert sc.site_positions == ((0.0, 0.0), (50.0, 0.0)) and sc.tasks == ((0, 0), (0, 1), (1, 0), (1, 1))
     assert sc.reward.level_rewards == (10.0, 5.0, 2.0, 1.0, 0.0) and sc.reward.belief_threshold == 0.97
     assert sc.reward.idle_bonus == 1.0 and sc.reward.idle_belief == "site"
     assert sc.sensing_base == 0.65 and sc.sensing_slope == 0.1 and sc.channel_base == 0.2  # accuracy 0.95, tau 0.8
     assert sc.reward.idle_incentive == 1.0 and sc.reward.reassign_cost == -1.0 and sc.gamma == 0.95
     assert sc.knowledge_size == 26
-    assert set(TEAMS) == set(MODEL_MD_TEAMS)
+    assert set(team_names()) == set(MODEL_MD_TEAMS)
 
 
 def test_builtin_settings() -> None:
@@ -55,7 +61,7 @@ def test_builtin_settings() -> None:
     assert builtin(idle_incentive=0.0).reward.idle_incentive == 0.0
     ht = builtin(mode="ht")
     assert ht.n_actions == 4 and ht.knowledge_size == 24 and ht.start_assignment == -1
-    with pytest.raises(ScenarioError, match="unknown team 'alien'"):
+    with pytest.raises(ScenarioError, match="team: 'alien' is not one of the scenario's teams"):
         builtin("alien")
     with pytest.raises(ScenarioError, match="'extreme'"):
         builtin(reassign="extreme")
@@ -80,7 +86,6 @@ def test_shipped_paper_yaml_equals_builtin() -> None:
 
 
 def test_defaults_and_partial_files(tmp_path: Path) -> None:
-    assert Scenario() == builtin()
     f = tmp_path / "short.yaml"
     f.write_text("horizon: 12\nteam: homogeneous\nreassign: high\nreward: {idle_incentive: 0.5}\n")
     sc = load(f)
@@ -102,28 +107,47 @@ def test_round_trip_with_own_reward_parameters() -> None:
 
 
 AGENTS_2 = "agents:\n  - {name: a, fire: 1, rescue: 1}\n"
+KINDS_3 = "kinds:\n  - {name: a}\n  - {name: b, depends_on: c}\n  - {name: c, depends_on: b}\n"
 
 BAD_FILES = [
     # (file text, field path, bad value as it must appear in the message)
     ("horizon: 10\nspeed: 3\n", "speed", "unknown key"),
-    (AGENTS_2 + "  - {name: b, fire: 1, rescue: 1, speed: 2}\n", "agents[1].speed", "unknown key"),
+    (AGENTS_2 + "  - {name: b, fire: 1, rescue: 1, speed: 2}\n", "agents[1].capabilities.speed", "no kind uses"),
     ("reward: {bonus: 2}\n", "reward.bonus", "unknown key"),
     ("horizon: ten\n", "horizon", "'ten'"),
     ("horizon: 10.5\n", "horizon", "10.5"),
     ("channel: 1\n", "channel", "1"),
     ("mode: xyz\n", "mode", "'xyz'"),
     ("team: alien\n", "team", "'alien'"),
-    (AGENTS_2 + "  - {name: b, fire: three, rescue: 1}\n", "agents[1].fire", "'three'"),
-    (AGENTS_2 + "  - {name: b, fire: 7, rescue: 1}\n", "agents[1].fire", "7"),
-    (AGENTS_2 + "  - {name: b, fire: 1, rescue: -1}\n", "agents[1].rescue", "-1"),
+    (AGENTS_2 + "  - {name: b, fire: three, rescue: 1}\n", "agents[1].capabilities.fire", "'three'"),
+    (AGENTS_2 + "  - {name: b, fire: 7, rescue: 1}\n", "agents[1].capabilities.fire", "7"),
+    (AGENTS_2 + "  - {name: b, fire: 1, rescue: -1}\n", "agents[1].capabilities.rescue", "-1"),
     ("agents:\n  - {name: a, fire: 1, rescue: 1, sensing: 6}\n", "agents[0].sensing", "6"),
     ("agents:\n  - {name: a, fire: 1, rescue: 1, comm: 9}\n", "agents[0].comm", "9"),
-    ("fire_growth: 1.5\n", "fire_growth", "1.5"),
+    ("fire_growth: 1.5\n", "kinds[0].growth", "1.5"),  # the first file format's key, read into its kind
     ("p_drop: [0.9, 0.6, -0.1]\n", "p_drop[2]", "-0.1"),
-    ("rescue_double_share: 2.0\n", "rescue_double_share", "2.0"),
+    ("rescue_double_share: 2.0\n", "kinds[1].double_drop.share", "2.0"),
     ("reward: {belief_threshold: 1.2}\n", "reward.belief_threshold", "1.2"),
     ("agents: []\n", "agents", "[]"),
-    ("initial_levels: [4, 4, 5, 4]\n", "initial_levels[2]", "5"),
+    ("initial_levels: [4, 4, 5, 4]\n", "sites[1].tasks.fire", "5"),
+    ("initial_levels: [4, 4, 4]\n", "initial_levels", "3 entries, the scenario has 4 tasks"),
+    ("sites:\n  - {name: s1, tasks: {fire: 4, smoke: 2}}\n", "sites[0].tasks.smoke", "'smoke' is not a kind"),
+    ("sites:\n  - {name: s1, tasks: {}}\n", "sites[0].tasks", "at least one task"),
+    ("sites:\n  - {name: s1, tasks: {fire: 4}}\n  - {name: s1, tasks: {fire: 4}}\n", "sites[1].name", "'s1'"),
+    ("sites: []\n", "sites", "at least one site"),
+    ("kinds: []\n", "kinds", "at least one kind"),
+    ("kinds:\n  - {name: fire}\n  - {name: rescue, depends_on: flood}\n", "kinds[1].depends_on", "'flood'"),
+    ("kinds:\n  - {name: fire, depends_on: rescue}\n  - {name: rescue, depends_on: fire}\n", "kinds[0].depends_on",
+     "fire -> rescue -> fire"),
+    (KINDS_3 + "sites:\n  - {name: s, tasks: {a: 1}}\nagents:\n  - {name: x, a: 1}\n", "kinds[1].depends_on",
+     "b -> c -> b"),
+    ("kinds:\n  - {name: fire}\n  - {name: rescue, blocked_above: 2}\n", "kinds[1].blocked_above", "needs depends_on"),
+    ("kinds:\n  - {name: fire}\n  - {name: rescue, depends_on: fire, blocked_above: 7}\n", "kinds[1].blocked_above",
+     "7"),
+    ("kinds:\n  - {name: fire}\n  - {name: rescue, double_drop: {min_level: 1}}\n", "kinds[1].double_drop.min_level",
+     "1"),
+    ("kinds:\n  - {name: fire, growth: 2}\n  - {name: rescue}\n", "kinds[0].growth", "2"),
+    (AGENTS_2.replace("rescue: 1", "rescue: 0"), "kinds[1]", "no agent can work on it"),
     ("horizon: 0\n", "horizon", "0"),
     (
         "agents:\n  - {name: a, fire: 1, rescue: 1, reward: {reassign_cost: 2.0}}\n",
@@ -166,3 +190,51 @@ def test_missing_file(tmp_path: Path) -> None:
 def test_replace_validates() -> None:
     with pytest.raises(ScenarioError, match=r"<replace>: horizon: -3"):
         builtin().replace(horizon=-3)
+
+
+def test_kinds_sites_and_agents_of_any_operation(tmp_path: Path) -> None:
+    """Sites may hold different kinds; a kind names the capability it uses; capabilities are a map."""
+    f = tmp_path / "depot.yaml"
+    f.write_text(
+        "name: depot\n"
+        "kinds:\n"
+        "  - {name: restock, capability: lift, growth: 0.05}\n"
+        "  - {name: pick, capability: lift, depends_on: restock, blocked_above: 1}\n"
+        "  - {name: inspect, sensing_base: 0.8}\n"
+        "sites:\n"
+        "  - {name: aisle1, position: [0, 0], tasks: {pick: 3, restock: 2, inspect: 1}}\n"
+        "  - {name: dock, position: [30, 10], tasks: {inspect: 4}}\n"
+        "agents:\n"
+        "  - {name: r1, capabilities: {lift: 3}}\n"
+        "  - {name: r2, lift: 1, inspect: 2, sensing: 4}\n"
+    )
+    sc = load(f)
+    assert sc.kind_names == ("restock", "pick", "inspect") and sc.site_names == ("aisle1", "dock")
+    assert sc.tasks == ((0, 0), (0, 1), (0, 2), (1, 2))  # site by site, the kinds in the order of `kinds`
+    assert sc.initial_levels == (2, 3, 1, 4) and sc.n_tasks == 4 and sc.n_actions == 6
+    assert sc.action_names == ("restock@aisle1", "pick@aisle1", "inspect@aisle1", "inspect@dock", "idle@aisle1", "idle@dock")
+    assert sc.capability_table() == [[3, 3, 0], [1, 1, 2]]
+    assert sc.total_capability(0) == 3 and sc.total_capability(1) == 3  # lift counted once
+    assert sc.team == "" and from_dict(sc.to_dict()) == sc
+
+
+def test_the_first_file_format_still_loads() -> None:
+    """Files and checkpoints written before kinds were data: sites by name, initial_levels, site_positions and the
+    paper's kind rules as top-level keys."""
+    old = {
+        "name": "paper",
+        "sites": ["site1", "site2"],
+        "site_positions": [[0.0, 0.0], [50.0, 0.0]],
+        "initial_levels": [4, 4, 4, 4],
+        "fire_growth": 0.1,
+        "rescue_block_fire": 2,
+        "rescue_double_fire": 1,
+        "rescue_double_min_level": 2,
+        "rescue_double_share": 0.5,
+        "team": "heterogeneous",
+        "agents": [
+            {"name": f"agent{i + 1}", "fire": f, "rescue": r, "sensing": 3, "comm": 3, "reward": None}
+            for i, (f, r) in enumerate(MODEL_MD_TEAMS["heterogeneous"])
+        ],
+    }
+    assert from_dict(old) == builtin()

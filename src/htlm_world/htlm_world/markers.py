@@ -4,8 +4,9 @@ of markers (`Mark`), which htlm_world.ros.markers turns into a visualization_msg
 Every marker has a stable id in its namespace, so a marker of an update replaces the one a viewer shows:
 
 - `sites`, `site_labels`: a flat disc at every site's position of the scenario (`site_positions`), with its name;
-- `tasks`, `task_labels`: the fire task (cube) and the rescue task (sphere) of every site, coloured by their true
-  level (green, done, at level 0 through yellow to red at level L-1; grey when unknown), labelled with the level;
+- `tasks`, `task_labels`: every task of every site in a row above its centre (a cube or a sphere, alternating with
+  the kind: the first kind of the scenario a cube, the second a sphere, ...), coloured by their true level (green,
+  done, at level 0 through yellow to red at level L-1; grey when unknown), labelled with its kind and level;
 - `agents`, `agent_labels`: every agent (a cylinder) at the site of its assignment, in a column below the site's
   tasks; opaque blue while working on a task, pale and translucent while idle, labelled with its name and what it
   does (and "absent" when the world idled it for a missing action);
@@ -25,7 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from htlm_world.scenario import TASK_TYPES, Scenario
+from htlm_world.scenario import Scenario
 
 FRAME = "map"
 """Fixed frame of every marker: the frame of the scenario's site positions and of the agents' goal poses."""
@@ -146,20 +147,28 @@ class Layout:
         ]
         """The sites' discs and names: the same in every update."""
         self.fixed += [
-            Mark("site_labels", s, TEXT, x, y + 4.9 * u, 0.5 * u, sz=0.8 * u, rgba=TEXT_COLOUR, text=sc.sites[s])
+            Mark("site_labels", s, TEXT, x, y + 4.9 * u, 0.5 * u, sz=0.8 * u, rgba=TEXT_COLOUR, text=sc.site_names[s])
             for s, (x, y) in enumerate(pos)
         ]
         xs, ys = [x for x, _ in pos], [y for _, y in pos]
         self.status_at = ((min(xs) + max(xs)) / 2, max(ys) + self.radius + 1.0 * u)
         """Where the status line goes: above the sites."""
+        self.task_place: list[tuple[int, float]] = []
+        """(site, place in the site's row of tasks, of how many) of every task."""
+        for s, k in sc.tasks:
+            row = [kk for ss, kk in sc.tasks if ss == s]
+            self.task_place.append((s, row.index(k) - (len(row) - 1) / 2))
+        self.kind_of = [k for _, k in sc.tasks]
+        """Kind index of every task."""
         self._tasks: dict[tuple[int, int], tuple[Mark, Mark]] = {}
         self._agents: dict[tuple[int, int, int, int, bool], tuple[Mark, Mark]] = {}
 
     def task(self, j: int) -> tuple[float, float]:
-        """Centre of task j (fire to the left, rescue to the right, above the site's centre)."""
-        x, y = self.positions[j // 2]
+        """Centre of task j: the site's tasks in a row above its centre, in the order of the scenario's kinds."""
+        s, place = self.task_place[j]
+        x, y = self.positions[s]
         u = self.unit
-        return x + (-1.8 if j % 2 == 0 else 1.8) * u, y + 1.8 * u
+        return x + 3.6 * place * u, y + 1.8 * u
 
     def agent(self, s: int, slot: int) -> tuple[float, float]:
         """Centre of the agent in column slot `slot` of site s (slot 0 just below the site's centre)."""
@@ -173,7 +182,8 @@ class Layout:
         if got is None:
             x, y = self.task(j)
             u = self.unit
-            shape = CUBE if j % 2 == 0 else SPHERE
+            kind = self.kind_of[j]
+            shape = CUBE if kind % 2 == 0 else SPHERE
             lv = None if level < 0 else level
             state = "level ?" if lv is None else ("done" if lv == 0 else f"level {lv}")
             got = (
@@ -189,7 +199,7 @@ class Layout:
                     1.6 * u,
                     sz=0.5 * u,
                     rgba=TEXT_COLOUR,
-                    text=f"{TASK_TYPES[j % 2]}\n{state}",
+                    text=f"{self.scenario.kinds[kind].name}\n{state}",
                 ),
             )
             self._tasks[(j, level)] = got
@@ -203,7 +213,7 @@ class Layout:
             p, u = self.scenario.n_tasks, self.unit
             x, y = self.agent(site, slot)
             working = 0 <= action < p
-            does = TASK_TYPES[action % 2] if working else ("idle" if action >= p else "no action")
+            does = self.scenario.kinds[self.kind_of[action]].name if working else ("idle" if action >= p else "no action")
             text = f"{self.scenario.agents[k].name}: {does}" + (" (absent)" if absent else "")
             # text is drawn centred on its position: put the centre so that the text starts just right of the agent
             lx = x + 0.6 * u + 0.5 * CHAR_WIDTH * 0.45 * u * len(text)

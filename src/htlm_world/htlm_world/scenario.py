@@ -420,6 +420,9 @@ def _agent_capabilities(agents: Any, src: str) -> Any:
                 raise ScenarioError(f"{src}: agents[{i}].capabilities: {a['capabilities']!r} is not a mapping")
             for key in [k for k in a if k not in _AGENT_FIELDS]:
                 caps[key] = a.pop(key)
+            for key, v in caps.items():
+                if not isinstance(key, str) or not isinstance(v, int) or isinstance(v, bool):
+                    raise ScenarioError(f"{src}: agents[{i}].capabilities.{key}: expected an integer level, got {v!r}")
             a["capabilities"] = caps
         out.append(a)
     return out
@@ -571,7 +574,7 @@ def _validate_kinds(sc: Scenario, src: str) -> None:
     top = sc.levels - 1
     for k, kind in enumerate(sc.kinds):
         at = f"kinds[{k}]"
-        if not kind.name or "@" in kind.name or names.count(kind.name) > 1:
+        if not kind.name or "@" in kind.name or kind.name in names[:k]:
             raise ScenarioError(f"{src}: {at}.name: {kind.name!r} must be a unique, non-empty name without '@'")
         _check_prob(src, f"{at}.growth", kind.growth)
         if kind.p_drop:
@@ -622,7 +625,7 @@ def _validate_sites(sc: Scenario, src: str) -> None:
     names = list(sc.site_names)
     kinds = list(sc.kind_names)
     for s, site in enumerate(sc.sites):
-        if not site.name or "@" in site.name or names.count(site.name) > 1:
+        if not site.name or "@" in site.name or site.name in names[:s]:
             raise ScenarioError(f"{src}: sites[{s}].name: {site.name!r} must be a unique, non-empty name without '@'")
         if not site.tasks:
             raise ScenarioError(f"{src}: sites[{s}].tasks: {{}}: a site needs at least one task")

@@ -10,13 +10,13 @@ import argparse
 import time
 from pathlib import Path
 
-from htlm_world.scenario import REASSIGN_COSTS, TEAMS, Scenario, builtin, load
+from htlm_world.scenario import REASSIGN_COSTS, Scenario, builtin, load
 
 
 def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     """--team, --idle-incentive, --reassign, --scenario, --mode."""
     g = p.add_argument_group("scenario")
-    g.add_argument("--team", choices=sorted(TEAMS), default=None, help="built-in team (default: heterogeneous)")
+    g.add_argument("--team", default=None, help="a team of the scenario's `teams` (default: the scenario's `team`; paper: heterogeneous, semi-heterogeneous, homogeneous)")
     g.add_argument(
         "--idle-incentive",
         type=float,
@@ -41,9 +41,7 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
 
 def scenario_from_args(args: argparse.Namespace) -> Scenario:
     """The scenario the options describe: a file or the built-in one, then the team, R_II, T_RP and mode given."""
-    sc = load(args.scenario) if args.scenario else builtin(args.team or "heterogeneous")
-    if args.scenario and args.team:
-        sc = sc.replace(agents=builtin(args.team).agents, team=args.team)
+    sc = load(args.scenario, team=args.team) if args.scenario else builtin(args.team or "heterogeneous")
     if args.idle_incentive is not None:
         sc = sc.with_reward(idle_incentive=args.idle_incentive)
     if args.reassign is not None:

@@ -6,12 +6,12 @@ import argparse
 import json
 import time
 
-from htlm_world.scenario import TEAMS, ScenarioError, builtin, load
+from htlm_world.scenario import ScenarioError, builtin, load
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm optimal`."""
-    p.add_argument("--team", choices=sorted(TEAMS), default=None, help="built-in team (default: heterogeneous)")
+    p.add_argument("--team", default=None, help="a team of the scenario's `teams` (default: the scenario's `team`; paper: heterogeneous, semi-heterogeneous, homogeneous)")
     p.add_argument("--scenario", default=None, help="scenario YAML file (default: the built-in 'paper')")
     p.add_argument("--json", action="store_true", help="print JSON")
 
@@ -21,9 +21,7 @@ def run(args: argparse.Namespace) -> int:
     from htlm_agent.baselines.optimal import solve
 
     try:
-        sc = load(args.scenario) if args.scenario else builtin(args.team or "heterogeneous")
-        if args.scenario and args.team:
-            sc = sc.replace(agents=builtin(args.team).agents, team=args.team)
+        sc = load(args.scenario, team=args.team) if args.scenario else builtin(args.team or "heterogeneous")
     except ScenarioError as e:
         raise SystemExit(f"htlm optimal: {e}") from None
     t0 = time.perf_counter()

@@ -425,14 +425,21 @@ def update_sites(
 
 
 def marginals_sites(x: FloatArray, levels: int, kinds: int) -> list[FloatArray]:
-    """Every slot's marginals (L, S, ...) of site-major beliefs x (L^K, S, ...), each the pairwise sum over the
-    other slots' entries in row-major order."""
+    """Every slot's marginals (L, S, ...) of site-major beliefs x (L^K, S, ...), summed over the other slots'
+    entries in row-major order as numpy sums a site's belief: pairwise, but one entry after the other for the last
+    slot (whose entries are not contiguous)."""
     L, K = levels, kinds
     grid = x.reshape((L,) * K + x.shape[1:])
     out = []
     for k in range(K):
         others = np.moveaxis(grid, k, K - 1).reshape((L ** (K - 1), L) + x.shape[1:])
-        out.append(pairwise_sum(others))
+        if k == K - 1 and K > 1:
+            total = others[0].copy()
+            for i in range(1, others.shape[0]):
+                total += others[i]
+            out.append(total)
+        else:
+            out.append(pairwise_sum(others))
     return out
 
 
