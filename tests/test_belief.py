@@ -17,7 +17,7 @@ from htlm_agent.mind import belief as bf
 from htlm_agent.mind import knowledge
 from htlm_agent.runtime.team import Team
 from htlm_world.model import Model
-from htlm_world.scenario import AgentSpec, Scenario, builtin
+from htlm_world.scenario import AgentSpec, Scenario, builtin, from_dict
 from test_model import L, ref_fire, ref_info, ref_obs, ref_rescue
 
 CMAX = 5
@@ -28,7 +28,7 @@ def ref_caps(sc: Scenario, actions: list[int]) -> list[int]:
     caps = [0] * sc.n_tasks
     for k, a in enumerate(actions):
         if 0 <= a < sc.n_tasks:
-            caps[a] += sc.agents[k].fire if a % 2 == 0 else sc.agents[k].rescue
+            caps[a] += sc.agents[k].capability("fire" if a % 2 == 0 else "rescue")
     return [min(CMAX, c) for c in caps]
 
 
@@ -92,8 +92,15 @@ def filter_cases(draw: Any) -> dict[str, Any]:
     and messages for a batch of 1-2 episodes."""
     n = draw(st.integers(1, 5))
     cap = st.integers(0, CMAX)
+    one = st.integers(1, CMAX)  # the first agent can work on every kind (a scenario needs someone for each)
     agents = tuple(
-        AgentSpec(name=f"a{i}", fire=draw(cap), rescue=draw(cap), sensing=draw(cap), comm=draw(cap)) for i in range(n)
+        AgentSpec(
+            name=f"a{i}",
+            capabilities={"fire": draw(one if i == 0 else cap), "rescue": draw(one if i == 0 else cap)},
+            sensing=draw(cap),
+            comm=draw(cap),
+        )
+        for i in range(n)
     )
     sc = builtin().replace(
         agents=agents,
@@ -165,7 +172,7 @@ def test_agent_update_with_lost_messages_equals_brute_force(case: dict[str, Any]
 
 def test_impossible_evidence_keeps_the_prediction_and_is_flagged() -> None:
     agents = list(builtin().agents)
-    agents[0] = AgentSpec(name="agent1", fire=3, rescue=1, sensing=5)  # accuracy 1.0
+    agents[0] = AgentSpec(name="agent1", capabilities={"fire": 3, "rescue": 1}, sensing=5)  # accuracy 1.0
     sc = builtin().replace(agents=tuple(agents))
     model = Model.build(sc)
     belief = bf.initial_belief(model, 1)  # certain of level 4 everywhere
@@ -183,7 +190,7 @@ def test_impossible_evidence_keeps_the_prediction_and_is_flagged() -> None:
 
 def test_team_counts_impossible_evidence() -> None:
     agents = list(builtin().agents)
-    agents[0] = AgentSpec(name="agent1", fire=3, rescue=1, sensing=5, comm=5)  # exact observations and messages
+    agents[0] = AgentSpec(name="agent1", capabilities={"fire": 3, "rescue": 1}, sensing=5, comm=5)  # exact observations and messages
     sc = builtin().replace(agents=tuple(agents))
     team = Team(sc, 1, seed=3)
     assert team.impossible_count == 0
@@ -203,7 +210,7 @@ def test_marginals_and_knowledge_layout() -> None:
     rng = np.random.default_rng(0)
     belief = rng.random((2, 5, 2, L, L))
     belief /= belief.sum(axis=(-1, -2), keepdims=True)
-    marg = bf.marginals(belief)
+    marg = bf.marginals(Model.build(builtin()), belief)
     assert marg.shape == (2, 5, 4, L)
     np.testing.assert_allclose(marg[:, :, 0], belief[:, :, 0].sum(axis=-1))  # fire@site1
     np.testing.assert_allclose(marg[:, :, 1], belief[:, :, 0].sum(axis=-2))  # rescue@site1
@@ -221,7 +228,7 @@ def test_marginals_and_knowledge_layout() -> None:
 
 
 def test_initial_belief_is_certain_of_initial_levels() -> None:
-    sc = builtin().replace(initial_levels=(4, 3, 2, 1))
+    sc = from_dict({"initial_levels": [4, 3, 2, 1]})
     b0 = bf.initial_belief(Model.build(sc), 3)
     assert b0.shape == (3, 5, 2, L, L)
     assert (b0[:, :, 0, 4, 3] == 1.0).all() and (b0[:, :, 1, 2, 1] == 1.0).all()

@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from htlm_world.model import Model, p_drop_table
-from htlm_world.scenario import RewardParams, builtin
+from htlm_world.scenario import builtin, from_dict
 from htlm_world.simulator import BatchSim
 
 L = 5  # severity levels 0..4
@@ -129,19 +129,19 @@ def test_p_drop_last_entry_covers_lower_margins() -> None:
 def test_tables_equal_model_md(model: Model) -> None:
     for c in range(CMAX + 1):
         for f in range(L):
-            np.testing.assert_allclose(model.fire[c, f], ref_fire(c, f), atol=1e-12, err_msg=f"fire c={c} f={f}")
+            np.testing.assert_allclose(model.kind_tables[0][c, 0, f], ref_fire(c, f), atol=1e-12, err_msg=f"fire c={c} f={f}")
             for r in range(L):
                 np.testing.assert_allclose(
-                    model.rescue[c, f, r], ref_rescue(c, f, r), atol=1e-12, err_msg=f"rescue c={c} f={f} r={r}"
+                    model.kind_tables[1][c, f, r], ref_rescue(c, f, r), atol=1e-12, err_msg=f"rescue c={c} f={f} r={r}"
                 )
     for s in range(CMAX + 1):
         for lv in range(L):
-            np.testing.assert_allclose(model.obs[s, lv], ref_obs(s, lv), atol=1e-12)
+            np.testing.assert_allclose(model.obs[0, s, lv], ref_obs(s, lv), atol=1e-12)
             for comm in range(CMAX + 1):
-                np.testing.assert_allclose(model.info[s, comm, lv], ref_info(s, comm, lv), atol=1e-12)
-    assert model.obs[3, 2, 2] == pytest.approx(0.95)
-    assert model.obs[3, 0, 1] == pytest.approx(0.05)  # all of the rest to the one neighbour at level 0
-    assert model.obs[3, 2, 1] == pytest.approx(0.025)
+                np.testing.assert_allclose(model.info[0, s, comm, lv], ref_info(s, comm, lv), atol=1e-12)
+    assert model.obs[0, 3, 2, 2] == pytest.approx(0.95)
+    assert model.obs[0, 3, 0, 1] == pytest.approx(0.05)  # all of the rest to the one neighbour at level 0
+    assert model.obs[0, 3, 2, 1] == pytest.approx(0.025)
     np.testing.assert_allclose(model.keep, 0.8)
 
 
@@ -152,17 +152,17 @@ def test_first_calibration_tables() -> None:
     m = Model.build(load("first-calibration"))
     for s in range(CMAX + 1):
         for lv in range(L):
-            np.testing.assert_allclose(m.obs[s, lv], ref_obs(s, lv, 0.5), atol=1e-12)
+            np.testing.assert_allclose(m.obs[0, s, lv], ref_obs(s, lv, 0.5), atol=1e-12)
             for comm in range(CMAX + 1):
-                np.testing.assert_allclose(m.info[s, comm, lv], ref_info(s, comm, lv, True, 0.5, 0.0), atol=1e-12)
-    assert m.obs[3, 2, 2] == pytest.approx(0.8)
+                np.testing.assert_allclose(m.info[0, s, comm, lv], ref_info(s, comm, lv, True, 0.5, 0.0), atol=1e-12)
+    assert m.obs[0, 3, 2, 2] == pytest.approx(0.8)
     np.testing.assert_allclose(m.keep, 0.6)
 
 
 def test_information_without_channel_is_observation() -> None:
     m = Model.build(builtin().replace(channel=False))
     for comm in range(CMAX + 1):
-        np.testing.assert_allclose(m.info[:, comm], m.obs, atol=1e-12)
+        np.testing.assert_allclose(m.info[:, :, comm], m.obs, atol=1e-12)
     np.testing.assert_allclose(m.keep, 1.0)
 
 
@@ -172,7 +172,7 @@ def _assert_distributions(t: np.ndarray) -> None:
 
 
 def test_every_row_is_a_distribution(model: Model) -> None:
-    for t in (model.fire, model.rescue, model.obs, model.info):
+    for t in (*model.kind_tables, model.obs, model.info):
         _assert_distributions(t)
 
 
@@ -189,19 +189,23 @@ def test_every_row_is_a_distribution(model: Model) -> None:
 def test_every_row_is_a_distribution_for_any_scenario(
     levels: int, p_drop: list[float], growth: float, share: float, base: float, slope: float, channel: bool
 ) -> None:
-    sc = builtin().replace(
-        levels=levels,
-        initial_levels=(levels - 1,) * 4,
-        reward=RewardParams(level_rewards=tuple(float(levels - k) for k in range(levels))),
-        p_drop=tuple(p_drop),
-        fire_growth=growth,
-        rescue_double_share=share,
-        sensing_base=base,
-        sensing_slope=slope,
-        channel=channel,
-    )
+    data = {
+        "levels": levels,
+        "initial_levels": [levels - 1] * 4,
+        "reward": {"level_rewards": [float(levels - k) for k in range(levels)]},
+        "p_drop": p_drop,
+        "fire_growth": growth,
+        "rescue_double_share": share,
+        "sensing_base": base,
+        "sensing_slope": slope,
+        "channel": channel,
+    }
+    if levels < 3:  # a two-level drop needs three levels
+        data["kinds"] = [{"name": "fire"}, {"name": "rescue", "depends_on": "fire", "blocked_above": 1}]
+        del data["rescue_double_share"]
+    sc = from_dict(data)
     m = Model.build(sc)
-    for t in (m.fire, m.rescue, m.obs, m.info):
+    for t in (*m.kind_tables, m.obs, m.info):
         _assert_distributions(t)
 
 

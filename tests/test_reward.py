@@ -114,7 +114,7 @@ def test_no_reassignment_penalty_without_a_previous_assignment() -> None:
 def test_agents_with_their_own_reward_parameters() -> None:
     own = RewardParams(level_rewards=(20.0, 10.0, 4.0, 2.0, 0.0), idle_incentive=2.0, reassign_cost=-4.0)
     agents = list(rules().agents)
-    agents[0] = AgentSpec(name="agent1", fire=3, rescue=1, reward=own)
+    agents[0] = AgentSpec(name="agent1", capabilities={"fire": 3, "rescue": 1}, reward=own)
     sc = rules().replace(agents=tuple(agents))
     assert sc.agent_reward(0) is own
     assert sc.agent_reward(1) == sc.reward
