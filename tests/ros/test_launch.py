@@ -7,6 +7,7 @@ import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -61,6 +62,41 @@ def test_team_script_runs_an_evaluation(repo_root: Path, tmp_path: Path) -> None
     logs = sorted(p.name for p in (run / "logs").iterdir())
     assert logs == ["agent1.log", "agent2.log", "agent3.log", "agent4.log", "agent5.log", "trainer.log", "world.log"]
     assert "episodes 0..1:" in (run / "logs" / "world.log").read_text()  # one batch of the two episodes
+    assert _alive_with(str(run)) == []
+
+
+def test_json_is_the_only_output_on_stdout(tmp_path: Path) -> None:
+    """`htlm launch ... --json | jq .` works: the world's episode lines and the launcher's messages go to stderr."""
+    run = tmp_path / "eval"
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "htlm_agent.cli",
+            "launch",
+            "evaluate",
+            "--policy",
+            "greedy",
+            "--episodes",
+            "2",
+            "--batch",
+            "2",
+            "--domain-id",
+            str(next_domain()),
+            "--run-dir",
+            str(run),
+            "--json",  # not --quiet: the episode lines are echoed, on stderr
+        ],
+        capture_output=True,
+        text=True,
+        timeout=100,
+        check=False,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    summary = json.loads(r.stdout)  # the whole of stdout is one JSON document
+    assert {"mode", "run_dir", "exit_code", "episodes", "completion_mean", "failure_rate"} <= summary.keys()
+    assert summary["mode"] == "evaluate" and summary["episodes"] == 2 and summary["exit_code"] == 0
+    assert "[world] episodes 0..1:" in r.stderr and "htlm launch evaluate:" in r.stderr
     assert _alive_with(str(run)) == []
 
 

@@ -1,19 +1,228 @@
 """The centralized, fully observed optimum: value iteration over the joint state of every site with every joint
 action (docs/model.md, Reference figures). Joint actions are grouped by the capability vector they produce, since T
 depends on the assignment only through it.
+
+The work grows as (tasks + 1)^agents joint actions and levels^tasks states, so `solve` first estimates the size of
+the problem from the scenario's sizes alone (`ProblemSize`, `estimate`) and refuses one over `Limits` with
+`ProblemTooLarge` before it builds anything.
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from htlm_agent.experiments.progress import Progress
 from htlm_agent.runtime.team import Context
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.types import FloatArray, IntArray
+
+ENUMERATION_RATE = 60_000.0
+"""Joint actions per second that `capability_vectors` goes through (measured on the 2-core development machine:
+13-18 us per joint action, the default scenario's 3,125 in 0.04-0.06 s)."""
+
+VALUE_ITERATION_RATE = 1.8e9
+"""Multiply-adds per second of the value iteration's contractions (measured on the same machine: 1.7-2.4e9 on the
+three default teams, 0.1-0.3 s each, and 1.9e9 on 3 sites with 5 agents, 441 capability vectors x 15,625 states,
+8 s)."""
+
+MEMORY_FACTOR = 3
+"""Arrays of (capability vectors x states) alive at once in a step of the value iteration: a contraction's input
+and output and a temporary."""
+
+
+@dataclass(frozen=True)
+class ProblemSize:
+    """The sizes of the optimum's problem, all the estimate needs (known from the scenario and the model's small
+    tables, before the large ones of the solve are built)."""
+
+    sites: int
+    """S."""
+    tasks_per_site: int
+    """Task kinds at every site (k); p = S k tasks."""
+    levels: int
+    """L, severity levels of a task."""
+    agents: int
+    """N."""
+    agent_groups: tuple[int, ...]
+    """Agents of each distinct capability profile, most first (the heterogeneous team: (1, 1, 1, 1, 1); the
+    homogeneous one: (5,)): agents of one profile are interchangeable, which bounds the capability vectors."""
+    capability_max: int
+    """Cap of a task's joint capability: a capability vector holds p values in 0..capability_max."""
+    horizon: int
+    """h, steps of the value iteration."""
+
+    @staticmethod
+    def of(model: Model) -> ProblemSize:
+        """The sizes of a model's scenario."""
+        sc = model.scenario
+        profiles: dict[tuple[int, ...], int] = {}
+        for row in model.agent_caps[:, : sc.n_tasks].tolist():  # capability on every task
+            profiles[tuple(row)] = profiles.get(tuple(row), 0) + 1
+        return ProblemSize(
+            sites=sc.n_sites,
+            tasks_per_site=sc.n_tasks // sc.n_sites,
+            levels=sc.levels,
+            agents=sc.n_agents,
+            agent_groups=tuple(sorted(profiles.values(), reverse=True)),
+            capability_max=sc.capability_max,
+            horizon=sc.horizon,
+        )
+
+    @property
+    def tasks(self) -> int:
+        """p."""
+        return self.sites * self.tasks_per_site
+
+    def describe(self) -> str:
+        """One line: '2 sites x 2 tasks, 5 levels, 5 agents, horizon 30'."""
+        return (
+            f"{self.sites} sites x {self.tasks_per_site} tasks, {self.levels} levels, {self.agents} agents, "
+            f"horizon {self.horizon}"
+        )
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """What solving a problem costs, from its sizes alone (`estimate`)."""
+
+    states: int
+    """Joint states, L^p."""
+    joint_actions: int
+    """Joint assignments enumerated to find the capability vectors: (p + 1)^N (every idle location, like no task,
+    brings no capability: one choice)."""
+    capability_vectors: int
+    """At most this many distinct capability vectors (the actions of the value iteration): (capability_max + 1)^p
+    values, and for every group of n interchangeable agents (n + p choose p) ways to spread them over the p tasks
+    and no task. The agents usually produce fewer: the default teams 339, 506 and 116 of at most 1,296, 1,125 and
+    126."""
+    evaluations: int
+    """State-action evaluations (Q-values) over the horizon: h x states x capability vectors."""
+    multiply_adds: int
+    """Multiply-adds of those evaluations: each contracts every site's L^k next states, S L^k."""
+    memory_bytes: int
+    """Peak memory of the tables the solve builds (float64 values, int64 policy)."""
+    seconds: float
+    """Estimated time on the development machine (ENUMERATION_RATE, VALUE_ITERATION_RATE)."""
+
+    def to_dict(self) -> dict[str, int | float]:
+        """Plain data (the JSON of `htlm optimal`)."""
+        return {
+            "states": self.states,
+            "joint_actions": self.joint_actions,
+            "capability_vectors_max": self.capability_vectors,
+            "evaluations": self.evaluations,
+            "multiply_adds": self.multiply_adds,
+            "memory_bytes": self.memory_bytes,
+            "seconds": round(self.seconds, 3),
+        }
+
+
+@dataclass(frozen=True)
+class Limits:
+    """The largest problem `solve` takes on."""
+
+    seconds: float = 600.0
+    """Estimated time: 10 minutes, some 3,000 times the default scenario's (0.1-0.3 s)."""
+    memory_bytes: int = 4 * 2**30
+    """Estimated memory: 4 GiB, a sixth of the development machine's, which other jobs share."""
+
+
+DEFAULT_LIMITS = Limits()
+"""The limits of `solve`, `htlm optimal` and the optimal baseline unless told otherwise."""
+
+
+class ProblemTooLarge(ValueError):
+    """A problem whose estimate exceeds the limits; raised before anything is built."""
+
+    def __init__(self, size: ProblemSize, est: Estimate, limits: Limits) -> None:
+        """Keep the numbers and say them."""
+        self.size, self.estimate, self.limits = size, est, limits
+        over = []
+        if est.seconds > limits.seconds:
+            over.append(f"time {_duration(est.seconds)} > {_duration(limits.seconds)}")
+        if est.memory_bytes > limits.memory_bytes:
+            over.append(f"memory {_gib(est.memory_bytes)} > {_gib(limits.memory_bytes)}")
+        super().__init__(
+            f"the optimum of this scenario is too large to compute here: {size.describe()}: "
+            f"{_count(est.states)} states x at most {_count(est.capability_vectors)} capability vectors "
+            f"(from {_count(est.joint_actions)} joint actions) = {_count(est.evaluations)} state-action evaluations; "
+            f"estimated {_duration(est.seconds)} and {_gib(est.memory_bytes)}, over the limits of "
+            f"{_duration(limits.seconds)} and {_gib(limits.memory_bytes)} ({'; '.join(over)})"
+        )
+
+
+def estimate(size: ProblemSize) -> Estimate:
+    """The states, actions, work, memory and time of solving a problem of these sizes, without building it.
+
+    The capability vectors are bounded from above (their exact number needs the enumeration), so the work, memory
+    and time are upper bounds too: the default scenario is estimated at 0.7 s (0.2 s measured); 3 sites with 7
+    interchangeable agents at 47 s and 0.63 GiB (39 s and 0.56 GiB peak measured, 1,443 capability vectors of at
+    most 1,716).
+    """
+    p, L, h = size.tasks, size.levels, size.horizon
+    states = L**p
+    joint = (p + 1) ** size.agents
+    caps = min(math.prod(math.comb(n + p, p) for n in size.agent_groups), (size.capability_max + 1) ** p)
+    evaluations = h * states * caps
+    madds = evaluations * size.sites * L**size.tasks_per_site
+    memory = 8 * (
+        MEMORY_FACTOR * caps * states  # the expected next values of every capability vector
+        + 2 * (h + 1) * states  # values and best
+        + size.sites * caps * L ** (2 * size.tasks_per_site)  # every site's transition matrix per capability vector
+        + caps * (p + size.agents)  # the capability vectors and their joint actions
+    )
+    return Estimate(
+        states=states,
+        joint_actions=joint,
+        capability_vectors=caps,
+        evaluations=evaluations,
+        multiply_adds=madds,
+        memory_bytes=memory,
+        seconds=_ratio(joint, ENUMERATION_RATE) + _ratio(madds, VALUE_ITERATION_RATE),
+    )
+
+
+def check(model: Model, limits: Limits = DEFAULT_LIMITS) -> Estimate:
+    """The estimate of the problem of a model's scenario.
+
+    Raises:
+        ProblemTooLarge: when it exceeds `limits` (with the sizes, the estimate and the limits).
+    """
+    size = ProblemSize.of(model)
+    est = estimate(size)
+    if est.seconds > limits.seconds or est.memory_bytes > limits.memory_bytes:
+        raise ProblemTooLarge(size, est, limits)
+    return est
+
+
+def _ratio(n: int, rate: float) -> float:
+    try:
+        return n / rate
+    except OverflowError:  # more than a float holds: no machine does it
+        return float("inf")
+
+
+def _count(n: int) -> str:
+    return f"{n:,}" if n < 10**12 else f"about 10^{len(str(n)) - 1}"
+
+
+def _duration(seconds: float) -> str:
+    if seconds == float("inf") or seconds > 1e9:
+        return "over 30 years"
+    if seconds < 120:
+        return f"{seconds:.1f} s"
+    if seconds < 2 * 3600:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.0f} h"
+
+
+def _gib(n: int) -> str:
+    return f"{n / 2**30:.1f} GiB" if n < 2**70 else f"about 2^{n.bit_length()} bytes"
 
 
 @dataclass(frozen=True)
@@ -40,32 +249,48 @@ def state_index(sc: Scenario, levels: tuple[int, ...] | IntArray) -> int:
     return idx
 
 
-def capability_vectors(model: Model) -> tuple[IntArray, IntArray]:
+def capability_vectors(model: Model, progress: bool = False) -> tuple[IntArray, IntArray]:
     """Distinct capped capability vectors over all joint task assignments, each with a joint action of least
-    total committed capability that produces it (idle agents where they add nothing)."""
+    total committed capability that produces it (idle agents where they add nothing). With `progress`, a progress
+    line (rate, ETA) on stderr."""
     sc = model.scenario
     p = sc.n_tasks
     choices = list(range(p)) + [-1]  # -1: contributes nothing (idle)
     best: dict[tuple[int, ...], tuple[float, tuple[int, ...]]] = {}
-    for joint in itertools.product(choices, repeat=sc.n_agents):
+    total = len(choices) ** sc.n_agents
+    bar = Progress(total, unit="joint actions", enabled=progress)
+    for n, joint in enumerate(itertools.product(choices, repeat=sc.n_agents)):
+        if n % 8192 == 0:
+            bar.update(n, phase="capability vectors", found=len(best))
         arr = np.array(joint, dtype=np.int64)
         caps = tuple(int(c) for c in model.joint_capability(arr[None])[0])
         cost = sum(model.agent_caps[i, a] for i, a in enumerate(joint) if a >= 0)
         if caps not in best or cost < best[caps][0]:
             best[caps] = (cost, joint)
+    bar.update(total, phase="capability vectors", found=len(best))
+    bar.close()
     keys = sorted(best)
     return np.array(keys, dtype=np.int64), np.array([best[k][1] for k in keys], dtype=np.int64)
 
 
-def solve(sc: Scenario) -> OptimalSolution:
+def solve(sc: Scenario, limits: Limits = DEFAULT_LIMITS, progress: bool = False) -> OptimalSolution:
     """Finite-horizon value iteration for the expected completion step (docs/model.md, Reference figures).
 
     V_0(s) = 0; V_k(s) = 0 if s is complete, else 1 + min_c sum_s' T_c(s, s') V_{k-1}(s'). V_h(s0) is the
     expected completion step with never-completed episodes counted as h.
+
+    Args:
+        sc: the scenario.
+        limits: the largest problem to take on (checked on the estimate, before anything is built).
+        progress: show progress lines (rate, ETA) on stderr.
+
+    Raises:
+        ProblemTooLarge: the estimate exceeds `limits`.
     """
-    model = Model.build(sc)
+    model = Model.build(sc)  # small tables: T, O, I and the agents' capabilities
+    check(model, limits)
     L, S = sc.levels, sc.n_sites
-    caps, joints = capability_vectors(model)
+    caps, joints = capability_vectors(model, progress)
     # site transition matrices T_site[c_fire, c_rescue][(f, r), (f', r')]
     site_t = np.einsum("afg,bfrs->abfrgs", model.fire, model.rescue).reshape(
         model.fire.shape[0], model.rescue.shape[0], L * L, L * L
@@ -76,6 +301,7 @@ def solve(sc: Scenario) -> OptimalSolution:
     complete[0] = True
     values = np.zeros((sc.horizon + 1, n_states))
     best = np.zeros((sc.horizon + 1, n_states), dtype=np.int64)
+    bar = Progress(sc.horizon, unit="steps", enabled=progress)
     for k in range(1, sc.horizon + 1):
         v = values[k - 1].reshape((L * L,) * S)
         # expected next value for every capability vector: contract each site's axis with its matrix
@@ -85,6 +311,8 @@ def solve(sc: Scenario) -> OptimalSolution:
         q = ev.reshape(caps.shape[0], n_states)
         best[k] = q.argmin(axis=0)
         values[k] = np.where(complete, 0.0, 1.0 + q.min(axis=0))
+        bar.update(k, phase="value iteration", capability_vectors=caps.shape[0], states=n_states)
+    bar.close()
     return OptimalSolution(sc, values, best, caps, joints)
 
 

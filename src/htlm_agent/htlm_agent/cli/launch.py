@@ -127,7 +127,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--timeout", type=float, default=0.0, help="stop the team after this many seconds (exit 124)")
     p.add_argument("--quiet", action="store_true", help="do not echo the episode lines")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print the summary as JSON, the only output on stdout (the episode lines and messages go to stderr)",
+    )
     p.epilog = "exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
 
 
@@ -192,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
         trainer_params=dict(args.trainer_param),
         timeout=args.timeout,
         echo=not args.quiet,
+        echo_to_stderr=args.json,  # --json: stdout holds the summary only
         operation=args.operation,
         robots="" if args.robots == "none" else args.robots,
         period=args.period,
@@ -209,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
     if args.mode == "train" and code == 0 and (ckpt / "meta.json").exists():
         out["checkpoint"] = str(ckpt)
         if eval_episodes > 0 and (not only or "world" in only):
-            print(f"htlm launch: evaluating {ckpt} over ROS for {eval_episodes} episodes", flush=True)
+            print(f"htlm launch: evaluating {ckpt} over ROS for {eval_episodes} episodes", flush=True, file=sys.stderr)
             ecfg = LaunchConfig(
                 **{
                     **cfg.__dict__,

@@ -91,6 +91,8 @@ class LaunchConfig:
     """Seconds the other processes get to finish after the world ended (trainer checkpoint, agents' outbox)."""
     echo: bool = True
     """Print the world's and trainer's episode lines while the team runs."""
+    echo_to_stderr: bool = False
+    """Print those lines on stderr instead of stdout (`htlm launch --json`: stdout holds only the summary)."""
     operation: str = "simulated"
     """simulated (the world simulates the severities) or external (the robots observe; world parameter operation)."""
     robots: str = ""
@@ -260,10 +262,11 @@ def stop(procs: list[Proc], sig: int = signal.SIGINT, wait: float = 10.0) -> Non
 
 
 class _Tail:
-    """Follow a log file and print its lines that match."""
+    """Follow a log file and print its lines that match (on stdout, or on stderr with `to_stderr`)."""
 
-    def __init__(self, path: Path, words: tuple[str, ...], prefix: str) -> None:
+    def __init__(self, path: Path, words: tuple[str, ...], prefix: str, to_stderr: bool = False) -> None:
         self.path, self.words, self.prefix, self.pos = path, words, prefix, 0
+        self.to_stderr = to_stderr
 
     def lines(self) -> list[str]:
         """The whole lines written since the last call."""
@@ -280,7 +283,8 @@ class _Tail:
     def poll(self) -> None:
         for line in self.lines():
             if any(w in line for w in self.words):
-                print(f"{self.prefix}{line.split(']: ', 1)[-1]}", flush=True)
+                out = sys.stderr if self.to_stderr else sys.stdout  # looked up now: a test may replace them
+                print(f"{self.prefix}{line.split(']: ', 1)[-1]}", flush=True, file=out)
 
 
 class _ProgressTail(_Tail):
@@ -341,9 +345,9 @@ def run_team(cfg: LaunchConfig) -> int:
                 if p.name == "world" and cfg.mode == "train" and cfg.episodes:
                     tails.append(_ProgressTail(p.log, cfg.episodes, cfg.first_episode))
                 elif p.name == "world":
-                    tails.append(_Tail(p.log, ("episode", "ERROR"), "[world] "))
+                    tails.append(_Tail(p.log, ("episode", "ERROR"), "[world] ", cfg.echo_to_stderr))
                 elif p.name == "trainer":
-                    tails.append(_Tail(p.log, ("ERROR", "resumed", "validation"), "[trainer] "))
+                    tails.append(_Tail(p.log, ("ERROR", "resumed", "validation"), "[trainer] ", cfg.echo_to_stderr))
         world = next((p for p in procs if p.name == "world"), None)
         start_t = time.monotonic()
         ended_at: float | None = None
