@@ -134,10 +134,10 @@ def test_a_robot_on_its_way_adds_nothing_to_its_task() -> None:
 
 def test_sensing_is_the_model_observation_with_its_own_stream() -> None:
     model = Model.build(builtin())
-    one = [Sensing(model, 0, 3, 1).observe(2) for _ in range(1)]
+    one = [Sensing(model, 0, 3, 1).observe(0, 2) for _ in range(1)]
     again = Sensing(model, 0, 3, 1)
-    assert one == [again.observe(2)]
-    draws = [again.observe(2) for _ in range(400)]
+    assert one == [again.observe(0, 2)]
+    draws = [again.observe(0, 2) for _ in range(400)]
     assert 0.5 < draws.count(2) / len(draws) < 1.0 and set(draws) <= set(range(model.scenario.levels))
 
 

@@ -159,7 +159,7 @@ def test_a_scenario_problem_on_a_required_field_is_reported_once(tmp_path: Path)
     f = tmp_path / "team.yaml"
     f.write_text("agents:\n  - {name: a1, fire: 9, rescue: 1}\n  - {name: a2, fire: 1, rescue: x}\nlevels: 1\n")
     assert scenario_problems(str(f)) == [
-        f"{f}: agents[1].rescue: expected `int`, got str 'x'",  # types first, as htlm_world.scenario.load
+        f"{f}: agents[1].capabilities.rescue: expected an integer level, got 'x'",  # as htlm_world.scenario.load
         f"{f}: levels: 1 must be at least 2",
     ]  # no "agents[1].rescue: missing": a required field takes its whole list (and agents[0].fire) with it
     assert scenario_problems(str(tmp_path / "none.yaml"))[0].startswith(f"{tmp_path / 'none.yaml'}: cannot read")

@@ -51,7 +51,7 @@ def test_scene_has_one_marker_per_site_task_and_agent_with_stable_ids() -> None:
         assert [m.id for m in ns[name]] == list(range(count)), name
     assert all(m.action == M.ADD for m in a)
     assert [(m.x, m.y) for m in ns["sites"]] == [tuple(map(float, xy)) for xy in SC.site_positions]
-    assert [m.text for m in ns["site_labels"]] == list(SC.sites)
+    assert [m.text for m in ns["site_labels"]] == list(SC.site_names)
     assert M.parse_status(ns["status"][0].text) == (3, 7)
 
 

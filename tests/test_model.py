@@ -349,7 +349,7 @@ def test_sample_observation_matches_o(model: Model) -> None:
     for s in range(CMAX + 1):
         for lv in range(L):
             true = np.full(n, lv, dtype=np.int64)
-            z = model.sample_observation(true, np.full(n, s, dtype=np.int64), rng.random(n))
+            z = model.sample_observation(np.zeros(n, dtype=np.int64), true, np.full(n, s, dtype=np.int64), rng.random(n))
             assert_frequencies(z, ref_obs(s, lv), f"sensing {s} level {lv}")
 
 

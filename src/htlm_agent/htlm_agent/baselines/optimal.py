@@ -43,7 +43,7 @@ class ProblemSize:
     sites: int
     """S."""
     tasks_per_site: int
-    """Task kinds at every site (k); p = S k tasks."""
+    """Most tasks at one site (k): a site's joint state has at most L^k values."""
     levels: int
     """L, severity levels of a task."""
     agents: int
@@ -55,6 +55,8 @@ class ProblemSize:
     """Cap of a task's joint capability: a capability vector holds p values in 0..capability_max."""
     horizon: int
     """h, steps of the value iteration."""
+    total_tasks: int = -1
+    """p, when the sites hold different numbers of tasks; -1: S k."""
 
     @staticmethod
     def of(model: Model) -> ProblemSize:
@@ -65,7 +67,8 @@ class ProblemSize:
             profiles[tuple(row)] = profiles.get(tuple(row), 0) + 1
         return ProblemSize(
             sites=sc.n_sites,
-            tasks_per_site=sc.n_tasks // sc.n_sites,
+            tasks_per_site=max(len(site.tasks) for site in sc.sites),
+            total_tasks=sc.n_tasks,
             levels=sc.levels,
             agents=sc.n_agents,
             agent_groups=tuple(sorted(profiles.values(), reverse=True)),
@@ -76,7 +79,7 @@ class ProblemSize:
     @property
     def tasks(self) -> int:
         """p."""
-        return self.sites * self.tasks_per_site
+        return self.sites * self.tasks_per_site if self.total_tasks < 0 else self.total_tasks
 
     def describe(self) -> str:
         """One line: '2 sites x 2 tasks, 5 levels, 5 agents, horizon 30'."""
@@ -242,7 +245,7 @@ class OptimalSolution:
 
 
 def state_index(sc: Scenario, levels: tuple[int, ...] | IntArray) -> int:
-    """Index of a joint state: site-major, (fire, rescue) per site, base L."""
+    """Index of a joint state: the levels of the tasks in task order (site by site), base L."""
     idx = 0
     for lv in levels:
         idx = idx * sc.levels + int(lv)
@@ -291,19 +294,16 @@ def solve(sc: Scenario, limits: Limits = DEFAULT_LIMITS, progress: bool = False)
     check(model, limits)
     L, S = sc.levels, sc.n_sites
     caps, joints = capability_vectors(model, progress)
-    # site transition matrices T_site[c_fire, c_rescue][(f, r), (f', r')]
-    site_t = np.einsum("afg,bfrs->abfrgs", model.fire, model.rescue).reshape(
-        model.fire.shape[0], model.rescue.shape[0], L * L, L * L
-    )
-    mats = [site_t[caps[:, 2 * s], caps[:, 2 * s + 1]] for s in range(S)]  # each (C, L^2, L^2)
-    n_states = L ** (2 * S)
+    mats = [site_matrices(model, caps, s) for s in range(S)]  # each (C, L^m, L^m), m the site's tasks
+    sizes = tuple(m.shape[1] for m in mats)
+    n_states = L**sc.n_tasks
     complete = np.zeros(n_states, dtype=bool)
     complete[0] = True
     values = np.zeros((sc.horizon + 1, n_states))
     best = np.zeros((sc.horizon + 1, n_states), dtype=np.int64)
     bar = Progress(sc.horizon, unit="steps", enabled=progress)
     for k in range(1, sc.horizon + 1):
-        v = values[k - 1].reshape((L * L,) * S)
+        v = values[k - 1].reshape(sizes)
         # expected next value for every capability vector: contract each site's axis with its matrix
         ev = np.broadcast_to(v, (caps.shape[0],) + v.shape)
         for s in range(S):
@@ -314,6 +314,24 @@ def solve(sc: Scenario, limits: Limits = DEFAULT_LIMITS, progress: bool = False)
         bar.update(k, phase="value iteration", capability_vectors=caps.shape[0], states=n_states)
     bar.close()
     return OptimalSolution(sc, values, best, caps, joints)
+
+
+def site_matrices(model: Model, caps: IntArray, site: int) -> FloatArray:
+    """Every capability vector's transition matrix of one site's joint state: (C, L^m, L^m), entry [c, x, x'] the
+    product over the site's tasks, in task order, of T_k[c_j, g, x_j, x'_j] (g the current level of the task it
+    depends on, 0 when none)."""
+    L = model.scenario.levels
+    tasks = [int(j) for j in model.site_task[site] if j >= 0]
+    m = len(tasks)
+    idx = np.indices((L,) * m).reshape(m, -1)  # every joint state's level of each of the site's tasks
+    out = np.ones((caps.shape[0], L**m, L**m))
+    for q, j in enumerate(tasks):
+        table = model.kind_tables[model.task_kind[j]]  # (C+1, G, L, L)
+        gate = int(model.task_gate[j])
+        g = idx[tasks.index(gate)] if gate in tasks else np.zeros(L**m, dtype=np.int64)
+        c = caps[:, j]
+        out *= table[c[:, None, None], g[None, :, None], idx[q][None, :, None], idx[q][None, None, :]]
+    return out
 
 
 def _contract(ev: FloatArray, mat: FloatArray, axis: int) -> FloatArray:

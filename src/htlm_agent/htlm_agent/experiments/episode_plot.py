@@ -315,7 +315,7 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
             color=colour,
             mec="white",
             mew=0.8,
-            label=f"{agent.name} (fire {agent.fire}, rescue {agent.rescue})",
+            label=f"{agent.name} ({', '.join(f'{k.name} {agent.capability(k.uses)}' for k in sc.kinds)})",
         )
     mark = ep.actions.shape[0] if did_fail else completion  # the horizon of a failure, else the completion step
     if mark <= steps:
