@@ -47,6 +47,7 @@ def test_quick_reproduction_produces_every_result(tmp_path: Path) -> None:
     assert "C5" in report and "QUICK" in report and "## 7. The first calibration" in report
     # the optimum baseline in the table is the value-iteration floor's neighbourhood, not a constant
     assert 5.0 < data["baselines"]["optimal"]["completion"][0] < 10.0
+    assert {"random", "greedy", "auction", "optimal"} <= set(data["baselines"]) and "| auction |" in report
     # a second run reuses every finished configuration: no result file is rewritten
     stamps = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/result.json")}
     assert len(stamps) == 22

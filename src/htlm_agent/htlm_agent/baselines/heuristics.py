@@ -2,6 +2,8 @@
 
 - `RandomPolicy`: every agent draws uniformly from its reduced action space Â(a_o).
 - `GreedyPolicy`: a hand-written decentralized heuristic over each agent's own belief.
+- `AuctionPolicy`: the market-based allocation used on ROS robots (a sequential single-item auction), run by every
+  agent on its own belief (docs/model.md, Baselines).
 - the HT Dec-POMDP learner (the paper's predecessor): the same deep Q-learner on the scenario in mode "ht" (no idle
   locations, R_LM = 0), see `htlm_agent.baselines.registry.train_ht`.
 - `OptimalPolicy` (htlm_agent.baselines.optimal): the centralized, fully observed optimum acting on the true state
@@ -19,11 +21,15 @@ from htlm_agent.runtime.team import Context
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.types import IntArray
+from htlm_world.types import BoolArray, IntArray
 
-BASELINES = ("random", "greedy", "ht", "optimal")
+BASELINES = ("random", "greedy", "auction", "ht", "optimal")
 """Names accepted by `registry.make_baseline` and `htlm evaluate --baseline` (here, in a module without torch, so
 that the command line lists them without loading the learner)."""
+
+BUILTIN_POLICIES = ("greedy", "auction", "random")
+"""Baselines an agent process runs by name, without a network (`policies.builtin_policy`; the agent node's
+`policy:=NAME`, `htlm launch --policy NAME`)."""
 
 
 class RandomPolicy:
@@ -69,17 +75,81 @@ class GreedyPolicy:
         """One action per agent from its own row of the Context."""
         sc = self.scenario
         lv = confident_levels(ctx.marginals, self.threshold)  # (B, N, p)
+        blk = self.model.blocked(lv)
         b, n = ctx.prev.shape
         stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
         out = stay.astype(np.int64)
         chosen = np.zeros((b, n), dtype=bool)
-        blocked = self.model.blocked(lv)  # (B, N, p) as each agent believes
         for i in range(n):
             for j in self.order[i]:
                 if self.model.agent_caps[i, j] == 0:
                     continue
-                ok = (lv[:, i, j] > 0) & ~blocked[:, i, j]
+                ok = (lv[:, i, j] > 0) & ~blk[:, i, j]
                 take = ok & ~chosen[:, i]
                 out[take, i] = j
                 chosen[:, i] |= take
         return out
+
+
+class AuctionPolicy:
+    """A sequential single-item auction (docs/model.md, Baselines), run by every agent on its own belief.
+
+    Agent i runs the whole auction in its head, from its own confident levels l (the reward's b_th; row i of the
+    Context) and the capabilities of the whole team (the scenario), and keeps only its own result:
+
+    - a task j is open while l_j > 0, it is not `blocked`, and the capability assigned to it so far does not cover
+      l_j: its need n_j = l_j - (sum of the capabilities assigned to j) is > 0 (n_j starts at l_j);
+    - every agent k without a task bids on every open task j it has capability for (c_kj > 0) with its useful
+      capability min(c_kj, n_j);
+    - the highest bid over all (agent, task) pairs wins: k is assigned j and n_j drops by c_kj. Ties go to the larger
+      need n_j, then to the larger capability c_kj, then to the lower agent index, then to the lower task index.
+      Preferring the larger capability among equal bids makes the winner of a task the same whatever need (up to
+      its capability) an agent believes, so teammates whose confident levels differ by a level still agree on who
+      takes it;
+    - repeated until no agent without a task has a bid; those agents idle at the site of their previous assignment
+      (`Model.idle_action`; HT mode: they stay on their previous task, task 0 before any).
+
+    Agents that hold the same belief compute the same allocation, so they never both take what one covers; agents
+    whose beliefs differ may. Vectorized over the B episodes and the N auctioneers.
+    """
+
+    def __init__(self, scenario: Scenario) -> None:
+        """The team's capabilities (N, p) and the confidence thresholds b_th of the agents."""
+        self.scenario = scenario
+        self.model = Model.build(scenario)
+        self.threshold = RewardTables.build(scenario).threshold
+        self.caps = self.model.agent_caps[:, : scenario.n_tasks]  # (N, p): c_kj
+
+    def allocate(self, lv: IntArray) -> IntArray:
+        """The auction of every auctioneer: (B, M, p) confident levels (auctioneer m's belief) -> (B, M, N) the task
+        every agent k gets in auctioneer m's auction, -1 for none."""
+        sc = self.scenario
+        b, m, p = lv.shape
+        n, cmax, L = sc.n_agents, sc.capability_max, sc.levels
+        caps = self.caps[None, None]  # (1, 1, N, p)
+        need = np.where((lv > 0) & ~self.model.blocked(lv), lv, 0).astype(np.int64)  # (B, M, p)
+        assigned = np.full((b, m, n), -1, dtype=np.int64)
+        rows = np.arange(b)[:, None], np.arange(m)[None, :]
+        for _ in range(n):  # each round assigns at most one agent per auction
+            useful = np.minimum(caps, need[:, :, None, :])  # (B, M, N, p)
+            # one integer per bid, ordered by useful capability, then need, then capability
+            key = (useful * L + need[:, :, None, :]) * (cmax + 1) + caps
+            key = np.where((useful > 0) & (assigned < 0)[..., None], key, -1).reshape(b, m, n * p)
+            win = key.argmax(axis=-1)  # the first maximum: lower agent, then lower task
+            ok = np.take_along_axis(key, win[..., None], axis=-1)[..., 0] >= 0  # (B, M)
+            if not ok.any():
+                break
+            k, j = win // p, win % p
+            assigned[rows[0], rows[1], k] = np.where(ok, j, assigned[rows[0], rows[1], k])
+            need[rows[0], rows[1], j] -= np.where(ok, self.caps[k, j], 0)
+            np.maximum(need, 0, out=need)
+        return assigned
+
+    def act(self, ctx: Context) -> IntArray:
+        """One action per agent: its own assignment in the auction it runs on its own row of the Context."""
+        sc = self.scenario
+        lv = confident_levels(ctx.marginals, self.threshold)  # (B, N, p): row i is agent i's belief
+        n = sc.n_agents
+        own = self.allocate(lv)[:, np.arange(n), np.arange(n)]  # (B, N): agent i's result in its own auction
+        stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
+        return np.where(own >= 0, own, stay).astype(np.int64)

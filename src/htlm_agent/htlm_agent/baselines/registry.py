@@ -1,4 +1,4 @@
-"""Every baseline by name (`heuristics.BASELINES`): the random and greedy heuristics, the HT Dec-POMDP learner
+"""Every baseline by name (`heuristics.BASELINES`): the random, greedy and auction heuristics, the HT Dec-POMDP learner
 (the paper's predecessor: the same deep Q-learner on the scenario in mode "ht", no idle locations, R_LM = 0) and the
 centralized optimum."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from htlm_agent.baselines.heuristics import BASELINES, GreedyPolicy, RandomPolicy
+from htlm_agent.baselines.heuristics import BASELINES, AuctionPolicy, GreedyPolicy, RandomPolicy
 from htlm_agent.baselines.optimal import OptimalPolicy
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
@@ -55,6 +55,8 @@ def make_baseline(
         return RandomPolicy(scenario, seed), scenario
     if name == "greedy":
         return GreedyPolicy(scenario), scenario
+    if name == "auction":
+        return AuctionPolicy(scenario), scenario
     if name == "optimal":
         return OptimalPolicy(scenario), scenario
     if name == "ht":

@@ -33,8 +33,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     who.add_argument(
         "--baseline",
         choices=list(BASELINES),
-        help="random | greedy (belief heuristic) | ht (HT Dec-POMDP learner) | optimal (centralized, "
-        "fully observed: the floor)",
+        help="random | greedy (belief heuristic) | auction (sequential single-item auction on each agent's "
+        "belief) | ht (HT Dec-POMDP learner) | optimal (centralized, fully observed: the floor)",
     )
     p.add_argument("--episodes", type=int, default=500, help="evaluation episodes (default: 500)")
     p.add_argument(

@@ -26,6 +26,7 @@ def _kv(text: str) -> tuple[str, Any]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm launch`."""
+    from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
     from htlm_agent.ros.launch import EXIT_CODES
 
     p.add_argument("mode", choices=("train", "evaluate", "deploy"), help="what the team does")
@@ -48,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="master seed")
     p.add_argument(
         "--policy",
-        choices=("auto", "checkpoint", "greedy", "random"),
+        choices=("auto", "checkpoint", *BUILTIN_POLICIES),
         default="auto",
         help="agents' policy (auto: the trainer's in train mode, else --checkpoint)",
     )
@@ -149,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         with contextlib.suppress(ScenarioError):  # check_launch reports every problem of the file
             sc = load(args.scenario)
     if args.mode in ("evaluate", "deploy") and args.policy in ("auto", "checkpoint") and not args.checkpoint:
-        bad.append(f"{args.mode}: needs --checkpoint DIR (or --policy greedy / random)")
+        bad.append(f"{args.mode}: needs --checkpoint DIR (or --policy greedy / auction / random)")
     try:
         learner = Settings.from_dict(dict(args.learner), "--set")
     except ValueError:  # check_launch reports every bad key
@@ -240,7 +241,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _report(sc: Any, seed: int, train_episodes: int, episodes: int, run_dir: Path, eval_dir: Path) -> dict[str, Any]:
-    """The learned team (evaluated over ROS) beside random, greedy and the optimum: run_dir/result.{csv,json,png}."""
+    """The learned team (evaluated over ROS) beside random, greedy, auction and the optimum:
+    run_dir/result.{csv,json,png}."""
     from htlm_agent.experiments.ros_report import baseline_rows, learned_row, write_report
 
     print(f"htlm launch: evaluating the baselines in process on {episodes} episodes (seed {seed})", file=sys.stderr)

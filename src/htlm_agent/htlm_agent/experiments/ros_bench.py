@@ -24,6 +24,8 @@ TARGET_TRAIN_RATIO = 2.0
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of the ROS benchmark (added to `htlm bench`)."""
+    from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
+
     p.add_argument(
         "--ros-batches",
         default="1,16,64,128",
@@ -34,7 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--ros-policy",
-        choices=("greedy", "random"),
+        choices=BUILTIN_POLICIES,
         default="greedy",
         help="ros: the agents' built-in policy of the timed evaluations (default greedy)",
     )

@@ -2,9 +2,9 @@
 result.json and result.png in the run directory.
 
 The learned team's row comes from the world's episode log (world.jsonl) of the evaluation run over ROS; the
-baselines (random, greedy, and the centralized optimum that reads the true state) are evaluated in process on the
-same number of episodes with the same master seed (`htlm evaluate --baseline`), so every row is measured, none is
-drawn from constants.
+baselines (random, greedy, auction, and the centralized optimum that reads the true state) are evaluated in process
+on the same number of episodes with the same master seed (`htlm evaluate --baseline`), so every row is measured, none
+is drawn from constants.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from htlm_world.scenario import Scenario
 FIELDS = ("policy", "runtime", "episodes", "completion_mean", "completion_se", "failure_rate", "unused_fraction")
 """Columns of result.csv (and keys of every row of result.json)."""
 
-BASELINES = ("random", "greedy", "optimal")
+BASELINES = ("random", "greedy", "auction", "optimal")
 """Baselines shown beside the learned team."""
 
 
@@ -72,7 +72,7 @@ def learned_row(world_log: Path, name: str = "learned (HTLM DQN)") -> dict[str, 
 
 
 def baseline_rows(scenario: Scenario, episodes: int, seed: int) -> list[dict[str, Any]]:
-    """random, greedy and the optimum, evaluated in process on `episodes` episodes of master seed `seed`."""
+    """random, greedy, auction and the optimum, evaluated in process on `episodes` episodes of master seed `seed`."""
     rows = []
     for name in BASELINES:
         policy, sc = make_baseline(name, scenario, seed=seed)

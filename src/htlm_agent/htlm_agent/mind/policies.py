@@ -11,7 +11,7 @@ from typing import Protocol
 
 import numpy as np
 
-from htlm_agent.baselines.heuristics import GreedyPolicy
+from htlm_agent.baselines.heuristics import BUILTIN_POLICIES, AuctionPolicy, GreedyPolicy
 from htlm_agent.mind.knowledge import split as split_knowledge
 from htlm_agent.runtime.team import Context, Policy
 from htlm_world import seeds
@@ -64,7 +64,7 @@ def choose(
 
 class RowPolicy:
     """Agent `agent`'s column of a decentralized team policy (a `team.Policy` whose agent i reads only row i of the
-    Context, such as `GreedyPolicy`), fed with that agent's own knowledge state and mask."""
+    Context, such as `GreedyPolicy` and `AuctionPolicy`), fed with that agent's own knowledge state and mask."""
 
     def __init__(self, scenario: Scenario, policy: Policy, agent: int) -> None:
         """Wrap `policy` for agent index `agent`."""
@@ -89,10 +89,13 @@ class RowPolicy:
 
 
 def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPolicy, float]:
-    """A policy that needs no network, and its ε: "greedy" (`GreedyPolicy` on the agent's own row) or "random"
-    (uniform over Â(a_o) from the agent's exploration generator, ε = 1)."""
-    if name not in ("greedy", "random"):
-        raise ValueError(f"unknown built-in policy {name!r}; choose greedy or random")
+    """A policy that needs no network, and its ε (one of `BUILTIN_POLICIES`): "greedy" (`GreedyPolicy` on the
+    agent's own row), "auction" (`AuctionPolicy`: the auction the agent runs on its own belief, keeping its own
+    assignment) or "random" (uniform over Â(a_o) from the agent's exploration generator, ε = 1)."""
+    if name not in BUILTIN_POLICIES:
+        raise ValueError(f"unknown built-in policy {name!r}; choose one of {', '.join(BUILTIN_POLICIES)}")
+    if name == "auction":
+        return RowPolicy(scenario, AuctionPolicy(scenario), agent), 0.0
     return RowPolicy(scenario, GreedyPolicy(scenario), agent), (1.0 if name == "random" else 0.0)
 
 

@@ -4,7 +4,7 @@ The node decodes messages and feeds them to its `AgentMind` (htlm_agent.mind.age
 previous assignment, policy and simulated channel; it publishes what the mind returns: the action, the broadcast,
 the ready, the transition (kept in an outbox until the trainer acknowledges it), the belief summary and, when the
 site of its assignment changes, a geometry_msgs/PoseStamped goal pose. The policy comes from a checkpoint
-(evaluate, deploy), from the trainer's weights (train), or is a built-in one (greedy, random).
+(evaluate, deploy), from the trainer's weights (train), or is a built-in one (greedy, auction, random).
 Run: `ros2 run htlm_agent agent_node --ros-args -p agent:=agent1` or `python -m htlm_agent.ros.agent_node ...`.
 """
 
@@ -23,6 +23,7 @@ from typing import Any
 
 from rclpy.node import Node
 
+from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
 from htlm_agent.mind.agent import AgentMind, Effects, Transition
 from htlm_agent.mind.external import ExternalObservations, Observed
 from htlm_agent.mind.policies import AgentPolicy, builtin_policy
@@ -214,7 +215,7 @@ class AgentNode(Node):
         if kind == "auto":
             kind = "trainer" if self.mode == "train" else ("checkpoint" if s.checkpoint else "")
             if not kind:
-                self._fail(f"mode {self.mode}: no policy: set checkpoint:=DIR, or policy:=greedy or random")
+                self._fail(f"mode {self.mode}: no policy: set checkpoint:=DIR, or policy:=greedy, auction or random")
                 return
         self.policy_kind = kind
         try:
@@ -236,7 +237,7 @@ class AgentNode(Node):
     def _make_policy(self, kind: str) -> None:
         sc = self.scenario
         assert sc is not None and self.model is not None
-        if kind in ("greedy", "random"):
+        if kind in BUILTIN_POLICIES:
             self.policy, self.policy_epsilon = builtin_policy(sc, kind, self.index)
         elif kind == "checkpoint":
             from htlm_agent.learning.checkpoint import load_checkpoint

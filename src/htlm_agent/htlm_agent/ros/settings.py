@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
 from htlm_agent.learning.trainer import Schedule, load_learner_data
 from htlm_msgs_py.params import SECONDS, problems, setting
 
@@ -24,8 +25,9 @@ class AgentSettings:
 
     agent: str = setting("")
     """This agent's name in the scenario (agent1, agent2, ...); required."""
-    policy: str = setting("auto", choices=("auto", "checkpoint", "trainer", "greedy", "random"))
-    """auto (train: from the trainer; else the checkpoint), checkpoint, trainer, greedy or random."""
+    policy: str = setting("auto", choices=("auto", "checkpoint", "trainer", *BUILTIN_POLICIES))
+    """auto (train: from the trainer; else the checkpoint), checkpoint, trainer, or a built-in baseline: greedy,
+    auction or random."""
     checkpoint: str = setting("")
     """Checkpoint directory of `htlm train` (policy checkpoint, or auto outside training)."""
     epsilon: float = setting(-1.0, lo=-1.0, hi=1.0)
