@@ -190,7 +190,9 @@ def test_impossible_evidence_keeps_the_prediction_and_is_flagged() -> None:
 
 def test_team_counts_impossible_evidence() -> None:
     agents = list(builtin().agents)
-    agents[0] = AgentSpec(name="agent1", capabilities={"fire": 3, "rescue": 1}, sensing=5, comm=5)  # exact observations and messages
+    agents[0] = AgentSpec(
+        name="agent1", capabilities={"fire": 3, "rescue": 1}, sensing=5, comm=5
+    )  # exact observations and messages
     sc = builtin().replace(agents=tuple(agents))
     team = Team(sc, 1, seed=3)
     assert team.impossible_count == 0

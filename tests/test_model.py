@@ -129,7 +129,9 @@ def test_p_drop_last_entry_covers_lower_margins() -> None:
 def test_tables_equal_model_md(model: Model) -> None:
     for c in range(CMAX + 1):
         for f in range(L):
-            np.testing.assert_allclose(model.kind_tables[0][c, 0, f], ref_fire(c, f), atol=1e-12, err_msg=f"fire c={c} f={f}")
+            np.testing.assert_allclose(
+                model.kind_tables[0][c, 0, f], ref_fire(c, f), atol=1e-12, err_msg=f"fire c={c} f={f}"
+            )
             for r in range(L):
                 np.testing.assert_allclose(
                     model.kind_tables[1][c, f, r], ref_rescue(c, f, r), atol=1e-12, err_msg=f"rescue c={c} f={f} r={r}"
@@ -349,7 +351,9 @@ def test_sample_observation_matches_o(model: Model) -> None:
     for s in range(CMAX + 1):
         for lv in range(L):
             true = np.full(n, lv, dtype=np.int64)
-            z = model.sample_observation(np.zeros(n, dtype=np.int64), true, np.full(n, s, dtype=np.int64), rng.random(n))
+            z = model.sample_observation(
+                np.zeros(n, dtype=np.int64), true, np.full(n, s, dtype=np.int64), rng.random(n)
+            )
             assert_frequencies(z, ref_obs(s, lv), f"sensing {s} level {lv}")
 
 

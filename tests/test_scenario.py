@@ -137,15 +137,27 @@ BAD_FILES = [
     ("sites: []\n", "sites", "at least one site"),
     ("kinds: []\n", "kinds", "at least one kind"),
     ("kinds:\n  - {name: fire}\n  - {name: rescue, depends_on: flood}\n", "kinds[1].depends_on", "'flood'"),
-    ("kinds:\n  - {name: fire, depends_on: rescue}\n  - {name: rescue, depends_on: fire}\n", "kinds[0].depends_on",
-     "fire -> rescue -> fire"),
-    (KINDS_3 + "sites:\n  - {name: s, tasks: {a: 1}}\nagents:\n  - {name: x, a: 1}\n", "kinds[1].depends_on",
-     "b -> c -> b"),
+    (
+        "kinds:\n  - {name: fire, depends_on: rescue}\n  - {name: rescue, depends_on: fire}\n",
+        "kinds[0].depends_on",
+        "fire -> rescue -> fire",
+    ),
+    (
+        KINDS_3 + "sites:\n  - {name: s, tasks: {a: 1}}\nagents:\n  - {name: x, a: 1}\n",
+        "kinds[1].depends_on",
+        "b -> c -> b",
+    ),
     ("kinds:\n  - {name: fire}\n  - {name: rescue, blocked_above: 2}\n", "kinds[1].blocked_above", "needs depends_on"),
-    ("kinds:\n  - {name: fire}\n  - {name: rescue, depends_on: fire, blocked_above: 7}\n", "kinds[1].blocked_above",
-     "7"),
-    ("kinds:\n  - {name: fire}\n  - {name: rescue, double_drop: {min_level: 1}}\n", "kinds[1].double_drop.min_level",
-     "1"),
+    (
+        "kinds:\n  - {name: fire}\n  - {name: rescue, depends_on: fire, blocked_above: 7}\n",
+        "kinds[1].blocked_above",
+        "7",
+    ),
+    (
+        "kinds:\n  - {name: fire}\n  - {name: rescue, double_drop: {min_level: 1}}\n",
+        "kinds[1].double_drop.min_level",
+        "1",
+    ),
     ("kinds:\n  - {name: fire, growth: 2}\n  - {name: rescue}\n", "kinds[0].growth", "2"),
     (AGENTS_2.replace("rescue: 1", "rescue: 0"), "kinds[1]", "no agent can work on it"),
     ("horizon: 0\n", "horizon", "0"),
@@ -212,7 +224,14 @@ def test_kinds_sites_and_agents_of_any_operation(tmp_path: Path) -> None:
     assert sc.kind_names == ("restock", "pick", "inspect") and sc.site_names == ("aisle1", "dock")
     assert sc.tasks == ((0, 0), (0, 1), (0, 2), (1, 2))  # site by site, the kinds in the order of `kinds`
     assert sc.initial_levels == (2, 3, 1, 4) and sc.n_tasks == 4 and sc.n_actions == 6
-    assert sc.action_names == ("restock@aisle1", "pick@aisle1", "inspect@aisle1", "inspect@dock", "idle@aisle1", "idle@dock")
+    assert sc.action_names == (
+        "restock@aisle1",
+        "pick@aisle1",
+        "inspect@aisle1",
+        "inspect@dock",
+        "idle@aisle1",
+        "idle@dock",
+    )
     assert sc.capability_table() == [[3, 3, 0], [1, 1, 2]]
     assert sc.total_capability(0) == 3 and sc.total_capability(1) == 3  # lift counted once
     assert sc.team == "" and from_dict(sc.to_dict()) == sc

@@ -26,6 +26,7 @@ from htlm_world.model import Model
 from htlm_world.scenario import Scenario, builtin, from_dict
 from htlm_world.simulator import BatchSim
 
+
 def assert_same(got: np.ndarray, want: np.ndarray, exact: bool) -> bool:
     """Bit for bit when `exact`, else equal to round-off."""
     if exact:

@@ -213,7 +213,9 @@ class Layout:
             p, u = self.scenario.n_tasks, self.unit
             x, y = self.agent(site, slot)
             working = 0 <= action < p
-            does = self.scenario.kinds[self.kind_of[action]].name if working else ("idle" if action >= p else "no action")
+            does = (
+                self.scenario.kinds[self.kind_of[action]].name if working else ("idle" if action >= p else "no action")
+            )
             text = f"{self.scenario.agents[k].name}: {does}" + (" (absent)" if absent else "")
             # text is drawn centred on its position: put the centre so that the text starts just right of the agent
             lx = x + 0.6 * u + 0.5 * CHAR_WIDTH * 0.45 * u * len(text)

@@ -49,11 +49,7 @@ def kind_table(sc: Scenario, k: int) -> FloatArray:
                     t[c, g, lv, lv] += 1.0 - kind.growth
                 elif kind.blocked_above is not None and g > kind.blocked_above:
                     t[c, g, lv, lv] = 1.0
-                elif (
-                    dd is not None
-                    and c >= lv >= dd.min_level
-                    and (dd.gate_at_most is None or g <= dd.gate_at_most)
-                ):
+                elif dd is not None and c >= lv >= dd.min_level and (dd.gate_at_most is None or g <= dd.gate_at_most):
                     t[c, g, lv, lv - 2] += dd.share * p
                     t[c, g, lv, lv - 1] += (1.0 - dd.share) * p
                     t[c, g, lv, lv] += 1.0 - p
@@ -246,9 +242,7 @@ class Model:
         """Next levels of T by inverse CDF from uniforms u of shape (..., p) (docs/model.md, Transition T)."""
         return _inverse_cdf(self.transition_cdf, self._rows(levels, caps), u)
 
-    def sample_observation(
-        self, task: IntArray, true_level: IntArray, sensing: IntArray, u: FloatArray
-    ) -> IntArray:
+    def sample_observation(self, task: IntArray, true_level: IntArray, sensing: IntArray, u: FloatArray) -> IntArray:
         """Observed levels of O by inverse CDF: the observed tasks, their true levels, the observers' sensing and
         uniforms, all of one shape."""
         L, cm = self.scenario.levels, self.scenario.capability_max

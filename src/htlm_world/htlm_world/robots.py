@@ -96,6 +96,9 @@ class Sensing:
     def observe(self, task: int, true_level: int) -> int:
         """The observed level of task `task` whose true level is `true_level`."""
         z = self.model.sample_observation(
-            np.array([task]), np.array([true_level]), self.model.sensing[self.agent : self.agent + 1], self.rng.random(1)
+            np.array([task]),
+            np.array([true_level]),
+            self.model.sensing[self.agent : self.agent + 1],
+            self.rng.random(1),
         )
         return int(z[0])

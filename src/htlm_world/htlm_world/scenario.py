@@ -384,7 +384,8 @@ def from_dict(data: Any, src: str = "<dict>", team: str | None = None) -> Scenar
         level = own.pop("reassign")
         if level not in REASSIGN_COSTS:
             raise ScenarioError(f"{src}: reassign: {level!r} is not one of {list(REASSIGN_COSTS)}")
-        reward = own.get("reward") if isinstance(own.get("reward"), dict) else {}
+        given = own.get("reward")
+        reward: dict[str, Any] = given if isinstance(given, dict) else {}
         own["reward"] = {**reward, "reassign_cost": REASSIGN_COSTS[level]}
     merged = {**_base_data(), **own}
     if "agents" in own and "team" not in own:

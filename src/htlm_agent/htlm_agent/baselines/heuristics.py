@@ -21,7 +21,7 @@ from htlm_agent.runtime.team import Context
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.types import BoolArray, IntArray
+from htlm_world.types import IntArray
 
 BASELINES = ("random", "greedy", "auction", "ht", "optimal")
 """Names accepted by `registry.make_baseline` and `htlm evaluate --baseline` (here, in a module without torch, so

@@ -12,11 +12,21 @@ from pathlib import Path
 
 from htlm_world.scenario import REASSIGN_COSTS, Scenario, builtin, load
 
+TEAM_HELP = (
+    "a team of the scenario's `teams` (default: the scenario's `team`; paper: heterogeneous, semi-heterogeneous, "
+    "homogeneous)"
+)
+"""The help of every verb's --team."""
+
 
 def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     """--team, --idle-incentive, --reassign, --scenario, --mode."""
     g = p.add_argument_group("scenario")
-    g.add_argument("--team", default=None, help="a team of the scenario's `teams` (default: the scenario's `team`; paper: heterogeneous, semi-heterogeneous, homogeneous)")
+    g.add_argument(
+        "--team",
+        default=None,
+        help=TEAM_HELP,
+    )
     g.add_argument(
         "--idle-incentive",
         type=float,

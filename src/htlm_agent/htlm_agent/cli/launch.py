@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from htlm_agent.cli.common import TEAM_HELP
 from htlm_world.scenario import ScenarioError, builtin, load
 
 
@@ -30,7 +31,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from htlm_agent.ros.launch import EXIT_CODES
 
     p.add_argument("mode", choices=("train", "evaluate", "deploy"), help="what the team does")
-    p.add_argument("--team", default=None, help="a team of the scenario's `teams` (default: the scenario's `team`; paper: heterogeneous, semi-heterogeneous, homogeneous)")
+    p.add_argument(
+        "--team",
+        default=None,
+        help=TEAM_HELP,
+    )
     p.add_argument("--scenario", default="", help="scenario YAML file (default: the built-in 'paper')")
     p.add_argument(
         "--episodes",

@@ -7,6 +7,7 @@ import json
 import sys
 import time
 
+from htlm_agent.cli.common import TEAM_HELP
 from htlm_world.scenario import ScenarioError, builtin, load
 
 PROGRESS_AFTER = 2.0
@@ -17,7 +18,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm optimal`."""
     from htlm_agent.baselines.optimal import DEFAULT_LIMITS
 
-    p.add_argument("--team", default=None, help="a team of the scenario's `teams` (default: the scenario's `team`; paper: heterogeneous, semi-heterogeneous, homogeneous)")
+    p.add_argument(
+        "--team",
+        default=None,
+        help=TEAM_HELP,
+    )
     p.add_argument("--scenario", default=None, help="scenario YAML file (default: the built-in 'paper')")
     p.add_argument(
         "--max-minutes",

@@ -390,7 +390,9 @@ def format_importance(table: dict[str, Any]) -> str:
     lines = [f"{'agent':<10} " + " ".join(f"{c:>{w}}" for c, w in zip(cols, widths, strict=True)) + f" {'zeta':>8}"]
     for i, r in enumerate(rows):
         mark = " *" if i == top else ""
-        cells = [f"{r[c]:>{w}.0f}" if c.startswith("C_") else f"{r[c]:>{w}.2f}" for c, w in zip(cols, widths, strict=True)]
+        cells = [
+            f"{r[c]:>{w}.0f}" if c.startswith("C_") else f"{r[c]:>{w}.2f}" for c, w in zip(cols, widths, strict=True)
+        ]
         lines.append(f"{r['agent']:<10} " + " ".join(cells) + f" {r['zeta']:>8.2f}{mark}")
     om = ", ".join(f"omega_{k} = {v:.2f}" for k, v in table["omega"].items())
     lines.append(f"{om}  ({table['team']}, {table['episodes']} episodes; * most important)")

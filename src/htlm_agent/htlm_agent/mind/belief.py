@@ -20,7 +20,6 @@ batch of the in-process `Team` bit for bit. What makes it fast keeps those numbe
 
 from __future__ import annotations
 
-import math
 import weakref
 from dataclasses import dataclass
 

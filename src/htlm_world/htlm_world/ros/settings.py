@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from htlm_msgs_py.params import INT64_MAX, SECONDS, problems, setting
 from htlm_msgs_py.schema import EPISODE_MAX
 from htlm_world.protocol import LockstepSettings
-from htlm_world.scenario import Scenario, ScenarioError, builtin, load, team_names
+from htlm_world.scenario import Scenario, builtin, load, team_names
 
 EXECUTORS = ("events", "single")
 """events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
