@@ -4,7 +4,7 @@
 (`tuple[int, ...]` and fixed-length), `Literal`, unions (`X | None`), int, float (an int is accepted and made a
 float), bool, str. Types are strict: no bool for an int, no float for an int, no string for a number. Keys the
 dataclass does not have are refused; fields left out keep the dataclass's defaults. Every problem raises
-`ConversionError` naming the source (a file), the field path (like `agents[2].fire`) and the bad value.
+`ConversionError` naming the source (a file), the field path (like `agents[2].sensing`) and the bad value.
 
 The type checks are msgspec's (`msgspec.convert`, strict): each dataclass is mirrored once by a msgspec Struct
 that forbids unknown fields, and the converted Structs are turned into the dataclasses, so the dataclasses' own
@@ -144,12 +144,12 @@ def _build(x: Any) -> Any:
 
 
 def split_path(path: str) -> list[str | int]:
-    """The steps of a msgspec path without its "$" (".agents[2].fire" -> ["agents", 2, "fire"])."""
+    """The steps of a msgspec path without its "$" (".agents[2].sensing" -> ["agents", 2, "sensing"])."""
     return [name if name else int(index) for name, index in _PATH_STEP.findall(path)]
 
 
 def join_path(steps: list[str | int]) -> str:
-    """A field path for messages (["agents", 2, "fire"] -> "agents[2].fire")."""
+    """A field path for messages (["agents", 2, "sensing"] -> "agents[2].sensing")."""
     out = ""
     for s in steps:
         out += f"[{s}]" if isinstance(s, int) else (f".{s}" if out else s)
@@ -166,7 +166,7 @@ def lookup(data: Any, steps: list[str | int]) -> Any:
 def parse_error(message: str) -> tuple[list[str | int], str, str | None]:
     """A msgspec ValidationError message as (path steps, problem, name of a missing or unknown field).
 
-    "Expected `int` <= 4 - at `$.agents[2].fire`" -> (["agents", 2, "fire"], "Expected `int` <= 4", None);
+    "Expected `int` <= 4 - at `$.agents[2].sensing`" -> (["agents", 2, "sensing"], "Expected `int` <= 4", None);
     "Object contains unknown field `speed` - at `$.agents[1]`" -> (["agents", 1, "speed"], "...", "speed").
     """
     m = _AT.search(message)

@@ -54,8 +54,8 @@ class GreedyPolicy:
     """A decentralized heuristic over each agent's own belief (no learning, no communication beyond the model's).
 
     Agent i has a home site (i mod S). From its confident levels (the reward's b_th), it works on the first task,
-    in the order home site first, fire before rescue, that is believed unfinished, that it has capability for, and
-    that can progress (rescue only while the site's fire is at most rescue_block_fire). With nothing to do it idles at
+    in the order home site first, a site's tasks in the order of the scenario's kinds, that is believed unfinished,
+    that it has capability for, and that can progress (`Model.blocked`). With nothing to do it idles at
     its current site (HT mode: it stays on its previous task).
     """
 

@@ -2,7 +2,7 @@
 its layout.
 
 Layout of the last axis (K = p·L + |Ḡ| entries): the per-task marginals of the belief, task-major (p rows of L
-levels, tasks in the order fire@site1, rescue@site1, fire@site2, ...), then the one-hot previous assignment a_o over
+levels, tasks in task order, `Scenario.tasks`), then the one-hot previous assignment a_o over
 Ḡ; a_o = -1 (no assignment yet) is all zeros. `Scenario.knowledge_size` is its length and `Scenario.layout_hash` its
 fingerprint.
 """

@@ -129,7 +129,7 @@ def scenario_problems(path: str) -> list[str]:
 
 
 def _field_steps(message: str, src: str) -> list[str | int] | None:
-    """The field path a scenario problem names ("FILE: agents[1].fire: ..." -> ["agents", 1, "fire"]), or None."""
+    """The field path a scenario problem names ("FILE: agents[1].sensing: ..." -> ["agents", 1, "sensing"]), or None."""
     if not message.startswith(f"{src}: "):
         return None
     path = message[len(src) + 2 :].split(": ", 1)[0].split(" ", 1)[0]
