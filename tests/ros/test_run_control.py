@@ -115,6 +115,9 @@ def test_unsigned_announcements_of_another_run_stop_and_switch_nobody(ros_team: 
     time.sleep(1.5)  # the strangers are up before the team starts
     team.start()
     team.wait_for(lambda: len(team.world_episodes()) >= B, 60, "the first batch")
+    team.wait_for(
+        lambda: len(read_json(rec)) >= 1, 30, "the run's announcement at the recorder (the publishers' source)"
+    )
     go.touch()
     for what in forged:
         _published(team, what, 7)
@@ -262,6 +265,7 @@ def test_the_training_log_holds_each_episode_once_in_order_despite_replayed_metr
     time.sleep(1.5)
     team.start()
     team.wait_for(lambda: len(team.world_episodes()) >= B, 90, "the first training batch")
+    team.wait_for(lambda: len(read_json(rec)) >= 1, 30, "an episode_metrics record at the recorder (the source)")
     go.touch()
     for name in ("replay", "other"):
         _published(team, name, 2)

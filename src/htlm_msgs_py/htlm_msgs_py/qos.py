@@ -7,7 +7,11 @@ rclpy QoSProfile.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
+
+FASTDDS_PROFILE = Path(__file__).with_name("fastdds.xml")
+"""The Fast DDS participant profile of the launched processes (discovery announcements every 0.25 s)."""
 
 
 @dataclass(frozen=True)

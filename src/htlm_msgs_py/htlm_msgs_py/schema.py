@@ -339,7 +339,7 @@ _BATCH_SIZE = Int(1, "batch")
 
 SCENARIO = Schema(
     "htlm/scenario",
-    3,
+    4,
     {
         "run": Text(64, r"[A-Za-z0-9_.:-]+"),
         "nonce": _HEX16,
@@ -359,7 +359,8 @@ SCENARIO = Schema(
     },
     max_bytes=256 * 1024,
     doc="The run: its id, the nonce of the world process announcing it (new at every start) and a sequence number "
-    "that only grows over the run (also across restarts of the world), the scenario (Scenario.to_dict), its layout "
+    "that only grows over the run (also across restarts of the world), the scenario (Scenario.to_dict: its kinds "
+    "of task by name with their dynamics, its sites with their tasks, its agents with their capabilities), its layout "
     "hash, master seed, mode, clock and its period, "
     "operation (simulated by the world, or external: observations come from the robots), episode range and batch "
     "size B (episodes run at once); `state` turns to stopped when the world ends the run.",

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from htlm_msgs_py.qos import FASTDDS_PROFILE
 from htlm_world.scenario import Scenario
 
 EXIT_CODES = {
@@ -142,6 +143,9 @@ def ros_env(cfg: LaunchConfig) -> dict[str, str]:
     # shared-memory port leaves that port's interprocess mutex locked, and every later writer to it blocks for good
     # (a restarted node hangs on start). Over UDP a dead process takes nothing with it. An explicit setting wins.
     env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+    # participants announce themselves every 0.25 s, not 3 s: a process joining a running graph (a restarted node, a
+    # viewer) matches the others within 0.4 s instead of up to 3 s (htlm_msgs_py/fastdds.xml). An explicit file wins.
+    env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))
     if cfg.key_file:
         env["HTLM_TEAM_KEY_FILE"] = str(Path(cfg.key_file).resolve())
         env.pop("HTLM_TEAM_KEY", None)
