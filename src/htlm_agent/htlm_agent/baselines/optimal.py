@@ -82,11 +82,14 @@ class ProblemSize:
         return self.sites * self.tasks_per_site if self.total_tasks < 0 else self.total_tasks
 
     def describe(self) -> str:
-        """One line: '2 sites x 2 tasks, 5 levels, 5 agents, horizon 30'."""
-        return (
-            f"{self.sites} sites x {self.tasks_per_site} tasks, {self.levels} levels, {self.agents} agents, "
-            f"horizon {self.horizon}"
+        """One line: '2 sites x 2 tasks, 5 levels, 5 agents, horizon 30' (sites of different sizes: '3 sites, 6
+        tasks (at most 3 at a site), ...')."""
+        tasks = (
+            f"{self.sites} sites x {self.tasks_per_site} tasks"
+            if self.tasks == self.sites * self.tasks_per_site
+            else f"{self.sites} sites, {self.tasks} tasks (at most {self.tasks_per_site} at a site)"
         )
+        return f"{tasks}, {self.levels} levels, {self.agents} agents, horizon {self.horizon}"
 
 
 @dataclass(frozen=True)

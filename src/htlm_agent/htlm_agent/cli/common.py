@@ -65,7 +65,7 @@ def experiment_name(sc: Scenario) -> str:
     """A short name of a training configuration, e.g. heterogeneous-ii1-medium."""
     levels = {v: k for k, v in REASSIGN_COSTS.items()}
     tc = levels.get(sc.reward.reassign_cost, f"tc{sc.reward.reassign_cost:g}")
-    base = sc.team if sc.name == "paper" else f"{sc.name}-{sc.team}"
+    base = sc.team if sc.name == "paper" else (f"{sc.name}-{sc.team}" if sc.team else sc.name)
     return f"{base}-ii{sc.reward.idle_incentive:g}-{tc}" + ("-ht" if sc.mode == "ht" else "")
 
 

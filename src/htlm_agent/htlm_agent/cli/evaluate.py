@@ -79,8 +79,10 @@ def parse_agents(sc: Scenario, names: list[str]) -> tuple[int, ...]:
 def format_metrics(m: dict[str, Any]) -> str:
     """The metrics as a table: team line, then one line per agent."""
     c = m["completion"]
+    shown = [", ".join(f"{k} {v}" for k, v in a["capabilities"].items() if v) or "-" for a in m["agents"]]
+    width = max(12, *(len(c) for c in shown))
     lines = [
-        f"{m['policy']} · {m['team']} · {m['mode']} · R_II x{m['idle_incentive']:g} · tc {m['reassign_cost']:g} · "
+        f"{m['policy']} · {m['scenario']}{'/' + m['team'] if m['team'] else ''} · {m['mode']} · R_II x{m['idle_incentive']:g} · tc {m['reassign_cost']:g} · "
         f"{m['episodes']} episodes (seed {m['seed']})"
         + (f" · inactive: {', '.join(m['inactive'])}" if m["inactive"] else ""),
         f"completion step {c['mean']:.2f} ± {c['se']:.2f} (failure rate {c['failure_rate']:.1%}, of which every agent "
@@ -90,12 +92,11 @@ def format_metrics(m: dict[str, Any]) -> str:
         f"{m['unused_capability']['se']:.3f} (fraction {m['unused_fraction']['mean']:.1%})",
         f"team idle count before completion {m['idle_before_completion']['mean']:.2f} · team reassignment count "
         f"before completion {m['reassign_before_completion']['mean']:.2f}",
-        f"{'agent':<10} {'capabilities':<20} {'unused':>8} {'fraction':>8} {'idle<=c':>8} {'reassign<=c':>11}",
+        f"{'agent':<10} {'capabilities':<{width}} {'unused':>8} {'fraction':>8} {'idle<=c':>8} {'reassign<=c':>11}",
     ]
-    for a in m["agents"]:
-        caps = " ".join(f"{k} {v}" for k, v in a["capabilities"].items())
+    for a, caps in zip(m["agents"], shown, strict=True):
         lines.append(
-            f"{a['agent'] + (' (off)' if a['inactive'] else ''):<10} {caps:<20} "
+            f"{a['agent'] + (' (off)' if a['inactive'] else ''):<10} {caps:<{width}} "
             f"{a['unused_capability']['mean']:>8.3f} {a['unused_fraction']['mean']:>8.1%} "
             f"{a['idle_before_completion']['mean']:>8.2f} {a['reassign_before_completion']['mean']:>11.2f}"
         )
