@@ -281,7 +281,10 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
     rows = decision_rows(ep)[:steps]  # (steps, N)
     names = sc.action_names
 
-    fig, ax = plt.subplots(figsize=(min(16.0, max(8.0, 0.42 * steps + 4.0)), 1.0 + 0.62 * (p + q) + 1.1))
+    legend_rows = -(-n // 3) if n > 5 else 0
+    fig, ax = plt.subplots(
+        figsize=(min(16.0, max(8.0, 0.42 * steps + 4.0)), 1.0 + 0.62 * (p + q) + 1.1 + 0.25 * legend_rows)
+    )
     # grey ("bad"): a level nobody reported (external operation)
     cmap = ListedColormap(plt.get_cmap("YlOrRd")(np.linspace(0.06, 0.92, nl))).with_extremes(bad="0.72")
     norm = BoundaryNorm(np.arange(nl + 1) - 0.5, nl)
@@ -294,6 +297,7 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
         ax.axhline(p - 0.5, color="0.45", lw=1.0)
     spread = 0.56 / max(n - 1, 1) if n > 1 else 0.0
     x_line = np.arange(steps + 1)
+    caps = sc.capability_table()
     for i, agent in enumerate(sc.agents):
         colour, marker = AGENT_STYLES[i % len(AGENT_STYLES)]
         y = rows[:, i] + (i - (n - 1) / 2) * spread
@@ -315,7 +319,7 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
             color=colour,
             mec="white",
             mew=0.8,
-            label=f"{agent.name} ({', '.join(f'{k.name} {agent.capability(k.uses)}' for k in sc.kinds)})",
+            label=f"{agent.name} ({', '.join(f'{k.name} {c}' for k, c in zip(sc.kinds, caps[i], strict=True) if c)})",
         )
     mark = ep.actions.shape[0] if did_fail else completion  # the horizon of a failure, else the completion step
     if mark <= steps:
@@ -351,10 +355,11 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
     bar = fig.colorbar(mesh, ax=ax, ticks=range(nl), pad=0.015, fraction=0.04)
     bar.set_label("true severity level", fontsize=9)
     bar.ax.set_yticklabels([f"{k} (done)" if k == 0 else str(k) for k in range(nl)], fontsize=8)
+    below = n > 5  # a large team's legend goes under the steps, in rows of three, clear of the title
     ax.legend(
-        loc="lower center",
-        bbox_to_anchor=(0.5, 1.0),
-        ncol=n if n <= 5 else 4,
+        loc="upper center" if below else "lower center",
+        bbox_to_anchor=(0.5, -0.09) if below else (0.5, 1.0),
+        ncol=3 if below else n,
         fontsize=8,
         frameon=False,
         handletextpad=0.2,
