@@ -21,6 +21,7 @@ test-slow: setup
 lint: setup
 	$(VENV)/ruff check .
 	$(VENV)/ruff format --check .
+	$(VENV)/lint-imports
 
 format: setup
 	$(VENV)/ruff check --fix .

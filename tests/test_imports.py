@@ -19,8 +19,7 @@ subcommand's module only when it runs (`htlm optimal` never loads torch), a ROS 
 mode that needs it."""
 
 LAZY_MODULES = {
-    "htlm_agent.experiments.ros_bench": "run by `htlm bench ros`; loads the ROS launcher only when measuring",
-    "htlm_agent.learning.trainer": "the ROS trainer's core: loads the learner (torch) only once a run starts",
+    "htlm_agent.trainer.core": "the ROS trainer's core: loads the learner (torch) only once a run starts",
     "htlm_agent.learning.transition_store": "read by the trainer node: loads the learner settings only on demand",
 }
 """Other modules allowed first-party imports inside functions, with the reason."""

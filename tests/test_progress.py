@@ -6,8 +6,8 @@ import io
 
 import pytest
 
-from htlm_agent.experiments import progress
-from htlm_agent.experiments.progress import Progress, format_duration
+from htlm_agent import progress
+from htlm_agent.progress import Progress, format_duration
 
 
 class FakeClock:

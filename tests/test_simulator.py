@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from htlm_agent.runtime.team import Context, Team, Trajectory, rollout
+from htlm_agent.mind.context import Context
+from htlm_agent.runtime.team import Team, Trajectory, rollout
 from htlm_world import seeds
 from htlm_world.metrics import completion_step, episode_metrics, importance
 from htlm_world.model import Model

@@ -1,4 +1,4 @@
-"""The trainer's core without ROS (htlm_agent.learning.trainer.TrainerCore): rounds of updates per step of the
+"""The trainer's core without ROS (htlm_agent.trainer.core.TrainerCore): rounds of updates per step of the
 batched lockstep (run in step order once every agent that acted sent its transitions, or after the deadline) are
 deterministic and equal `htlm train`'s store_batch + train_steps; progress after every round, weights on a fixed
 cadence, checkpoints every few episodes; a trainer started again on its run directory resumes from the checkpoint
@@ -18,7 +18,7 @@ import pytest
 
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.settings import Settings
-from htlm_agent.learning.trainer import Schedule, TrainerCore, TrainerEffects, load_learner_data
+from htlm_agent.trainer.core import Schedule, TrainerCore, TrainerEffects, load_learner_data
 from htlm_world.model import Model
 from htlm_world.scenario import builtin
 

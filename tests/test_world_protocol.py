@@ -13,8 +13,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from htlm_agent.baselines.heuristics import builtin_policy
 from htlm_agent.mind.agent import AgentMind, Effects
-from htlm_agent.mind.policies import AgentPolicy, DecentralizedPolicy, builtin_policy
+from htlm_agent.mind.policies import AgentPolicy, DecentralizedPolicy
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.model import Model
 from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol

@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from htlm_agent.mind.policies import DecentralizedPolicy, builtin_policy
+from htlm_agent.baselines.heuristics import builtin_policy
+from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.ros.launch import LaunchConfig, Proc, start, stop
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.scenario import Scenario, builtin

@@ -5,19 +5,20 @@
 - `AuctionPolicy`: the market-based allocation used on ROS robots (a sequential single-item auction), run by every
   agent on its own belief (docs/model.md, Baselines).
 - the HT Dec-POMDP learner (the paper's predecessor): the same deep Q-learner on the scenario in mode "ht" (no idle
-  locations, R_LM = 0), see `htlm_agent.baselines.registry.train_ht`.
+  locations, R_LM = 0), see `htlm_agent.experiments.baselines.train_ht`.
 - `OptimalPolicy` (htlm_agent.baselines.optimal): the centralized, fully observed optimum acting on the true state
   (the floor).
 
-`htlm_agent.baselines.registry.make_baseline` builds any of them by name.
+`htlm_agent.experiments.baselines.make_baseline` builds any of them by name.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from htlm_agent.mind.context import Context
+from htlm_agent.mind.policies import AgentPolicy, RowPolicy
 from htlm_agent.mind.reward import RewardTables, confident_levels
-from htlm_agent.runtime.team import Context
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
@@ -153,3 +154,14 @@ class AuctionPolicy:
         own = self.allocate(lv)[:, np.arange(n), np.arange(n)]  # (B, N): agent i's result in its own auction
         stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
         return np.where(own >= 0, own, stay).astype(np.int64)
+
+
+def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPolicy, float]:
+    """A policy that needs no network, and its ε (one of `BUILTIN_POLICIES`): "greedy" (`GreedyPolicy` on the
+    agent's own row), "auction" (`AuctionPolicy`: the auction the agent runs on its own belief, keeping its own
+    assignment) or "random" (uniform over Â(a_o) from the agent's exploration generator, ε = 1)."""
+    if name not in BUILTIN_POLICIES:
+        raise ValueError(f"unknown built-in policy {name!r}; choose one of {', '.join(BUILTIN_POLICIES)}")
+    if name == "auction":
+        return RowPolicy(scenario, AuctionPolicy(scenario), agent), 0.0
+    return RowPolicy(scenario, GreedyPolicy(scenario), agent), (1.0 if name == "random" else 0.0)

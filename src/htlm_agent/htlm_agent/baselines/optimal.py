@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from htlm_agent.experiments.progress import Progress
-from htlm_agent.runtime.team import Context
+from htlm_agent.mind.context import Context
+from htlm_agent.progress import Progress
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.types import FloatArray, IntArray

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-ROS_BENCH = "htlm_agent.experiments.ros_bench"
+ROS_BENCH = "htlm_agent.ros.bench"
 """Module providing `ros_bench(args: argparse.Namespace) -> dict` and optionally `add_arguments(parser)`."""
 
 OPTIMUM = {"heterogeneous": 7.09, "semi-heterogeneous": 6.70, "homogeneous": 7.61}

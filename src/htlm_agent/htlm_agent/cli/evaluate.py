@@ -80,9 +80,10 @@ def format_metrics(m: dict[str, Any]) -> str:
     """The metrics as a table: team line, then one line per agent."""
     c = m["completion"]
     shown = [", ".join(f"{k} {v}" for k, v in a["capabilities"].items() if v) or "-" for a in m["agents"]]
-    width = max(12, *(len(c) for c in shown))
+    width = max(12, *(len(text) for text in shown))
+    team = f"{m['scenario']}/{m['team']}" if m["team"] else m["scenario"]
     lines = [
-        f"{m['policy']} · {m['scenario']}{'/' + m['team'] if m['team'] else ''} · {m['mode']} · R_II x{m['idle_incentive']:g} · tc {m['reassign_cost']:g} · "
+        f"{m['policy']} · {team} · {m['mode']} · R_II x{m['idle_incentive']:g} · tc {m['reassign_cost']:g} · "
         f"{m['episodes']} episodes (seed {m['seed']})"
         + (f" · inactive: {', '.join(m['inactive'])}" if m["inactive"] else ""),
         f"completion step {c['mean']:.2f} ± {c['se']:.2f} (failure rate {c['failure_rate']:.1%}, of which every agent "
@@ -105,7 +106,7 @@ def format_metrics(m: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate, print and write the reports."""
-    from htlm_agent.baselines.registry import make_baseline
+    from htlm_agent.experiments.baselines import make_baseline
     from htlm_agent.experiments.evaluate import evaluate_run, write_reports
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
     from htlm_agent.learning.qpolicy import QPolicy

@@ -17,8 +17,9 @@ from typing import Any
 import numpy as np
 import yaml
 
+from htlm_agent.mind.context import Policy
 from htlm_agent.mind.reward import confident_levels
-from htlm_agent.runtime.team import Policy, Team, rollout
+from htlm_agent.runtime.team import Team, rollout
 from htlm_world.metrics import EpisodeMetrics, episode_metrics, importance, mean_se
 from htlm_world.scenario import Scenario
 from htlm_world.types import BoolArray, FloatArray, IntArray

@@ -20,13 +20,13 @@ from typing import Any
 
 import numpy as np
 
-from htlm_agent.baselines.registry import make_baseline
+from htlm_agent.experiments.baselines import make_baseline
 from htlm_agent.experiments.evaluate import evaluate, evaluate_run, importance_columns, importance_table
-from htlm_agent.experiments.progress import Progress
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
+from htlm_agent.progress import Progress
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.metrics import mean_se
 from htlm_world.scenario import REASSIGN_COSTS, Scenario, builtin, load

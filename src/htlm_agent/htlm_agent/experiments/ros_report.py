@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from htlm_agent.baselines.registry import make_baseline
+from htlm_agent.experiments.baselines import make_baseline
 from htlm_agent.experiments.evaluate import evaluate_run
 from htlm_world.metrics import mean_se
 from htlm_world.scenario import Scenario

@@ -8,7 +8,7 @@ import torch
 
 from htlm_agent.learning.checkpoint import Checkpoint
 from htlm_agent.learning.qnet import StackedQ, layer_sizes, masked_argmax
-from htlm_agent.runtime.team import Context
+from htlm_agent.mind.context import Context
 from htlm_world.scenario import Scenario
 from htlm_world.types import BoolArray, FloatArray, IntArray
 

@@ -11,9 +11,8 @@ from typing import Protocol
 
 import numpy as np
 
-from htlm_agent.baselines.heuristics import BUILTIN_POLICIES, AuctionPolicy, GreedyPolicy
+from htlm_agent.mind.context import Context, Policy
 from htlm_agent.mind.knowledge import split as split_knowledge
-from htlm_agent.runtime.team import Context, Policy
 from htlm_world import seeds
 from htlm_world.scenario import Scenario
 from htlm_world.types import BoolArray, FloatArray, IntArray
@@ -86,17 +85,6 @@ class RowPolicy:
             true_levels=np.zeros((b, sc.n_tasks), dtype=np.int64),  # decentralized policies never read it
         )
         return np.asarray(self.policy.act(ctx)[:, self.agent], dtype=np.int64)
-
-
-def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPolicy, float]:
-    """A policy that needs no network, and its ε (one of `BUILTIN_POLICIES`): "greedy" (`GreedyPolicy` on the
-    agent's own row), "auction" (`AuctionPolicy`: the auction the agent runs on its own belief, keeping its own
-    assignment) or "random" (uniform over Â(a_o) from the agent's exploration generator, ε = 1)."""
-    if name not in BUILTIN_POLICIES:
-        raise ValueError(f"unknown built-in policy {name!r}; choose one of {', '.join(BUILTIN_POLICIES)}")
-    if name == "auction":
-        return RowPolicy(scenario, AuctionPolicy(scenario), agent), 0.0
-    return RowPolicy(scenario, GreedyPolicy(scenario), agent), (1.0 if name == "random" else 0.0)
 
 
 class DecentralizedPolicy:

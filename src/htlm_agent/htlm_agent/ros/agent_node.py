@@ -23,10 +23,10 @@ from typing import Any
 
 from rclpy.node import Node
 
-from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
+from htlm_agent.baselines.heuristics import BUILTIN_POLICIES, builtin_policy
 from htlm_agent.mind.agent import AgentMind, Effects, Transition
 from htlm_agent.mind.external import ExternalObservations, Observed
-from htlm_agent.mind.policies import AgentPolicy, builtin_policy
+from htlm_agent.mind.policies import AgentPolicy
 from htlm_agent.ros.settings import AgentSettings, validate_agent_settings
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
@@ -277,7 +277,7 @@ class AgentNode(Node):
         if s.epsilon >= 0.0:
             return s.epsilon
         if self.policy_kind == "trainer" and self.learner_settings is not None and self.mode == "train":
-            from htlm_agent.experiments.train import episode_epsilons
+            from htlm_agent.learning.loop import episode_epsilons
 
             return episode_epsilons(self.learner_settings, episode, size)[1]
         return self.policy_epsilon

@@ -297,7 +297,7 @@ class _ProgressTail(_Tail):
     PATTERN = re.compile(r"episodes? (\d+)(?:\.\.(\d+))?: completion ([0-9.]+)(?: \(mean\))?(?:, (\d+) failed)?")
 
     def __init__(self, path: Path, total: int, first: int) -> None:
-        from htlm_agent.experiments.progress import Progress
+        from htlm_agent.progress import Progress
 
         super().__init__(path, ("episode",), "")
         self.first = first

@@ -3,7 +3,7 @@ change at run time.
 
 Plain dataclasses (no rclpy): `htlm_msgs_py.ros.declare_settings` declares the parameters from them, the unit tests
 check them without ROS, and the nodes hand the ROS-free cores (htlm_agent.mind.agent.AgentMind,
-htlm_agent.learning.trainer.TrainerCore) what they need.
+htlm_agent.trainer.core.TrainerCore) what they need.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
-from htlm_agent.learning.trainer import Schedule, load_learner_data
+from htlm_agent.trainer.core import Schedule, load_learner_data
 from htlm_msgs_py.params import SECONDS, problems, setting
 
 EXECUTORS = ("events", "single")

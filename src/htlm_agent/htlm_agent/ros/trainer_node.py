@@ -1,7 +1,7 @@
 """trainer_node: collects every agent's transitions in a durable store, trains each agent's own Q-network with the
 learner of `htlm train`, publishes weights and writes checkpoints in the same format.
 
-A thin adapter around the ROS-free `htlm_agent.learning.trainer.TrainerCore`, which decides everything (the run it
+A thin adapter around the ROS-free `htlm_agent.trainer.core.TrainerCore`, which decides everything (the run it
 serves, resuming from run_dir, when to train, publish weights and checkpoint): the node decodes messages, feeds them
 to the core and publishes what it returns. Transitions are acknowledged only after the store has fsynced them; an
 agent keeps every unacknowledged transition and sends it again, so a trainer killed and restarted loses nothing an
@@ -17,8 +17,8 @@ from typing import Any
 
 from rclpy.node import Node
 
-from htlm_agent.learning.trainer import TrainerCore, TrainerEffects, load_learner_data
 from htlm_agent.ros.settings import TrainerSettings, validate_trainer_settings
+from htlm_agent.trainer.core import TrainerCore, TrainerEffects, load_learner_data
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import (

@@ -6,38 +6,18 @@ This is the same model code the ROS nodes call; here all agents and B episodes a
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
 from htlm_agent.mind import belief as bf
 from htlm_agent.mind import knowledge
+from htlm_agent.mind.context import Context, Policy
 from htlm_agent.mind.reward import RewardTables, reward
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.simulator import BatchSim
 from htlm_world.types import BoolArray, FloatArray, IntArray
-
-
-@dataclass
-class Context:
-    """What a policy may look at when it acts (decentralized policies use only their own row)."""
-
-    knowledge: FloatArray  # (B, N, K) each agent's knowledge state
-    mask: BoolArray  # (B, N, |G|) the reduced action space A-hat(a_o)
-    marginals: FloatArray  # (B, N, p, L)
-    prev: IntArray  # (B, N) previous assignments
-    t: int  # steps taken so far in the episode
-    true_levels: IntArray  # (B, p) ground truth: only the centralized optimum may read it
-
-
-class Policy(Protocol):
-    """Anything that maps a Context to a joint action (B, N)."""
-
-    def act(self, ctx: Context) -> IntArray:
-        """Choose every agent's action."""
-        ...
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """`htlm bench ros`: episode-steps per second of the batched lockstep over ROS 2 (world + 5 agent processes +
 trainer = 7 processes on real DDS) at B = 1, 16, 64 and 128, each beside the in-process runtime at the same B with
 the same per-agent policies, and the wall time of a training run over ROS beside `htlm train` with the same budget,
-all measured in one run. Also `python -m htlm_agent.experiments.ros_bench [--json]`.
+all measured in one run. Also `python -m htlm_agent.ros.bench [--json]`.
 """
 
 from __future__ import annotations
@@ -53,7 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def inprocess_rate(policy: str, batch: int, batches: int, seed: int = 0) -> float:
     """Episode-steps per second of the in-process runtime at batch B with the same per-agent policies."""
-    from htlm_agent.mind.policies import DecentralizedPolicy, builtin_policy
+    from htlm_agent.baselines.heuristics import builtin_policy
+    from htlm_agent.mind.policies import DecentralizedPolicy
     from htlm_agent.runtime.team import Team, rollout
     from htlm_world.scenario import builtin
 
@@ -194,8 +195,8 @@ def ros_bench(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m htlm_agent.experiments.ros_bench [--json] ...`."""
-    p = argparse.ArgumentParser(prog="python -m htlm_agent.experiments.ros_bench", description=__doc__)
+    """`python -m htlm_agent.ros.bench [--json] ...`."""
+    p = argparse.ArgumentParser(prog="python -m htlm_agent.ros.bench", description=__doc__)
     p.add_argument("--json", action="store_true", help="print JSON")
     add_arguments(p)
     args = p.parse_args(argv)

@@ -271,9 +271,9 @@ class TrainerCore:
             StoreError: a store of another layout, or a store or checkpoint while `resume` is off.
             ValueError: bad learner settings, or a checkpoint that cannot be resumed.
         """
-        from htlm_agent.experiments.train import Selection
         from htlm_agent.learning.checkpoint import CheckpointError
         from htlm_agent.learning.dqn import Learner
+        from htlm_agent.learning.loop import Selection
 
         settings = self.learner_settings(seed)
         self.scenario = sc

@@ -12,7 +12,7 @@ from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
-from htlm_agent.runtime.team import Policy
+from htlm_agent.mind.context import Policy
 from htlm_world.scenario import Scenario
 
 
