@@ -169,7 +169,9 @@ def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, flo
 
 def validate(learner: Learner, episodes: int) -> dict[str, Any]:
     """Greedy validation of the current networks on episodes of the run's validation stream."""
-    return evaluate(learner.policy(), learner.scenario, episodes, seed=seeds.validation(learner.seed))
+    return evaluate(
+        learner.policy(), learner.scenario, episodes, seed=seeds.validation(learner.seed), model=learner.model
+    )
 
 
 # ----- the run's files --------------------------------------------------------------------------------------------
@@ -320,7 +322,9 @@ def final_evaluation(run: _Run, out: Path) -> dict[str, Any]:
     out/eval; returns its metrics."""
     s, scenario = run.learner.settings, run.learner.scenario
     policy = QPolicy.from_checkpoint(load_checkpoint(run.ckpt_dir))
-    evaluation = evaluate_run(policy, scenario, s.eval_episodes, seed=s.seed, policy_name="htlm-dqn")
+    evaluation = evaluate_run(
+        policy, scenario, s.eval_episodes, seed=s.seed, policy_name="htlm-dqn", model=run.learner.model
+    )
     write_reports(evaluation, out / "eval")
     run.log.evaluation(evaluation.metrics, run.learner.episodes_done)
     return evaluation.metrics
@@ -385,7 +389,7 @@ def train(
     done = learner.episodes_done
     run = _Run(
         learner=learner,
-        team=Team(scenario, s.envs, s.seed),
+        team=Team(scenario, s.envs, s.seed, model=learner.model),  # the scenario compiled once, for the run
         selection=selection,
         log=RunLog(out, done, resume, tensorboard),
         bar=Progress(s.episodes, initial=done, unit="ep", enabled=progress),

@@ -54,13 +54,16 @@ from htlm_world.types import BoolArray, FloatArray, IntArray
 class Learner:
     """The N agents' Q-networks, target networks, optimizer states and replay memories (Algorithm 1)."""
 
-    def __init__(self, scenario: Scenario, settings: Settings, seed: int | None = None) -> None:
+    def __init__(
+        self, scenario: Scenario, settings: Settings, seed: int | None = None, model: Model | None = None
+    ) -> None:
         """Fresh networks and empty memories.
 
         Args:
             scenario: the operation and team (knowledge and action layout).
             settings: learning settings.
             seed: master seed (default: settings.seed).
+            model: the scenario compiled (`Model.build`), when the caller has it already.
         """
         self.scenario = scenario
         self.settings = settings
@@ -71,7 +74,8 @@ class Learner:
         self.net = self.twins.online
         self.target = self.twins.target
         self.opt = StackedAdam(self.net.flat, self.net.grad, settings.lr)
-        self.model = Model.build(scenario)
+        assert model is None or model.scenario == scenario, "a model of another scenario"
+        self.model = model if model is not None else Model.build(scenario)
         self._mask_by_bits = self._masks_by_bits()
         self.replay = Replay(
             n,

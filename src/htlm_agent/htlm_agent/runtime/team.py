@@ -41,6 +41,7 @@ class Team:
         seed: int,
         episode: int = 0,
         inactive: tuple[int, ...] = (),
+        model: Model | None = None,
     ) -> None:
         """Create the team.
 
@@ -50,9 +51,11 @@ class Team:
             seed: master seed; the world and every channel take their streams from it and `episode` (`seeds`).
             episode: index of this batch (episode index when batch = 1), for seed derivation.
             inactive: agents forced to idle (at the site of their previous assignment) whatever they choose.
+            model: the scenario compiled (`Model.build`), when the caller has it already.
         """
         self.scenario = scenario
-        self.model = Model.build(scenario)
+        assert model is None or model.scenario == scenario, "a model of another scenario"
+        self.model = model if model is not None else Model.build(scenario)
         self.tables = RewardTables.build(scenario)
         self.batch = batch
         self.inactive = tuple(inactive)
