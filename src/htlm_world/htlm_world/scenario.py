@@ -477,6 +477,32 @@ def _upgrade(merged: dict[str, Any], own: dict[str, Any], src: str) -> None:
             site["tasks"][kind] = lv
 
 
+class ScenarioRecordError(ScenarioError):
+    """A /htlm/scenario record whose scenario does not load (`reason` "scenario") or whose layout hash is not the
+    scenario's (`reason` "layout")."""
+
+    def __init__(self, reason: str, text: str) -> None:
+        """The reason a node counts the rejection under, and the message."""
+        super().__init__(text)
+        self.reason = reason
+
+
+def from_record(rec: dict[str, Any]) -> Scenario:
+    """The scenario of a decoded /htlm/scenario record (`htlm_msgs_py.schema.SCENARIO`), its layout checked against
+    the record's hash: the one definition every node and viewer uses.
+
+    Raises:
+        ScenarioRecordError: with the reason to count (scenario, layout) and the problem.
+    """
+    try:
+        sc = from_dict(rec["scenario"], "/htlm/scenario")
+    except ScenarioError as e:
+        raise ScenarioRecordError("scenario", str(e)) from None
+    if sc.layout_hash() != rec["layout"]:
+        raise ScenarioRecordError("layout", f"layout {rec['layout']} != {sc.layout_hash()}")
+    return sc
+
+
 def named_scenarios() -> list[str]:
     """Names of the shipped scenario files."""
     return sorted(f.stem for f in SCENARIO_DIR.glob("*.yaml"))

@@ -26,7 +26,7 @@ from htlm_msgs_py import schema as S
 from htlm_msgs_py.params import setting
 from htlm_msgs_py.schema import WireError, decode, limits
 from htlm_msgs_py.signing import Signer
-from htlm_world.scenario import Scenario, ScenarioError, from_dict
+from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
 LEVEL_NAMES = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 """diagnostic_msgs/DiagnosticStatus levels."""
@@ -219,12 +219,9 @@ class WatchState:
             self.run = rec
             return
         try:
-            sc = from_dict(rec["scenario"], "/htlm/scenario")
-        except ScenarioError:
-            self.rejected["scenario/scenario"] += 1
-            return
-        if sc.layout_hash() != rec["layout"]:
-            self.rejected["scenario/layout"] += 1
+            sc = from_record(rec)
+        except ScenarioRecordError as e:
+            self.rejected[f"scenario/{e.reason}"] += 1
             return
         self.scenario, self.run = sc, rec
         self._reset()

@@ -54,7 +54,7 @@ from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
 from htlm_world.protocol import global_step
 from htlm_world.robots import site_distance
-from htlm_world.scenario import Scenario, ScenarioError, from_dict
+from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
 
 def _validate(s: AgentSettings) -> None:
@@ -179,12 +179,9 @@ class AgentNode(Node):
             self.stopping = False
             return
         try:
-            sc = from_dict(rec["scenario"], "/htlm/scenario")
-        except ScenarioError as e:
-            self.health.reject("scenario", "scenario", str(e))
-            return
-        if sc.layout_hash() != rec["layout"]:
-            self.health.reject("scenario", "layout", f"layout {rec['layout']} != {sc.layout_hash()}")
+            sc = from_record(rec)
+        except ScenarioRecordError as e:
+            self.health.reject("scenario", e.reason, str(e))
             return
         names = [a.name for a in sc.agents]
         if self.name not in names:

@@ -29,7 +29,7 @@ from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
 from htlm_msgs_py.run_control import RunControl
 from htlm_world.protocol import global_step
-from htlm_world.scenario import Scenario, ScenarioError, from_dict
+from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
 
 @dataclass(frozen=True)
@@ -222,12 +222,9 @@ class TrainerCore:
             return out
         self.logged_upto = -1  # a run joined: its episodes are logged from its first on
         try:
-            sc = from_dict(rec["scenario"], "/htlm/scenario")
-        except ScenarioError as e:
-            out.rejects.append(("scenario", "scenario", str(e)))
-            return out
-        if sc.layout_hash() != rec["layout"]:
-            out.rejects.append(("scenario", "layout", f"layout {rec['layout']} != {sc.layout_hash()}"))
+            sc = from_record(rec)
+        except ScenarioRecordError as e:
+            out.rejects.append(("scenario", e.reason, str(e)))
             return out
         if self.scenario is not None:
             if sc.layout_hash() != self.scenario.layout_hash():

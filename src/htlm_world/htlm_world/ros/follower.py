@@ -16,7 +16,7 @@ from htlm_msgs_py.ros import STATE_READER, Health, SettingsError, declare_settin
 from htlm_msgs_py.run_control import RunControl
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
-from htlm_world.scenario import Scenario, ScenarioError, from_dict
+from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
 
 class RunFollower(Node):
@@ -56,9 +56,9 @@ class RunFollower(Node):
             self.stopped = verdict == "stop" or (self.stopped and verdict == "update")
             return
         try:
-            sc = from_dict(rec["scenario"], "/htlm/scenario")
-        except ScenarioError as e:
-            self.health.reject("scenario", "scenario", str(e))
+            sc = from_record(rec)
+        except ScenarioRecordError as e:
+            self.health.reject("scenario", e.reason, str(e))
             return
         self.run, self.seed, self.scenario, self.model = rec["run"], rec["seed"], sc, Model.build(sc)
         self.lim = S.limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, rec["batch"])
