@@ -96,7 +96,7 @@ class AgentNode(Node):
         self.policy_epsilon = 0.0
         self.learner_settings: Any = None
         self.weights_version = -1
-        self.versions: dict[int, Any] = {}  # trained -> AgentQ: the weights the trainer took after that step
+        self.versions: dict[int, AgentPolicy] = {}  # trained -> AgentQ: the weights the trainer took after that step
         self._settings_data: Any = None
         self.weights_every = 1
         self.batch = 1

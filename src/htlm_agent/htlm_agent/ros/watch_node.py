@@ -9,6 +9,7 @@ terminal). Its subscriptions are what make the world publish the ground truth an
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import IO, Any
 
@@ -41,18 +42,30 @@ class WatchNode(Node):
         self.stop_signal = 0
         self._beliefs: dict[str, Any] = {}
         self.create_subscription(String, topics.SCENARIO, self._on_scenario, STATE_READER)
-        self.create_subscription(String, topics.STEP, lambda m: self.state.on_step(m.data), EVENTS)
-        self.create_subscription(String, topics.GROUND_TRUTH, lambda m: self.state.on_ground_truth(m.data), EVENTS)
-        self.create_subscription(String, topics.EPISODE_METRICS, lambda m: self.state.on_metrics(m.data), EVENTS)
+        self.create_subscription(String, topics.STEP, self._on_step, EVENTS)
+        self.create_subscription(String, topics.GROUND_TRUTH, self._on_ground_truth, EVENTS)
+        self.create_subscription(String, topics.EPISODE_METRICS, self._on_metrics, EVENTS)
         self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, DIAGNOSTICS)
+
+    def _on_step(self, msg: String) -> None:
+        self.state.on_step(msg.data)
+
+    def _on_ground_truth(self, msg: String) -> None:
+        self.state.on_ground_truth(msg.data)
+
+    def _on_metrics(self, msg: String) -> None:
+        self.state.on_metrics(msg.data)
 
     def _on_scenario(self, msg: String) -> None:
         self.state.on_scenario(msg.data)
         for name in self.state.agent_names:
             if name not in self._beliefs:
                 self._beliefs[name] = self.create_subscription(
-                    String, topics.belief(name), lambda m, a=name: self.state.on_belief(a, m.data), STATE_READER
+                    String, topics.belief(name), functools.partial(self._on_belief, name), STATE_READER
                 )
+
+    def _on_belief(self, name: str, msg: String) -> None:
+        self.state.on_belief(name, msg.data)
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         statuses = [(s.name, _level(s.level), s.message, {kv.key: kv.value for kv in s.values}) for s in msg.status]

@@ -88,7 +88,7 @@ def make_executor(kind: str) -> Executor:
             from rclpy.experimental import EventsExecutor
         except ImportError:  # an rclpy without it
             return SingleThreadedExecutor()
-        return EventsExecutor()  # type: ignore[no-any-return]
+        return EventsExecutor()
     return SingleThreadedExecutor()
 
 
@@ -129,7 +129,7 @@ class Health:
         it over, or its text), or None (counted and logged) when it is rejected."""
         self.counters[f"arrived/{topic}"] += 1
         try:
-            rec = decode(data if type(data) is str else record_text(data), schema, lim, self.signer)
+            rec = decode(data if isinstance(data, str) else record_text(data), schema, lim, self.signer)
         except WireError as e:
             self.reject(topic, e.reason, e)  # explained only if warned about
             return None
@@ -324,7 +324,7 @@ def declare_settings(
     calls `on_change(new settings)`.
     """
     hints = typing.get_type_hints(cls)
-    docs = field_docs(cls)
+    docs = field_docs(cls)  # type: ignore[arg-type]
     cons = constraints(cls)
     # rclpy keeps the values given on the command line and in parameter files here until they are declared
     overrides: dict[str, Any] = getattr(node, "_parameter_overrides", {})
@@ -333,7 +333,7 @@ def declare_settings(
         if f.name in overrides:
             values[f.name] = overrides[f.name].value
         else:
-            values[f.name] = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+            values[f.name] = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[operator]
     try:
         settings = convert(values, cls, "parameters")
     except ConversionError as e:

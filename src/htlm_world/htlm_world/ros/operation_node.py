@@ -11,6 +11,7 @@ metrics. Run: `python -m htlm_world.ros.operation_node` (or `htlm launch deploy 
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from typing import Any
@@ -66,7 +67,7 @@ class OperationNode(RunFollower):
             return
         for k, a in enumerate(self.scenario.agents):
             self.create_subscription(
-                Odometry, topics.odometry(a.name), lambda msg, k=k: self._on_odom(k, msg), POSE_READER
+                Odometry, topics.odometry(a.name), functools.partial(self._on_odom, k), POSE_READER
             )
         self.get_logger().info(f"run {self.run}: the stand-in operation of {len(self.scenario.agents)} robots")
 
