@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from htlm_agent.mind.external import ExternalObservations
+from htlm_world.episode import ExternalEpisode
 from htlm_world.model import Model
-from htlm_world.protocol import ExternalEpisode, LockstepSettings, WorldProtocol
+from htlm_world.protocol import LockstepSettings, WorldProtocol
 from htlm_world.robots import Drive, Sensing, StandInOperation, action_distance, site_distance
 from htlm_world.scenario import builtin
 

@@ -17,8 +17,8 @@ from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.ros.launch import LaunchConfig, process_specs, ros_env, write_params
 from htlm_agent.ros.settings import AgentSettings, TrainerSettings, validate_agent_settings, validate_trainer_settings
 from htlm_agent.runtime.team import Team, rollout
+from htlm_world.episode import WorldEpisode
 from htlm_world.model import Model
-from htlm_world.protocol import WorldEpisode
 from htlm_world.ros.settings import WorldSettings, validate_world_settings
 from htlm_world.scenario import builtin
 

@@ -23,8 +23,8 @@ from htlm_agent.experiments.episode_plot import (
     shown_steps,
 )
 from htlm_agent.ros.launch import write_params
+from htlm_world.episode import WorldEpisode
 from htlm_world.model import Model
-from htlm_world.protocol import WorldEpisode
 from htlm_world.scenario import builtin
 
 EPISODES = 5

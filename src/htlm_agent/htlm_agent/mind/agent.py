@@ -23,8 +23,8 @@ from htlm_agent.mind import knowledge
 from htlm_agent.mind.policies import AgentPolicy, choose
 from htlm_agent.mind.reward import RewardTables, confident_levels, reward
 from htlm_world import seeds
+from htlm_world.episode import WorldEpisode
 from htlm_world.model import Model
-from htlm_world.protocol import WorldEpisode
 from htlm_world.scenario import Scenario
 from htlm_world.simulator import sample_channel
 from htlm_world.types import BoolArray, FloatArray, IntArray

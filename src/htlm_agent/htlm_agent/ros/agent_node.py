@@ -51,8 +51,8 @@ from htlm_msgs_py.ros import (
 from htlm_msgs_py.run_control import RunControl
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
+from htlm_world.episode import global_step
 from htlm_world.model import Model
-from htlm_world.protocol import global_step
 from htlm_world.robots import site_distance
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 

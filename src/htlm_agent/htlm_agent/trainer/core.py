@@ -28,7 +28,7 @@ import numpy as np
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
 from htlm_msgs_py.run_control import RunControl
-from htlm_world.protocol import global_step
+from htlm_world.episode import global_step
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
 
@@ -196,7 +196,7 @@ class TrainerCore:
         return self.epoch * 2**32 + self.version
 
     def global_step(self, episode: int, t: int) -> int:
-        """The global index of step t of the batch from `episode` on (`htlm_world.protocol.global_step`)."""
+        """The global index of step t of the batch from `episode` on (`htlm_world.episode.global_step`)."""
         assert self.scenario is not None
         return global_step(episode, self.batch, t, self.scenario.horizon)
 
