@@ -10,9 +10,6 @@ Run: `ros2 run htlm_agent agent_node --ros-args -p agent:=agent1` or `python -m 
 
 from __future__ import annotations
 
-import base64
-import binascii
-import hashlib
 import json
 import math
 import secrets
@@ -30,6 +27,7 @@ from htlm_agent.mind.policies import AgentPolicy
 from htlm_agent.ros.settings import AgentSettings, validate_agent_settings
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
+from htlm_msgs_py.payload import PayloadError, unseal
 from htlm_msgs_py.ros import (
     EVENTS,
     POSE_READER,
@@ -496,12 +494,9 @@ class AgentNode(Node):
             self.health.drop("weights", "past")
             return
         try:
-            data = base64.b64decode(rec["data"], validate=True)
-        except (binascii.Error, ValueError) as e:
-            self.health.reject("weights", "data", f"not base64: {e}")
-            return
-        if hashlib.sha256(data).hexdigest() != rec["sha256"]:
-            self.health.reject("weights", "data", "sha256 mismatch")
+            data = unseal(rec)
+        except PayloadError as e:
+            self.health.reject("weights", "data", str(e))
             return
         try:
             from htlm_agent.learning.qnet import AgentQ, layer_sizes, param_shapes, unpack_weights

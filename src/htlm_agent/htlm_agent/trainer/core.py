@@ -13,8 +13,6 @@ weight versions grow across restarts.
 
 from __future__ import annotations
 
-import base64
-import hashlib
 import json
 import time
 from collections import Counter
@@ -27,6 +25,7 @@ import numpy as np
 
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
+from htlm_msgs_py.payload import seal
 from htlm_msgs_py.run_control import RunControl
 from htlm_world.episode import global_step
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
@@ -597,9 +596,7 @@ class TrainerCore:
                     "episode": self.episodes_seen,
                     "trained": self.trained,
                     "every": self.schedule.weights_every,
-                    "encoding": "base64",
-                    "data": base64.b64encode(data).decode(),
-                    "sha256": hashlib.sha256(data).hexdigest(),
+                    **seal(data),
                     "settings": settings,
                 }
             )
