@@ -21,25 +21,12 @@ from htlm_agent.baselines.heuristics import GreedyPolicy, RandomPolicy, builtin_
 from htlm_agent.experiments.evaluate import _log_lines, evaluate_run
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
-from htlm_agent.learning.settings import Settings
 from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.scenario import Scenario, builtin, load
+from test_learner import TINY  # the learner tests' run of a few seconds
 
 PINNED = Path(__file__).parent / "data" / "paper_pinned.json"
-
-TINY = Settings(
-    episodes=64,
-    envs=16,
-    learning_starts=64,
-    batch_size=32,
-    memory=2_000,
-    hidden=(16, 16),
-    validate_every=32,
-    validate_episodes=8,
-    eval_episodes=16,
-    checkpoint_every=0,
-)
 
 
 def _digest(*parts: Any) -> str:
