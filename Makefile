@@ -14,7 +14,7 @@ test: setup
 	$(VENV)/python -m pytest -q
 
 # the tests marked slow: the fault and attack tests of the ROS runtime (kills, restarts, network cut, flood), the
-# batch-1 variants of the equivalence tests and the install test of the packages in a fresh venv (about 9 min)
+# batch-1 variants of the equivalence tests and the install test of the packages in a fresh venv (about 6 min)
 test-slow: setup
 	$(VENV)/python -m pytest -q -m slow
 
