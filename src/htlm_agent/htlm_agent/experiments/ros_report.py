@@ -102,15 +102,17 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = [r["policy"] for r in rows]
+    names = [
+        r["policy"].replace(" (", "\n(") for r in rows
+    ]  # "learned (HTLM DQN)" on two lines, clear of its neighbour
     x = np.arange(len(rows))
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
     colors = ["tab:green" if r["runtime"] == "ROS 2" else "tab:gray" for r in rows]
     ax1.bar(x, [r["completion_mean"] for r in rows], yerr=[2 * r["completion_se"] for r in rows], color=colors)
-    ax1.set_xticks(x, names, rotation=15)
+    ax1.set_xticks(x, names)
     ax1.set_ylabel("completion step (lower is better), mean ± 2 SE")
     ax2.bar(x, [100 * r["failure_rate"] for r in rows], color=colors)
-    ax2.set_xticks(x, names, rotation=15)
+    ax2.set_xticks(x, names)
     ax2.set_ylabel("failed episodes (%)")
     for i, r in enumerate(rows):  # the numbers on the bars
         ax1.annotate(f"{r['completion_mean']:.2f}", (i, r["completion_mean"]), ha="center", va="bottom", fontsize=9)
