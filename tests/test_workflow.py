@@ -242,6 +242,15 @@ def test_bench_json(capsys: pytest.CaptureFixture[str]) -> None:
         assert out[key] > 0, key
 
 
+def test_bench_measures_a_scenario_beside_the_papers_team(capsys: pytest.CaptureFixture[str]) -> None:
+    out = json.loads(htlm(capsys, "bench", "--json", "--seconds", "0.05", "--no-train", "--scenario", "warehouse"))
+    assert out["scenario"] == {"name": "warehouse", "team": "shift", "agents": 6, "sites": 3, "tasks": 7, "kinds": 3}
+    assert out["team_agent_steps_per_s_B1024"] > 0 and out["paper_team_agent_steps_per_s_B1024"] > 0
+    ratio = out["paper_team_agent_steps_per_s_B1024"] / out["team_agent_steps_per_s_B1024"]
+    assert out["agent_step_cost_vs_paper_B1024"] == pytest.approx(ratio, abs=0.01)
+    assert "bench: " in htlm_fails(capsys, "bench", "--no-train", "--scenario", "no-such-scenario")
+
+
 def test_the_entry_point_runs(tmp_path: Path) -> None:
     res = subprocess.run(
         [

@@ -6,6 +6,10 @@
 - the wall time of a default training run (`htlm train` defaults, heterogeneous team, R_II on, medium T_RP) and
   whether it reached the quality targets.
 
+With `--scenario` (and `--team`) every figure is of that scenario, the training run's targets are left out (they are
+the paper's), and the team's agent-steps/s of the paper's team are measured in the same run beside it, with the cost
+of an agent-step as a ratio to the paper's.
+
 `htlm bench ros` measures the ROS 2 runtime: it calls `ros_bench(args) -> dict` of the module named in ROS_BENCH,
 which the ROS runtime provides; this module does not depend on it.
 """
@@ -22,6 +26,8 @@ import time
 from typing import Any
 
 import numpy as np
+
+from htlm_world.scenario import Scenario, ScenarioError, builtin, load
 
 ROS_BENCH = "htlm_agent.ros.bench"
 """Module providing `ros_bench(args: argparse.Namespace) -> dict` and optionally `add_arguments(parser)`."""
@@ -47,6 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-train", action="store_true", help="skip the default training run")
     p.add_argument("--episodes", type=int, default=None, help="episodes of the training run (default: Settings)")
     p.add_argument("--out", default=None, metavar="DIR", help="keep the training run here (default: a temp dir)")
+    p.add_argument("--scenario", default=None, metavar="FILE", help="measure this scenario (a file or a shipped name)")
+    p.add_argument("--team", default=None, help="a team of the scenario's `teams`")
     try:
         mod = importlib.import_module(ROS_BENCH)
     except ModuleNotFoundError as e:
@@ -69,12 +77,11 @@ def _rate(step: Any, seconds: float) -> tuple[float, int]:
             return n / el, n
 
 
-def sim_rate(batch: int, seconds: float) -> float:
-    """Simulator agent-steps/s at batch B with uniformly random joint actions."""
-    from htlm_world.scenario import builtin
+def sim_rate(batch: int, seconds: float, sc: Scenario | None = None) -> float:
+    """Simulator agent-steps/s at batch B with uniformly random joint actions (the paper's scenario by default)."""
     from htlm_world.simulator import BatchSim
 
-    sc = builtin()
+    sc = sc or builtin()
     sim = BatchSim(sc, batch, np.random.default_rng(0))
     rng = np.random.default_rng(1)
     actions = rng.integers(0, sc.n_actions, (64, batch, sc.n_agents))
@@ -90,13 +97,12 @@ def sim_rate(batch: int, seconds: float) -> float:
     return r * batch * sc.n_agents
 
 
-def team_rate(batch: int, seconds: float) -> float:
+def team_rate(batch: int, seconds: float, sc: Scenario | None = None) -> float:
     """Team agent-steps/s (simulator + belief filters + rewards) at batch B with random actions from Â."""
     from htlm_agent.baselines.heuristics import RandomPolicy
     from htlm_agent.runtime.team import Team
-    from htlm_world.scenario import builtin
 
-    sc = builtin()
+    sc = sc or builtin()
     team = Team(sc, batch, 0)
     pol = RandomPolicy(sc, 0)
 
@@ -109,7 +115,7 @@ def team_rate(batch: int, seconds: float) -> float:
     return r * batch * sc.n_agents
 
 
-def learner_rate(seconds: float) -> float:
+def learner_rate(seconds: float, sc: Scenario | None = None) -> float:
     """Gradient updates/s of the default learner (each update trains every agent's network once)."""
     import torch
 
@@ -117,12 +123,11 @@ def learner_rate(seconds: float) -> float:
     from htlm_agent.learning.dqn import Learner
     from htlm_agent.learning.settings import Settings
     from htlm_agent.runtime.team import Team
-    from htlm_world.scenario import builtin
 
     s = Settings()
     torch.set_num_threads(s.threads)
     keep_freed_memory()  # as train() does
-    sc = builtin()
+    sc = sc or builtin()
     lr = Learner(sc, s.replace(learning_starts=1, updates_per_step=1))
     team = Team(sc, s.envs, 0)
     while int(lr.replay.size.min()) < s.batch_size:
@@ -131,27 +136,34 @@ def learner_rate(seconds: float) -> float:
     return r
 
 
-def training_run(episodes: int | None, out: str | None) -> dict[str, Any]:
-    """A default `htlm train` run (no TensorBoard, no progress) and its final evaluation against the targets."""
+def training_run(episodes: int | None, out: str | None, sc: Scenario | None = None) -> dict[str, Any]:
+    """A default `htlm train` run (no TensorBoard, no progress) and its final evaluation against the targets (the
+    paper's teams only)."""
     from htlm_agent.experiments.train import train
     from htlm_agent.learning.settings import Settings
-    from htlm_world.scenario import builtin
 
     s = Settings() if episodes is None else Settings(episodes=episodes)
-    sc = builtin()
+    paper = sc is None
+    sc = sc or builtin()
     with tempfile.TemporaryDirectory(prefix="htlm-bench-") as tmp:
         res = train(sc, s, out or os.path.join(tmp, "run"), progress=False, tensorboard=False)
     m = res.metrics
-    opt = OPTIMUM[sc.team]
     comp, fail, unused = m["completion"]["mean"], m["completion"]["failure_rate"], m["unused_fraction"]["mean"]
-    return {
+    result: dict[str, Any] = {
         "episodes": res.episodes,
         "wall_time_s": round(res.wall_time, 2),
         "train_time_s": round(res.train_time, 2),
+        "agent_steps_per_s": round(res.episodes * sc.n_agents * sc.horizon / res.train_time),
         "completion_mean": round(comp, 3),
         "completion_se": round(m["completion"]["se"], 3),
         "failure_rate": round(fail, 4),
         "unused_fraction": round(unused, 4),
+    }
+    if not paper or sc.team not in OPTIMUM:
+        return result
+    opt = OPTIMUM[sc.team]
+    return {
+        **result,
         "optimum": opt,
         "completion_ratio": round(comp / opt, 3),
         "targets": TARGETS,
@@ -187,22 +199,44 @@ def run(args: argparse.Namespace) -> int:
         if not args.json:
             print(msg, file=sys.stderr)
 
+    try:
+        sc = load(args.scenario, team=args.team) if args.scenario else (builtin(args.team) if args.team else None)
+    except ScenarioError as e:
+        raise SystemExit(f"htlm bench: {e}") from None
+    if sc is not None:
+        out["scenario"] = {"name": sc.name, "team": sc.team, "agents": sc.n_agents, "sites": sc.n_sites,
+                           "tasks": sc.n_tasks, "kinds": sc.n_kinds}  # fmt: skip
+        say(f"scenario {sc.name}: {sc.n_agents} agents, {sc.n_sites} sites, {sc.n_tasks} tasks of {sc.n_kinds} kinds")
     for b in (1, 1024):
-        out[f"sim_agent_steps_per_s_B{b}"] = round(sim_rate(b, args.seconds))
+        out[f"sim_agent_steps_per_s_B{b}"] = round(sim_rate(b, args.seconds, sc))
         say(f"simulator B={b}: {out[f'sim_agent_steps_per_s_B{b}']:,} agent-steps/s")
     for b in (1, 1024):
-        out[f"team_agent_steps_per_s_B{b}"] = round(team_rate(b, args.seconds))
+        out[f"team_agent_steps_per_s_B{b}"] = round(team_rate(b, args.seconds, sc))
         say(f"team (simulator + beliefs + rewards) B={b}: {out[f'team_agent_steps_per_s_B{b}']:,} agent-steps/s")
-    out["learner_updates_per_s"] = round(learner_rate(args.seconds), 1)
-    say(f"learner: {out['learner_updates_per_s']} updates/s (5 agents, minibatch {Settings().batch_size} each)")
+    if sc is not None:  # the paper's team in the same run: the cost of an agent-step as a ratio
+        paper = round(team_rate(1024, args.seconds))
+        out["paper_team_agent_steps_per_s_B1024"] = paper
+        out["agent_step_cost_vs_paper_B1024"] = round(paper / max(out["team_agent_steps_per_s_B1024"], 1), 2)
+        say(f"paper's team B=1024: {paper:,} agent-steps/s; an agent-step costs "
+            f"{out['agent_step_cost_vs_paper_B1024']} x the paper's")  # fmt: skip
+    n_agents = (sc or builtin()).n_agents
+    out["learner_updates_per_s"] = round(learner_rate(args.seconds, sc), 1)
+    say(
+        f"learner: {out['learner_updates_per_s']} updates/s ({n_agents} agents, minibatch {Settings().batch_size} each)"
+    )
     if not args.no_train:
         say("default training run ...")
-        out["train"] = training_run(args.episodes, args.out)
+        out["train"] = training_run(args.episodes, args.out, sc)
         t = out["train"]
+        quality = (
+            f" ({t['completion_ratio']} x optimum), failures {t['failure_rate']:.1%}, "
+            f"unused {t['unused_fraction']:.1%}; targets met: {t['targets_met']}"
+            if "targets_met" in t
+            else f", failures {t['failure_rate']:.1%}, unused {t['unused_fraction']:.1%}"
+        )
         say(
-            f"default training run: {t['wall_time_s']} s wall ({t['episodes']} episodes), completion "
-            f"{t['completion_mean']} ± {t['completion_se']} ({t['completion_ratio']} x optimum), failures "
-            f"{t['failure_rate']:.1%}, unused {t['unused_fraction']:.1%}; targets met: {t['targets_met']}"
+            f"default training run: {t['wall_time_s']} s wall ({t['episodes']} episodes, {t['agent_steps_per_s']:,} "
+            f"agent-steps/s), completion {t['completion_mean']} ± {t['completion_se']}{quality}"
         )
     if args.json:
         print(json.dumps(out))
