@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from htlm_agent.experiments.ros_report import ReportError, baseline_rows, learned_row, table, write_report
-from htlm_world.scenario import builtin
+from htlm_world.scenario import builtin, load
 
 
 def _world_log(path: Path, completions: list[int]) -> Path:
@@ -43,6 +43,13 @@ def test_report_rows_come_from_the_logged_episodes_and_the_evaluated_baselines(t
     assert json.loads((tmp_path / "result.json").read_text())["rows"][1] == base[0]
     assert (tmp_path / "result.png").stat().st_size > 10_000
     assert "15.00 ±" in table(doc["rows"]).splitlines()[2]
+
+
+def test_a_baseline_too_large_here_is_left_out_with_its_reason() -> None:
+    skipped: dict[str, str] = {}
+    base = baseline_rows(load("warehouse"), 10, seed=0, skipped=skipped)
+    assert [r["policy"] for r in base] == ["random", "greedy", "auction"]
+    assert list(skipped) == ["optimal"] and "too large to compute here" in skipped["optimal"]
 
 
 def test_report_without_episodes_names_the_file(tmp_path: Path) -> None:

@@ -251,8 +251,15 @@ def _report(sc: Any, seed: int, train_episodes: int, episodes: int, run_dir: Pat
     from htlm_agent.experiments.ros_report import baseline_rows, learned_row, write_report
 
     print(f"htlm launch: evaluating the baselines in process on {episodes} episodes (seed {seed})", file=sys.stderr)
-    rows = [learned_row(eval_dir / "world.jsonl"), *baseline_rows(sc, episodes, seed)]
-    info = {"team": sc.team, "seed": seed, "train_episodes": train_episodes, "eval_episodes": episodes}
+    skipped: dict[str, str] = {}
+    rows = [learned_row(eval_dir / "world.jsonl"), *baseline_rows(sc, episodes, seed, skipped)]
+    info = {
+        "team": sc.team or sc.name,
+        "seed": seed,
+        "train_episodes": train_episodes,
+        "eval_episodes": episodes,
+        "not_computed": skipped,
+    }
     doc = write_report(run_dir, rows, info)
     doc["files"] = [str(run_dir / f"result.{x}") for x in ("csv", "json", "png")]
     return doc
@@ -282,6 +289,8 @@ def _print_summary(out: dict[str, Any]) -> None:
             f"({r['eval_episodes']} episodes each, seed {r['seed']}):"
         )
         print(table(r["rows"]))
+        for name, why in r.get("not_computed", {}).items():
+            print(f"{name}: not computed here: {why}")
         print("result: " + ", ".join(r["files"]))
     if "checkpoint" in out:
         print(f"checkpoint: {out['checkpoint']}")

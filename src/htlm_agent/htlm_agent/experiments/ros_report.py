@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from htlm_agent.baselines.optimal import ProblemTooLarge
 from htlm_agent.experiments.baselines import make_baseline
 from htlm_agent.experiments.evaluate import evaluate_run
 from htlm_world.metrics import mean_se
@@ -71,11 +72,20 @@ def learned_row(world_log: Path, name: str = "learned (HTLM DQN)") -> dict[str, 
     )
 
 
-def baseline_rows(scenario: Scenario, episodes: int, seed: int) -> list[dict[str, Any]]:
-    """random, greedy, auction and the optimum, evaluated in process on `episodes` episodes of master seed `seed`."""
+def baseline_rows(
+    scenario: Scenario, episodes: int, seed: int, skipped: dict[str, str] | None = None
+) -> list[dict[str, Any]]:
+    """random, greedy, auction and the optimum, evaluated in process on `episodes` episodes of master seed `seed`.
+    A baseline that cannot be computed here (the optimum of a large scenario) is left out, and why goes into
+    `skipped` by its name."""
     rows = []
     for name in BASELINES:
-        policy, sc = make_baseline(name, scenario, seed=seed)
+        try:
+            policy, sc = make_baseline(name, scenario, seed=seed)
+        except ProblemTooLarge as e:
+            if skipped is not None:
+                skipped[name] = str(e)
+            continue
         ev = evaluate_run(policy, sc, episodes, seed=seed, policy_name=name)
         em = ev.episodes
         rows.append(_row(name, "in process", em.completion, em.failed, em.unused_fraction))
