@@ -290,7 +290,7 @@ def _print_summary(out: dict[str, Any]) -> None:
         )
         print(table(r["rows"]))
         for name, why in r.get("not_computed", {}).items():
-            print(f"{name}: not computed here: {why}")
+            print(f"{name}: {why}")
         print("result: " + ", ".join(r["files"]))
     if "checkpoint" in out:
         print(f"checkpoint: {out['checkpoint']}")
