@@ -140,14 +140,14 @@ class Model:
         site_task = np.full((sc.n_sites, sc.n_kinds), -1, dtype=np.int64)
         for j, (s, k) in enumerate(sc.tasks):
             site_task[s, k] = j
-        names = list(sc.kind_names)
         task_kind = np.array([k for _, k in sc.tasks], dtype=np.int64).reshape(p)
         task_site = np.array([s for s, _ in sc.tasks], dtype=np.int64).reshape(p)
-        gate = np.full(p, p, dtype=np.int64)
-        for j, (s, k) in enumerate(sc.tasks):
-            dep = sc.kinds[k].depends_on
-            if dep and site_task[s, names.index(dep)] >= 0:
-                gate[j] = site_task[s, names.index(dep)]
+        names = list(sc.kind_names)
+        dep = [names.index(kd.depends_on) if kd.depends_on else -1 for kd in sc.kinds]  # kind each depends on
+        gate = np.array(  # its task at the same site; p (level 0) when the kind depends on none or the site lacks it
+            [site_task[s, dep[k]] if dep[k] >= 0 and site_task[s, dep[k]] >= 0 else p for s, k in sc.tasks],
+            dtype=np.int64,
+        ).reshape(p)
         caps = np.zeros((sc.n_agents, na), dtype=np.int64)
         for i, a in enumerate(sc.agents):
             for j, (_, k) in enumerate(sc.tasks):
@@ -219,18 +219,21 @@ class Model:
         out: IntArray = np.minimum(caps, sc.capability_max).reshape(actions.shape[:-1] + (sc.n_tasks,))
         return out
 
+    def gate_levels(self, levels: IntArray) -> IntArray:
+        """(..., p) levels -> (..., p) the level of the task each task depends on at its site (0 when none)."""
+        ext = np.concatenate([levels, np.zeros(levels.shape[:-1] + (1,), dtype=levels.dtype)], axis=-1)
+        out: IntArray = ext[..., self.task_gate]
+        return out
+
     def _rows(self, levels: IntArray, caps: IntArray) -> IntArray:
         """Every task's row of the transition tables: (..., p) levels and capabilities -> (..., p) rows."""
-        gate_levels = np.concatenate([levels, np.zeros(levels.shape[:-1] + (1,), dtype=levels.dtype)], axis=-1)
-        gate = gate_levels[..., self.task_gate]  # the level of the task each depends on (0 when none)
-        out: IntArray = (caps * self.task_gates + gate) * self.scenario.levels + levels + self.task_row
-        return out
+        out: IntArray = (caps * self.task_gates + self.gate_levels(levels)) * self.scenario.levels
+        return out + levels + self.task_row
 
     def blocked(self, levels: IntArray) -> BoolArray:
         """(..., p) levels -> (..., p) whether each task is held back by the task it depends on (its level above the
         kind's `blocked_above`): the one definition of the rule for anyone judging levels (true or believed)."""
-        ext = np.concatenate([levels, np.zeros(levels.shape[:-1] + (1,), dtype=levels.dtype)], axis=-1)
-        out: BoolArray = ext[..., self.task_gate] > self.task_block
+        out: BoolArray = self.gate_levels(levels) > self.task_block
         return out
 
     def transition_rows(self, levels: IntArray, caps: IntArray) -> FloatArray:

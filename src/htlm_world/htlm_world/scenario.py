@@ -12,7 +12,7 @@ import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass, field
-from functools import cache
+from functools import cache, cached_property
 from pathlib import Path
 from typing import Any, Literal
 
@@ -201,9 +201,10 @@ class Scenario:
         """K, number of kinds."""
         return len(self.kinds)
 
-    @property
+    @cached_property
     def tasks(self) -> tuple[tuple[int, int], ...]:
-        """(site, kind) of every task in index order: site by site, the kinds of a site in the order of `kinds`."""
+        """(site, kind) of every task in index order: site by site, the kinds of a site in the order of `kinds`
+        (computed once: the layout properties below and the hot paths read it every step)."""
         return tuple(
             (s, k) for s, site in enumerate(self.sites) for k, kind in enumerate(self.kinds) if kind.name in site.tasks
         )
@@ -211,7 +212,7 @@ class Scenario:
     @property
     def n_tasks(self) -> int:
         """p, the number of tasks over all sites."""
-        return sum(len(site.tasks) for site in self.sites)
+        return len(self.tasks)
 
     @property
     def initial_levels(self) -> tuple[int, ...]:

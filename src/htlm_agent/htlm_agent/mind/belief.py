@@ -154,6 +154,8 @@ class FilterTables:
     no task of that kind."""
     absent: int
     """The capability index of a slot without a task (C+1): its factor is the identity."""
+    stand_in: bool
+    """Some site lacks a kind: `slot_task` names the stand-in task p, which the slot functions append."""
     base: int
     """L + 1: the evidence code of a task holds one digit per agent, 0 for no report, else the level + 1."""
     powers: IntArray
@@ -191,6 +193,7 @@ class FilterTables:
             factors=factors,
             slot_task=slot_task,
             absent=sc.capability_max + 1,
+            stand_in=bool((slot_task == sc.n_tasks).any()),
             base=base,
             powers=powers,
             evidence=ev,
@@ -199,15 +202,16 @@ class FilterTables:
 
     def slot_caps(self, caps: IntArray) -> list[IntArray]:
         """Every slot's joint capabilities (S, ...) of task-major capabilities (p, ...)."""
-        ext = np.concatenate([caps, np.full((1,) + caps.shape[1:], self.absent, dtype=caps.dtype)])
-        return [ext[self.slot_task[k]] for k in range(self.kinds)]
+        if self.stand_in:
+            caps = np.concatenate([caps, np.full((1,) + caps.shape[1:], self.absent, dtype=caps.dtype)])
+        return [caps[self.slot_task[k]] for k in range(self.kinds)]
 
     def slot_likelihoods(self, lik: FloatArray, axis: int) -> list[FloatArray]:
         """Every slot's likelihood of task-major likelihoods: the task axis `axis` of `lik` replaced by the sites
         (S), a slot without a task weighing every level 1."""
-        ones = np.ones(lik.shape[:axis] + (1,) + lik.shape[axis + 1 :])
-        ext = np.concatenate([lik, ones], axis=axis)
-        return [np.take(ext, self.slot_task[k], axis=axis) for k in range(self.kinds)]
+        if self.stand_in:
+            lik = np.concatenate([lik, np.ones(lik.shape[:axis] + (1,) + lik.shape[axis + 1 :])], axis=axis)
+        return [np.take(lik, self.slot_task[k], axis=axis) for k in range(self.kinds)]
 
 
 def _factor_bands(table: FloatArray, slot: int, gate: int, kinds: int, levels: int) -> Bands:
@@ -429,16 +433,16 @@ def marginals_sites(x: FloatArray, levels: int, kinds: int) -> list[FloatArray]:
     slot (whose entries are not contiguous)."""
     L, K = levels, kinds
     grid = x.reshape((L,) * K + x.shape[1:])
+    rest = tuple(range(K, grid.ndim))
     out = []
-    for k in range(K):
-        others = np.moveaxis(grid, k, K - 1).reshape((L ** (K - 1), L) + x.shape[1:])
-        if k == K - 1 and K > 1:
-            total = others[0].copy()
-            for i in range(1, others.shape[0]):
-                total += others[i]
-            out.append(total)
-        else:
-            out.append(pairwise_sum(others))
+    for k in range(K - 1):  # slot k last among the level axes, the others flattened in front
+        order = (*range(k), *range(k + 1, K), k, *rest)
+        out.append(pairwise_sum(grid.transpose(order).reshape((L ** (K - 1), L) + x.shape[1:])))
+    last = grid.reshape((L ** (K - 1), L) + x.shape[1:])  # the last slot's entries: one after the other
+    total = last[0].copy()
+    for i in range(1, last.shape[0]):
+        total += last[i]
+    out.append(total)
     return out
 
 
