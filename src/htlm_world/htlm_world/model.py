@@ -142,8 +142,7 @@ class Model:
             site_task[s, k] = j
         task_kind = np.array([k for _, k in sc.tasks], dtype=np.int64).reshape(p)
         task_site = np.array([s for s, _ in sc.tasks], dtype=np.int64).reshape(p)
-        names = list(sc.kind_names)
-        dep = [names.index(kd.depends_on) if kd.depends_on else -1 for kd in sc.kinds]  # kind each depends on
+        dep = sc.kind_dependencies
         gate = np.array(  # its task at the same site; p (level 0) when the kind depends on none or the site lacks it
             [site_task[s, dep[k]] if dep[k] >= 0 and site_task[s, dep[k]] >= 0 else p for s, k in sc.tasks],
             dtype=np.int64,

@@ -197,6 +197,12 @@ class Scenario:
         return tuple(k.name for k in self.kinds)
 
     @property
+    def kind_dependencies(self) -> tuple[int, ...]:
+        """Index of the kind each kind depends on (`depends_on`), -1 for none."""
+        names = self.kind_names
+        return tuple(names.index(k.depends_on) if k.depends_on else -1 for k in self.kinds)
+
+    @property
     def n_kinds(self) -> int:
         """K, number of kinds."""
         return len(self.kinds)
@@ -391,7 +397,7 @@ def from_dict(data: Any, src: str = "<dict>", team: str | None = None) -> Scenar
     merged = {**_base_data(), **own}
     if "agents" in own and "team" not in own:
         merged.pop("team", None)  # a team of the file's own
-    _upgrade(merged, own, src)
+    _upgrade(merged, src)
     teams = merged.pop("teams", None)
     if "agents" not in merged:
         name = merged.get("team", "")
@@ -417,9 +423,10 @@ def _agent_capabilities(agents: Any, src: str) -> Any:
     for i, a in enumerate(agents):
         if isinstance(a, dict):
             a = dict(a)
-            caps = dict(a.get("capabilities") or {}) if isinstance(a.get("capabilities", {}), dict) else None
-            if caps is None:
-                raise ScenarioError(f"{src}: agents[{i}].capabilities: {a['capabilities']!r} is not a mapping")
+            given = a.get("capabilities") or {}
+            if not isinstance(given, dict):
+                raise ScenarioError(f"{src}: agents[{i}].capabilities: {given!r} is not a mapping")
+            caps = dict(given)
             for key in [k for k in a if k not in _AGENT_FIELDS]:
                 caps[key] = a.pop(key)
             for key, v in caps.items():
@@ -430,7 +437,7 @@ def _agent_capabilities(agents: Any, src: str) -> Any:
     return out
 
 
-def _upgrade(merged: dict[str, Any], own: dict[str, Any], src: str) -> None:
+def _upgrade(merged: dict[str, Any], src: str) -> None:
     """Read the first file format's keys into today's: `sites` as a list of names (every kind at every site),
     `initial_levels` (start levels in task order), `site_positions`, and the paper's kind rules as top-level keys."""
     kinds = merged.get("kinds")

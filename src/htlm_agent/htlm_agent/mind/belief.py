@@ -172,8 +172,7 @@ class FilterTables:
         """Compute the tables of `model`."""
         sc = model.scenario
         L, n, K = sc.levels, sc.n_agents, sc.n_kinds
-        names = list(sc.kind_names)
-        gate = [names.index(k.depends_on) if k.depends_on else -1 for k in sc.kinds]
+        gate = sc.kind_dependencies
         depth = []
         for k in range(K):
             d, g = 0, gate[k]
