@@ -11,7 +11,9 @@ from htlm_world.types import FloatArray, IntArray
 
 
 def completion_step(levels: IntArray) -> tuple[IntArray, np.ndarray]:
-    """First step after which every true level is 0, per episode; h (and failed=True) when never.
+    """The step after which every true level is 0 and stays 0 until the horizon, per episode; h (and failed=True)
+    when the last step still has a task above 0. Without events (a surge can reopen a finished mission) and without a
+    hazard, all tasks at 0 is absorbing, so this is the first step at which every level is 0.
 
     Args:
         levels: (h+1, B, p) true levels, levels[0] the initial ones.
@@ -21,8 +23,9 @@ def completion_step(levels: IntArray) -> tuple[IntArray, np.ndarray]:
     """
     h = levels.shape[0] - 1
     done = (levels[1:] == 0).all(axis=-1)  # (h, B)
-    failed = ~done.any(axis=0)
-    first = done.argmax(axis=0) + 1
+    failed = ~done[-1]
+    stays = np.logical_and.accumulate(done[::-1], axis=0)[::-1]  # done from this step to the horizon
+    first = stays.argmax(axis=0) + 1
     return np.where(failed, h, first).astype(np.int64), failed
 
 
