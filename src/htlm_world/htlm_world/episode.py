@@ -111,7 +111,7 @@ class WorldEpisode:
         actions (B,); every other agent is absent (idle in every episode). An agent an event keeps out is idle, not
         absent, and is not among those that acted when it is out in every episode of the batch."""
         levels, fired = self.events.begin_step(self.t + 1, self.levels)
-        out = self.events.out.all(axis=0)
+        out: np.ndarray = np.asarray(self.events.out.all(axis=0))
         actions, acted = self.joint({k: a for k, a in chosen.items() if not out[k]}, absent=out)
         actions = self.events.force(self.model, actions, self.prev)
         nxt, obs, _caps = sample_world_step(self.model, levels, actions, self.rng)

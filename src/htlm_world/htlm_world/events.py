@@ -26,9 +26,7 @@ def resolve_agent(sc: Scenario, events: tuple[EventSpec, ...], agent: str) -> tu
     """The events with the placeholder agent `most_important` replaced by `agent` (a name of the team)."""
     if agent not in [a.name for a in sc.agents]:
         raise ScenarioError(f"agent {agent!r} is not an agent of the team")
-    return tuple(
-        EventSpec(**{**ev.__dict__, "agent": agent}) if ev.agent == "most_important" else ev for ev in events
-    )
+    return tuple(EventSpec(**{**ev.__dict__, "agent": agent}) if ev.agent == "most_important" else ev for ev in events)
 
 
 class EventRun:
@@ -48,10 +46,8 @@ class EventRun:
             if ev.event in ("dropout", "return") and ev.agent not in agents:
                 raise ScenarioError(f"event {ev.label!r}: agent {ev.agent!r} is not an agent of the team {agents}")
         self.labels = [ev.label for ev in evs]
-        self.code = np.array(
-            [SURGE if ev.event in ("surge", "new_task") else DROPOUT if ev.event == "dropout" else RETURN for ev in evs],
-            dtype=np.int64,
-        )
+        codes = {"surge": SURGE, "new_task": SURGE, "dropout": DROPOUT, "return": RETURN}
+        self.code = np.array([codes[ev.event] for ev in evs], dtype=np.int64)
         self.target = np.array(
             [
                 task_of[(sites.index(ev.site), kinds.index(ev.task))] if code == SURGE else agents.index(ev.agent)
