@@ -161,3 +161,51 @@ def test_events_draw_from_their_own_stream() -> None:
     plain = Team(builtin(), 4, 3)
     plain.step(np.zeros((4, 5), dtype=np.int64))
     assert plain.event_rng.bit_generator.state == seeds.events(3, 0).bit_generator.state
+
+
+def test_recovery_counts_the_steps_until_the_event_s_tasks_are_done() -> None:
+    from htlm_agent.experiments.stress import recoveries
+
+    sc = _with(
+        [
+            {"event": "surge", "site": "site2", "task": "fire", "level": 3, "at": 2},
+            {"event": "dropout", "agent": "agent1", "at": 3},
+        ]
+    )
+    # two episodes, four tasks, steps 0..4: fire@site2 is task 2
+    levels = np.zeros((5, 2, 4), dtype=np.int64)
+    levels[:, 0, 2] = [0, 0, 3, 1, 0]  # surge at step 2, done after step 4: 3 steps
+    levels[:, 1, 2] = [0, 0, 3, 3, 3]  # never
+    levels[:, 1, 0] = [4, 4, 4, 4, 4]
+    rec = recoveries(sc, levels, [(2, 0, 0), (2, 1, 0), (3, 0, 1)])  # type: ignore[arg-type]
+    assert rec.steps.tolist() == [3, -1, 2]
+    assert rec.first_step.tolist() == [2, 2] and rec.recovered_at.tolist() == [4, 5]
+
+
+def test_htlm_stress_runs_a_team_under_a_stress_set_and_writes_its_reports(tmp_path: Path) -> None:
+    """The shipped stress set naming the most important agent is resolved; the table, JSON, CSV and PNG are
+    written, and an episode's log lists its events for `htlm show`."""
+    import json
+
+    from htlm_agent.cli import main
+
+    data = Path(__file__).parent / "data" / "policy_heterogeneous_seed0"
+    out = tmp_path / "stress"
+    assert main(["stress", "--policy", str(data), "--events", "lose-most-important", "new-fire", "--episodes", "20",
+                 "--baselines", "greedy", "--out", str(out)]) == 0  # fmt: skip
+    rows = json.loads((out / "stress.json").read_text())
+    assert [(r["set"], r["policy"]) for r in rows] == [
+        ("lose-most-important", "learned"),
+        ("lose-most-important", "greedy"),
+        ("new-fire", "learned"),
+        ("new-fire", "greedy"),
+    ]
+    assert rows[0]["events"] == ["most important agent drops out"]
+    assert all(r["with"]["episodes_with_events"] == 1.0 for r in rows)
+    assert rows[0]["with"]["completion"]["mean"] > rows[0]["without"]["completion"]["mean"]
+    assert (out / "stress.png").stat().st_size > 10_000 and len((out / "stress.csv").read_text().splitlines()) == 5
+    line = json.loads((out / "new-fire" / "learned-with" / "world.jsonl").read_text().splitlines()[0])
+    assert line["events"] == [[5, "new fire at site2"]]
+    assert (
+        main(["show", str(out / "new-fire" / "learned-with"), "--episode", "0", "--out", str(tmp_path / "e.png")]) == 0
+    )

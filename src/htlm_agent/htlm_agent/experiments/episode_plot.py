@@ -73,6 +73,8 @@ class LoggedEpisode:
     actions: IntArray  # (t, N) applied actions (index in G-bar; -1: none, HT mode)
     metrics: dict[str, Any]
     """The metrics recorded with the episode (completion, failed, ...)."""
+    events: tuple[tuple[int, str], ...] = ()
+    """(step, label) of every scenario event that happened in the episode."""
 
 
 def find_log(path: str | Path) -> Path:
@@ -218,6 +220,11 @@ def read_episode(path: str | Path, episode: int) -> LoggedEpisode:
             f"{where}: {levels.shape[0]} rows of levels for {actions.shape[0]} steps of actions (expected steps + 1, "
             "at least one step)"
         )
+    events = record.get("events", [])
+    if not isinstance(events, list) or not all(
+        isinstance(e, list) and len(e) == 2 and isinstance(e[0], int) and isinstance(e[1], str) for e in events
+    ):
+        raise EpisodeLogError(f"{where}: events: {events!r} is not a list of [step, label]")
     return LoggedEpisode(
         source=log,
         line=n,
@@ -228,6 +235,7 @@ def read_episode(path: str | Path, episode: int) -> LoggedEpisode:
         levels=levels,
         actions=actions,
         metrics=dict(record["metrics"]),
+        events=tuple((int(t), str(label)) for t, label in events),
     )
 
 
@@ -337,6 +345,20 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
             fontweight="bold",
             bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": "none", "alpha": 0.75},
         )
+    for t, label in ep.events:  # an event of step t happens before its transition: between columns t-1 and t
+        if t <= steps:
+            ax.axvline(t - 0.5, color="#6a1b9a", ls=":", lw=1.8)
+            ax.text(
+                t - 0.45,
+                -0.45,
+                label,
+                rotation=90,
+                ha="left",
+                va="top",
+                color="#6a1b9a",
+                fontsize=8,
+                bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.75},
+            )
     ax.set_yticks(range(p + q), list(names[: p + q]))
     ax.set_ylim(p + q - 0.5, -0.5)
     ax.set_xlim(-0.5, steps + 0.5)

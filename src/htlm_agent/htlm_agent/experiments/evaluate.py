@@ -10,7 +10,7 @@ import csv
 import gc
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +38,8 @@ class Rollouts:
     observations: IntArray  # (h, E, N) observed level of each agent's task, -1 when idle
     believed_complete: BoolArray  # (E,) every agent's belief says every task is at level 0 after the last step
     seconds: FloatArray  # (E,) wall time of the batch the episode ran in (as the world's log counts it)
+    events: list[tuple[int, int, int]] = field(default_factory=list)
+    """(step, episode, event index) of every scenario event that happened, in order."""
 
 
 @dataclass
@@ -68,6 +70,7 @@ def run_episodes(
         raise ValueError(f"episodes must be >= 1, got {episodes!r}")
     model = model if model is not None else Model.build(scenario)
     levels, actions, observations, believed, seconds = [], [], [], [], []
+    events: list[tuple[int, int, int]] = []
     chunk = 0
     left = episodes
     while left > 0:
@@ -80,6 +83,7 @@ def run_episodes(
         observations.append(tr.observations)
         believed.append((confident_levels(team.marg, team.tables.threshold) == 0).all(axis=(1, 2)))
         seconds.append(np.full(b, time.perf_counter() - t0))
+        events += [(t, episodes - left + e, j) for t, e, j in team.events.log]
         left -= b
         chunk += 1
     return Rollouts(
@@ -88,6 +92,7 @@ def run_episodes(
         observations=np.concatenate(observations, axis=1),
         believed_complete=np.concatenate(believed),
         seconds=np.concatenate(seconds),
+        events=events,
     )
 
 
@@ -281,9 +286,9 @@ LOG_BLOCK = 256
 def write_episode_log(ev: Evaluation, path: Path, run: str) -> None:
     """One JSON line per episode, in the world's episode log format (what the world node writes to world.jsonl over
     ROS): {"run", "metrics": {episode, severity, completion, failed, unused_capability, unused_fraction, idle_before,
-    reassign_before, absent, seconds}, "levels": (h+1, p), "actions": (h, N), "observations": (h, N)}. The levels
-    are simulated, no agent is ever absent in process, and "seconds" is the wall time of the batch the episode ran
-    in."""
+    reassign_before, absent, seconds}, "levels": (h+1, p), "actions": (h, N), "observations": (h, N)} and, when the
+    scenario has events, "events": [[step, label], ...]. The levels are simulated, no agent is ever absent in
+    process, and "seconds" is the wall time of the batch the episode ran in."""
     collecting = gc.isenabled()
     gc.disable()  # the many small lists made here hold no cycles: collecting on the way only costs time (half)
     try:
@@ -313,6 +318,11 @@ def _log_lines(ev: Evaluation, run: str, first: int) -> list[str]:
         strict=True,
     )
     absent = [0] * ev.scenario.n_agents
+    labels = [e.label for e in ev.scenario.events]
+    happened: dict[int, list[list[Any]]] = {}
+    for t, e, j in ro.events:
+        if block.start <= e < block.stop:
+            happened.setdefault(e - first, []).append([t, labels[j]])
     lines = []
     for i, (completion, failed, unused, fraction, idle, reassign, seconds) in enumerate(columns):
         metrics = {
@@ -334,6 +344,8 @@ def _log_lines(ev: Evaluation, run: str, first: int) -> list[str]:
             "actions": actions[i],
             "observations": observations[i],
         }
+        if labels:
+            line["events"] = happened.get(i, [])
         lines.append(json.dumps(line, separators=(",", ":")) + "\n")
     return lines
 

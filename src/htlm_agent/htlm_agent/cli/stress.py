@@ -1,0 +1,92 @@
+"""`htlm stress`: a trained team under a set of events (surges, new tasks, dropouts; docs/model.md, Events) beside
+the same team without them and beside the baselines: completion, failures, time to recover, unused capability before
+the event and while recovering. Writes stress.json, stress.csv and stress.png, and every run's reports (world.jsonl:
+`htlm show OUT/SET/POLICY-with --episode E` draws an episode with its events).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from htlm_agent.cli.common import checkpoint_run_dir
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of `htlm stress`."""
+    p.add_argument("--policy", required=True, metavar="DIR", help="a run directory or checkpoint of `htlm train`")
+    p.add_argument(
+        "--events",
+        nargs="+",
+        default=None,
+        metavar="FILE|SET",
+        help="events files (a list of events, or `events:`) or names of the scenario's stress sets "
+        "(default: every stress set of the scenario)",
+    )
+    p.add_argument(
+        "--baselines",
+        nargs="*",
+        default=["greedy", "auction"],
+        choices=["random", "greedy", "auction"],
+        help="baselines beside the team (default: greedy auction)",
+    )
+    p.add_argument("--episodes", type=int, default=500, help="episodes per run (default: 500)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the episodes (default: the run's seed)")
+    p.add_argument("--out", default=None, metavar="DIR", help="where to write (default: RUN/stress/seed{S}-{E})")
+    p.add_argument("--json", action="store_true", help="print the rows as JSON on stdout (logs on stderr)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Evaluate and write the table."""
+    from htlm_agent.experiments.baselines import make_baseline
+    from htlm_agent.experiments.evaluate import importance_table
+    from htlm_agent.experiments.stress import format_stress, run_stress, write_stress
+    from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+    from htlm_agent.learning.qpolicy import QPolicy
+    from htlm_agent.progress import Progress
+    from htlm_world.events import resolve_agent
+    from htlm_world.scenario import ScenarioError, load, named_scenarios, read_events
+
+    if args.episodes < 1:
+        raise SystemExit(f"htlm stress: --episodes must be >= 1, got {args.episodes}")
+    try:
+        ck = load_checkpoint(args.policy)
+        sc = ck.scenario.replace(events=())
+        if not sc.stress and sc.name in named_scenarios():  # a checkpoint from before stress sets: the shipped ones
+            shipped = load(sc.name)
+            if (shipped.kinds, shipped.sites, shipped.horizon) == (sc.kinds, sc.sites, sc.horizon):
+                sc = dataclasses.replace(sc, stress=shipped.stress)
+        names = args.events if args.events is not None else list(sc.stress)
+        if not names:
+            raise ScenarioError(f"scenario {sc.name!r} has no stress sets: give events files with --events FILE")
+        sets = {Path(n).stem if Path(n).suffix else n: read_events(n, sc) for n in names}
+    except (CheckpointError, ScenarioError) as e:
+        raise SystemExit(f"htlm stress: {e}") from None
+    seed = ck.seed if args.seed is None else args.seed
+    learned = QPolicy.from_checkpoint(ck)
+    policies: dict[str, Any] = {"learned": (learned, sc)}
+    for b in args.baselines:
+        policies[b] = make_baseline(b, sc, seed=seed)
+    if any(ev.agent == "most_important" for evs in sets.values() for ev in evs):
+        table = importance_table(learned, sc, min(args.episodes, 500), seed=seed)
+        top = max(table["agents"], key=lambda a: a["zeta"])["agent"]
+        sets = {k: resolve_agent(sc, evs, top) for k, evs in sets.items()}
+        print(f"htlm stress: the most important agent of the team (ζ, Eq. 6) is {top}", file=sys.stderr)
+    out = Path(args.out) if args.out else checkpoint_run_dir(ck.path) / "stress" / f"seed{seed}-{args.episodes}"
+    progress = Progress(len(sets) * len(policies) * 2 * args.episodes, unit="episodes")
+    rows = []
+    for name, events in sets.items():
+        rows += run_stress(policies, events, name, args.episodes, seed, out, progress)
+    progress.close()
+    paths = write_stress(rows, out)
+    if args.json:
+        print(json.dumps(rows))
+    else:
+        print(format_stress(rows))
+        first = next(iter(sets))
+        print(f"reports: {paths['png'].parent} (an episode: htlm show {out / first / 'learned-with'} --episode 0)")
+    return 0
