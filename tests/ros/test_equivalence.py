@@ -93,3 +93,32 @@ def test_free_running_clock_equals_in_process(ros_team: Any) -> None:
     assert assert_same_as_in_process(team, 1, "greedy") == 2
     seconds = [w["metrics"]["seconds"] for w in team.world_episodes()]
     assert seconds[-1] >= 30 * 0.1 * 0.9, seconds  # paced by the clock, not by the agents
+
+
+def test_ros_evaluation_under_events_equals_in_process(ros_team: Any, tmp_path: Path) -> None:
+    """A surge (by chance, per episode), a dropout and a return (docs/model.md, Events) over ROS: the world decides
+    them from the same stream as the in-process Team, the dropped-out agent's process keeps running while the world
+    idles it, and the 4 episodes of the batch equal Team(scenario, 4, seed, b) bit for bit; the world's log lists
+    the events of each episode."""
+    import yaml
+
+    from htlm_world.scenario import EventSpec, builtin
+
+    events = (
+        EventSpec("surge", site="site2", task="fire", level=4, at=4, probability=0.5),
+        EventSpec("dropout", agent="agent2", at=3),
+        EventSpec("return", agent="agent2", at=8, probability=0.3),
+    )
+    sc = builtin().with_events(events)
+    (path := tmp_path / "events.yaml").write_text(yaml.safe_dump(sc.to_dict()))  # the world reads a scenario file
+    team = ros_team(policy="greedy", seed=2, episodes=4, batch=4, scenario=sc, scenario_file=str(path))
+    team.start()
+    assert team.wait("world", 60) == 0
+    assert team.wait_all(30) == dict.fromkeys(team.procs, 0)
+    assert assert_same_as_in_process(team, 2, "greedy") == 4
+    logged = {w["metrics"]["episode"]: w for w in team.world_episodes()}
+    labels = [[label for _, label in logged[e]["events"]] for e in range(4)]
+    assert all("dropout agent2" in x for x in labels), labels
+    surges = {t for e in range(4) for t, label in logged[e]["events"] if label == "surge fire@site2 to 4"}
+    assert len(surges) > 1, f"the chance surge came at the same step in every episode: {surges}"
+    assert all(sum(w["metrics"]["absent"]) == 0 for w in logged.values()), "a dropout is not an absence"
