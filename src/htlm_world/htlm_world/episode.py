@@ -41,7 +41,8 @@ class StepOutcome:
     actions: IntArray  # (B, N) joint assignment applied (absent agents idle at their site; -1 in HT mode)
     acted: list[int]  # agents whose own actions were applied
     levels: IntArray  # (B, p) true levels after the transition
-    observations: IntArray  # (B, N) observed level of each agent's task, -1 when idle or absent
+    observations: IntArray  # (B, N) observed level of each agent's observed task (`Model.observes`), -1 when none
+    # or absent
 
 
 class WorldEpisode:
@@ -98,9 +99,11 @@ class WorldEpisode:
 
     def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
         """Apply T to the joint assignment: `chosen` maps agent -> its actions (B,); every other agent is absent
-        (idle in every episode)."""
+        (idle in every episode, observing nothing)."""
         actions, acted = self.joint(chosen)
-        nxt, obs, _caps = sample_world_step(self.model, self.levels, actions, self.rng)
+        nxt, obs, _caps = sample_world_step(self.model, self.levels, actions, self.rng, self.t + 1)
+        if len(acted) < self.scenario.n_agents:  # an absent agent observes nothing, standing by or not
+            obs[:, [k for k in range(self.scenario.n_agents) if k not in acted]] = -1
         self.levels = nxt
         self.prev = np.where(actions >= 0, actions, self.prev)
         self.t += 1

@@ -11,7 +11,9 @@ from htlm_world.types import FloatArray, IntArray
 
 
 def completion_step(levels: IntArray) -> tuple[IntArray, np.ndarray]:
-    """First step after which every true level is 0, per episode; h (and failed=True) when never.
+    """First step from which every true level stays 0 until the horizon, per episode; h (and failed=True) when the
+    levels are not all 0 at the horizon. Where every level 0 is absorbing (the paper), this is the first step with
+    every level 0; a task that reopens (a kind's `hazard`, a scenario event) undoes an earlier completion.
 
     Args:
         levels: (h+1, B, p) true levels, levels[0] the initial ones.
@@ -21,8 +23,9 @@ def completion_step(levels: IntArray) -> tuple[IntArray, np.ndarray]:
     """
     h = levels.shape[0] - 1
     done = (levels[1:] == 0).all(axis=-1)  # (h, B)
-    failed = ~done.any(axis=0)
-    first = done.argmax(axis=0) + 1
+    stays = np.logical_and.accumulate(done[::-1], axis=0)[::-1]  # (h, B): every level 0 from this step to h
+    failed = ~stays.any(axis=0)
+    first = stays.argmax(axis=0) + 1
     return np.where(failed, h, first).astype(np.int64), failed
 
 

@@ -401,7 +401,7 @@ class AgentMind:
             messages[:, j] = lj
             heard[:, j] = True
         joint[:, me] = action if p.effective is None else p.effective
-        lik = bf.agent_evidence(self.model, me, joint, obs, messages, heard)
+        lik = bf.agent_evidence(self.model, me, joint, obs, messages, heard, p.t)
         caps = self.model.joint_capability(joint)
         self.belief, bad = bf.update(self.model, self.belief, caps, lik)
         self.impossible += int(bad.sum())
