@@ -24,7 +24,7 @@ def completion_step(levels: IntArray) -> tuple[IntArray, np.ndarray]:
     h = levels.shape[0] - 1
     done = (levels[1:] == 0).all(axis=-1)  # (h, B)
     stays = np.logical_and.accumulate(done[::-1], axis=0)[::-1]  # (h, B): every level 0 from this step to h
-    failed = ~stays.any(axis=0)
+    failed: np.ndarray = np.asarray(~stays.any(axis=0))
     first = stays.argmax(axis=0) + 1
     return np.where(failed, h, first).astype(np.int64), failed
 
