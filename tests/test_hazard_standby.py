@@ -4,8 +4,6 @@ accuracy) in O, the simulator, the world's records and every belief; the paper's
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -14,10 +12,11 @@ from htlm_agent.mind import belief as bf
 from htlm_agent.mind.agent import loopback_episode
 from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.runtime.team import Team, rollout
+from htlm_msgs_py import schema
 from htlm_world.metrics import completion_step
 from htlm_world.model import Model, kind_table
 from htlm_world.protocol import WorldProtocol
-from htlm_world.scenario import REOPEN_LEVEL, Scenario, ScenarioError, builtin, from_dict, load
+from htlm_world.scenario import REOPEN_LEVEL, Scenario, ScenarioError, builtin, from_dict, from_record, load
 from htlm_world.simulator import sample_world_step
 
 FIELDS = ("levels", "actions", "observations", "messages", "rewards")
@@ -243,8 +242,29 @@ def test_bad_numbers_are_refused_naming_file_field_and_value(data: dict, field: 
     assert "bad.yaml" in msg and field in msg and value in msg, msg
 
 
-def test_the_record_carries_hazard_and_standby(tmp_path: Path) -> None:
+def test_the_record_carries_hazard_and_standby() -> None:
+    """Scenario.to_dict (checkpoints, run directories, the /htlm/scenario record) carries both numbers: through the
+    wire schema and back, the scenario is the same."""
     sc = _standby()
     back = from_dict(sc.to_dict(), "record")
     assert back == sc and back.standby_accuracy == 0.6 and back.kinds[0].hazard == 0.01
     assert sc.layout_hash() == builtin().layout_hash()  # same knowledge state and actions as the paper
+    fields = {
+        "run": "r1",
+        "nonce": "0" * 16,
+        "seq": 0,
+        "seed": 1,
+        "mode": "evaluate",
+        "clock": "lockstep",
+        "period": 0.0,
+        "operation": "simulated",
+        "first_episode": 0,
+        "episodes": 1,
+        "batch": 1,
+        "trainer_lag": 0,
+        "state": "running",
+        "layout": sc.layout_hash(),
+        "scenario": sc.to_dict(),
+    }
+    rec = schema.decode(schema.encode(schema.SCENARIO, fields), schema.SCENARIO)
+    assert from_record(rec) == sc
