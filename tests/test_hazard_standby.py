@@ -268,3 +268,25 @@ def test_the_record_carries_hazard_and_standby() -> None:
     }
     rec = schema.decode(schema.encode(schema.SCENARIO, fields), schema.SCENARIO)
     assert from_record(rec) == sc
+
+
+@pytest.mark.parametrize("batch", [1, 6])
+def test_both_runtimes_agree_under_events_with_hazard_and_standby(batch: int) -> None:
+    """The scenario events (a surge, a dropout and a chance return) on top of the hazard and standby: the lockstep
+    minds equal the Team bit for bit, and an agent an event keeps out observes nothing, standing by or not."""
+    from test_events import MIXED
+
+    sc = from_dict({"events": MIXED, "kinds": load("paper-standby").to_dict()["kinds"], "standby_accuracy": 0.6})
+    model = Model.build(sc)
+    out = [builtin_policy(sc, "greedy", i) for i in range(sc.n_agents)]
+    pols, eps = [q for q, _ in out], out[0][1]
+    for seed, b in [(0, 0), (5, 3)]:
+        dp = DecentralizedPolicy(pols, seed, eps)
+        dp.begin(b)
+        tr = rollout(Team(sc, batch, seed, episode=b, model=model), dp)
+        lb = loopback_episode(sc, seed, b * batch, pols, epsilon=eps, model=model, batch=batch)
+        for f in FIELDS:
+            got = lb[f] if batch > 1 else lb[f][:, None]
+            assert np.array_equal(getattr(tr, f), got), (f, seed, b)
+        assert (tr.observations[2:8, :, 1] == -1).all(), "agent2 is out from step 3 to 8: it observes nothing"
+        assert (tr.observations[tr.actions >= sc.n_tasks] >= 0).any(), "the others stand by"

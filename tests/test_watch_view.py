@@ -93,7 +93,13 @@ def fed_state(**kw: Any) -> WatchState:
     st.on_ground_truth(
         encode(
             S.GROUND_TRUTH,
-            {"episode": 2, "step": 3, "levels": [[4, 3, 2, 1], [0, 1, 2, 3]], "actions": [[0, 1, 2, 4, 5], [3] * 5]},
+            {
+                "episode": 2,
+                "step": 3,
+                "levels": [[4, 3, 2, 1], [0, 1, 2, 3]],
+                "actions": [[0, 1, 2, 4, 5], [3] * 5],
+                "events": [[], []],
+            },
         )
     )
     st.on_belief("agent1", belief(0, 2, 3, [4, 3, 2, 0]))
@@ -151,7 +157,9 @@ def test_bad_records_are_counted_and_change_nothing() -> None:
     st.on_step("{not json")
     st.on_step(encode(S.STEP, {"episode": 2, "size": 2, "step": 99, "phase": "step", "acted": []}))  # > horizon
     st.on_ground_truth(
-        encode(S.GROUND_TRUTH, {"episode": 2, "step": 4, "levels": [[9, 9, 9, 9]], "actions": [[0] * 5]})
+        encode(
+            S.GROUND_TRUTH, {"episode": 2, "step": 4, "levels": [[9, 9, 9, 9]], "actions": [[0] * 5], "events": [[]]}
+        )
     )
     st.on_belief("agent2", belief(0, 2, 3, [1, 1, 1, 1]))  # agent1's record on agent2's topic
     st.on_metrics(42)

@@ -73,6 +73,7 @@ VALID: dict[str, dict[str, Any]] = {
         "step": 3,
         "levels": [[1, 2, 3, 4], [0, 1, 2, 4]],
         "actions": [[0, 1, 2, 3, 4], [5, -1, 2, 3, 4]],
+        "events": [[], [0]],
     },
     "htlm/episode_metrics": {
         "run": "r1",

@@ -490,16 +490,18 @@ BELIEF = Schema(
 )
 GROUND_TRUTH = Schema(
     "htlm/ground_truth",
-    2,
+    3,
     {
         "episode": _EPISODE,
         "step": Int(0, "step"),
         "levels": Rows(IntList(0, "level", length="tasks")),
         "actions": Rows(IntList(-1, "action", length="agents")),
+        "events": Rows(IntList(0, 1023, max_len=1024)),
     },
     max_bytes=4 * 1024 * 1024,
-    doc="Per episode of the batch from `episode` on, the true levels after step t and the joint assignment the world "
-    "applied (monitoring only).",
+    doc="Per episode of the batch from `episode` on, the true levels after step t, the joint assignment the world "
+    "applied and the scenario's events that happened in step t (indices into the announced scenario's `events`; "
+    "monitoring only).",
 )
 EPISODE_METRICS = Schema(
     "htlm/episode_metrics",

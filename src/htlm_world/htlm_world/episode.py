@@ -5,12 +5,13 @@ seeded (`world_stream`). `htlm_world.protocol.WorldProtocol` sequences them."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from htlm_world import seeds
+from htlm_world.events import EventRun
 from htlm_world.metrics import episode_metrics
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
@@ -34,6 +35,11 @@ def world_stream(seed: int, b: int, mode: str) -> np.random.Generator:
     return seeds.train_world(seed, b) if mode == "train" else seeds.world(seed, b)
 
 
+def event_stream(seed: int, b: int, mode: str) -> np.random.Generator:
+    """The events generator of batch b: `htlm train`'s training stream in train mode, else the evaluation one."""
+    return seeds.train_events(seed, b) if mode == "train" else seeds.events(seed, b)
+
+
 @dataclass
 class StepOutcome:
     """What the world produced in one step of a batch of B episodes."""
@@ -43,6 +49,7 @@ class StepOutcome:
     levels: IntArray  # (B, p) true levels after the transition
     observations: IntArray  # (B, N) observed level of each agent's observed task (`Model.observes`), -1 when none
     # or absent
+    events: list[list[int]] = field(default_factory=list)  # per episode, the scenario's events that happened
 
 
 class WorldEpisode:
@@ -67,6 +74,7 @@ class WorldEpisode:
         self.size = size
         self.b = episode if b is None else b
         self.rng = world_stream(seed, self.b, mode)
+        self.events = EventRun(scenario, size, event_stream(seed, self.b, mode))
         n = scenario.n_agents
         self.levels: IntArray = np.tile(np.array(scenario.initial_levels, dtype=np.int64), (size, 1))  # (B, p)
         self.prev: IntArray = np.full((size, n), scenario.start_assignment, dtype=np.int64)
@@ -81,9 +89,10 @@ class WorldEpisode:
         """What an absent agent does in each episode: idle at the site of its previous assignment (HT mode: -1)."""
         return np.asarray(self.model.idle_action(self.prev[:, agent]), dtype=np.int64)
 
-    def joint(self, chosen: dict[int, IntArray]) -> tuple[IntArray, list[int]]:
+    def joint(self, chosen: dict[int, IntArray], absent: np.ndarray | None = None) -> tuple[IntArray, list[int]]:
         """The joint assignment (B, N) of a step and the agents that acted: `chosen` maps agent -> its actions (B,);
-        every other agent is absent (counted) and idle at the site of its previous assignment in every episode."""
+        every other agent is idle at the site of its previous assignment in every episode, and counted absent unless
+        `absent` (N,) says it is out by an event."""
         n = self.scenario.n_agents
         actions = np.empty((self.size, n), dtype=np.int64)
         acted = []
@@ -91,26 +100,34 @@ class WorldEpisode:
             a = chosen.get(k)
             if a is None:
                 actions[:, k] = self.idle_actions(k)
-                self.absent[k] += 1
+                if absent is None or not absent[k]:
+                    self.absent[k] += 1
             else:
                 actions[:, k] = a
                 acted.append(k)
         return actions, acted
 
     def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
-        """Apply T to the joint assignment: `chosen` maps agent -> its actions (B,); every other agent is absent
-        (idle in every episode, observing nothing)."""
-        actions, acted = self.joint(chosen)
-        nxt, obs, _caps = sample_world_step(self.model, self.levels, actions, self.rng, self.t + 1)
-        if len(acted) < self.scenario.n_agents:  # an absent agent observes nothing, standing by or not
+        """Apply the step's events (`htlm_world.events`) and T to the joint assignment: `chosen` maps agent -> its
+        actions (B,); every other agent is absent (idle in every episode). An agent an event keeps out is idle, not
+        absent, and is not among those that acted when it is out in every episode of the batch. Absent agents and
+        agents out observe nothing, standing by or not."""
+        levels, fired = self.events.begin_step(self.t + 1, self.levels)
+        out: np.ndarray = np.asarray(self.events.out.all(axis=0))
+        actions, acted = self.joint({k: a for k, a in chosen.items() if not out[k]}, absent=out)
+        actions = self.events.force(self.model, actions, self.prev)
+        nxt, obs, _caps = sample_world_step(self.model, levels, actions, self.rng, self.t + 1)
+        if len(acted) < self.scenario.n_agents:
             obs[:, [k for k in range(self.scenario.n_agents) if k not in acted]] = -1
+        if self.model.standby_class >= 0:
+            obs[self.events.out] = -1
         self.levels = nxt
         self.prev = np.where(actions >= 0, actions, self.prev)
         self.t += 1
         self.level_log.append(nxt.copy())
         self.action_log.append(actions)
         self.obs_log.append(obs.copy())
-        return StepOutcome(actions=actions, acted=acted, levels=nxt, observations=obs)
+        return StepOutcome(actions=actions, acted=acted, levels=nxt, observations=obs, events=EventRun.records(fired))
 
     def metrics(self, now: float | None = None) -> list[dict[str, Any]]:
         """The episode_metrics records of the finished episodes (docs/model.md metrics plus absences), one per
@@ -138,12 +155,16 @@ class WorldEpisode:
         ]
 
     def trajectory(self, i: int = 0) -> dict[str, Any]:
-        """Episode i of the batch: levels (t+1, p), applied actions (t, N) and observations (t, N) as lists."""
-        return {
+        """Episode i of the batch: levels (t+1, p), applied actions (t, N) and observations (t, N) as lists, and the
+        events that happened as [step, label] (when the scenario has events)."""
+        out = {
             "levels": np.stack(self.level_log)[:, i].tolist(),
             "actions": np.stack(self.action_log)[:, i].tolist() if self.action_log else [],
             "observations": np.stack(self.obs_log)[:, i].tolist() if self.obs_log else [],
         }
+        if self.events.count:
+            out["events"] = [[t, self.events.labels[j]] for t, e, j in self.events.log if e == i]
+        return out
 
 
 class ExternalEpisode(WorldEpisode):

@@ -235,6 +235,7 @@ def scene(
     episode: int,
     step: int,
     sites: Sequence[int] | None = None,
+    events: Sequence[str] = (),
 ) -> list[Mark]:
     """The markers of one episode's state.
 
@@ -246,6 +247,7 @@ def scene(
         episode: The episode shown.
         step: The step of `levels` (0: the initial state).
         sites: (N,) site of each agent whose action is -1 (its previous site); None: the first site.
+        events: Labels of the scenario's events that happened in the episode so far (after the status text).
 
     Returns:
         Every marker of the scene, namespace by namespace in NAMESPACES order, ids from 0 in each.
@@ -264,7 +266,15 @@ def scene(
     x, y = layout.status_at
     u = layout.unit
     status = Mark(
-        "status", 0, TEXT, x, y, 2.0 * u, sz=0.8 * u, rgba=TEXT_COLOUR, text=status_text(episode, step, sc.horizon)
+        "status",
+        0,
+        TEXT,
+        x,
+        y,
+        2.0 * u,
+        sz=0.8 * u,
+        rgba=TEXT_COLOUR,
+        text=status_text(episode, step, sc.horizon) + "".join(f"; {label}" for label in events),
     )
     return [
         *layout.fixed,
@@ -298,6 +308,8 @@ class MarkerView:
         self.stopped = False
         """The run is over: the scene is a DELETEALL."""
         self._marks: list[Mark] | None = None
+        self.events: list[str] = []
+        """Labels of the scenario's events that happened in the shown episode so far."""
 
     def on_record(self, kind: str, fields: dict[str, Any], index: int) -> bool:
         """Follow the protocol's record (kind, fields); returns whether the scene changed.
@@ -326,6 +338,8 @@ class MarkerView:
             i = min(index, len(actions) - 1)
             levels = fields.get("levels")
             self.after_step(int(fields["episode"]) + i, int(fields["step"]), levels[i] if levels else None, actions[i])
+            events = fields.get("events") or []
+            self.events += [self.scenario.events[j].label for j in (events[i] if i < len(events) else [])]
             return True
         return False
 
@@ -336,6 +350,7 @@ class MarkerView:
         self.sites = [self.layout.action_sites[start] if start >= 0 else 0] * sc.n_agents
         self.levels, self.actions, self.acted = sc.initial_levels, [start] * sc.n_agents, range(sc.n_agents)
         self.shown, self.stopped, self._marks = (episode, 0), False, None
+        self.events = []
 
     def after_step(self, episode: int, step: int, levels: Sequence[int] | None, actions: Sequence[int]) -> None:
         """The scene after `step` of `episode`: true levels (None: unknown) and the applied actions (N,)."""
@@ -353,7 +368,7 @@ class MarkerView:
             return DELETE_ALL
         if self._marks is None:
             e, t = self.shown
-            self._marks = scene(self.layout, self.levels, self.actions, self.acted, e, t, self.sites)
+            self._marks = scene(self.layout, self.levels, self.actions, self.acted, e, t, self.sites, self.events)
         return self._marks
 
 

@@ -11,9 +11,9 @@ from htlm_world.types import FloatArray, IntArray
 
 
 def completion_step(levels: IntArray) -> tuple[IntArray, np.ndarray]:
-    """First step from which every true level stays 0 until the horizon, per episode; h (and failed=True) when the
-    levels are not all 0 at the horizon. Where every level 0 is absorbing (the paper), this is the first step with
-    every level 0; a task that reopens (a kind's `hazard`, a scenario event) undoes an earlier completion.
+    """The step after which every true level is 0 and stays 0 until the horizon, per episode; h (and failed=True)
+    when the last step still has a task above 0. Without events (a surge can reopen a finished mission) and without a
+    hazard, all tasks at 0 is absorbing, so this is the first step at which every level is 0.
 
     Args:
         levels: (h+1, B, p) true levels, levels[0] the initial ones.
@@ -23,8 +23,8 @@ def completion_step(levels: IntArray) -> tuple[IntArray, np.ndarray]:
     """
     h = levels.shape[0] - 1
     done = (levels[1:] == 0).all(axis=-1)  # (h, B)
-    stays = np.logical_and.accumulate(done[::-1], axis=0)[::-1]  # (h, B): every level 0 from this step to h
-    failed: np.ndarray = np.asarray(~stays.any(axis=0))
+    failed = ~done[-1]
+    stays = np.logical_and.accumulate(done[::-1], axis=0)[::-1]  # done from this step to the horizon
     first = stays.argmax(axis=0) + 1
     return np.where(failed, h, first).astype(np.int64), failed
 

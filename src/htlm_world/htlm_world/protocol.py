@@ -318,7 +318,9 @@ class WorldProtocol:
             out.drops.append(("severity", "future"))
             return out
         actions = ep.action_log[t - 1].tolist()
-        out.publish.append(("ground_truth", {"episode": e, "step": t, "levels": rec["levels"], "actions": actions}))
+        out.publish.append(
+            ("ground_truth", {"episode": e, "step": t, "levels": rec["levels"], "actions": actions, "events": [[]]})
+        )
         return out
 
     def on_observation(self, rec: dict[str, Any], now: float) -> WorldEffects:
@@ -534,9 +536,19 @@ class WorldProtocol:
             out.publish.append(
                 (
                     "ground_truth",
-                    {"episode": e, "step": t, "levels": res.levels.tolist(), "actions": res.actions.tolist()},
+                    {
+                        "episode": e,
+                        "step": t,
+                        "levels": res.levels.tolist(),
+                        "actions": res.actions.tolist(),
+                        "events": res.events,
+                    },
                 )
             )
+            counts = Counter(j for happened in res.events for j in happened)
+            for j, k in sorted(counts.items()):
+                where = f"episode {e}" if self.size == 1 else f"{k} of episodes {e}..{e + self.size - 1}"
+                out.log.append(("info", f"{where}, step {t}: event {sc.events[j].label!r}"))
         if t < h:
             self.t, self.phase = t + 1, "act"
             if s.clock == "free":

@@ -142,6 +142,44 @@ class AgentSpec:
         return self.capabilities.get(name, 0)
 
 
+EVENT_KINDS = ("surge", "new_task", "dropout", "return")
+"""What can happen to an operation from outside the model (docs/model.md, Events)."""
+
+
+@dataclass(frozen=True)
+class EventSpec:
+    """Something that happens to the operation from outside the model T: a task's level jumps (surge), a dormant
+    task starts (new_task), an agent stops acting (dropout) or acts again (return). docs/model.md, Events."""
+
+    event: Literal["surge", "new_task", "dropout", "return"]
+    """What happens."""
+    site: str = ""
+    """surge, new_task: the site of the task."""
+    task: str = ""
+    """surge, new_task: the kind of the task."""
+    level: int = 0
+    """surge, new_task: the task's level becomes at least this."""
+    agent: str = ""
+    """dropout, return: the agent's name."""
+    at: int = 1
+    """The first step (1..h) in which it can happen."""
+    probability: float = 1.0
+    """Chance per step, from `at` on, while it has not happened (1: it happens at `at`)."""
+    once_done: str = ""
+    """Only once every task of this site is at level 0 (the true levels before the step)."""
+    name: str = ""
+    """Label in logs, records and plots (`label` makes one when empty)."""
+
+    @property
+    def label(self) -> str:
+        """The name, else what happens and to what, e.g. "surge fire@site1 to 4"."""
+        if self.name:
+            return self.name
+        if self.event in ("surge", "new_task"):
+            return f"{self.event} {self.task}@{self.site} to {self.level}"
+        return f"{self.event} {self.agent}"
+
+
 @dataclass(frozen=True)
 class Scenario:
     """Every number of the HTLM model (docs/model.md). The kinds, sites and agents come from a scenario file; the
@@ -184,6 +222,10 @@ class Scenario:
     """"htlm": idle locations and R_LM; "ht": the predecessor HT Dec-POMDP (no idle locations, R_LM = 0)."""
     initial_assignment: int = -1
     """Index in G-bar of every agent's previous assignment before step 1; -1 means the first idle location."""
+    events: tuple[EventSpec, ...] = ()
+    """What happens in every episode from outside the model (none in the paper's operation)."""
+    stress: dict[str, tuple[EventSpec, ...]] = field(default_factory=dict, compare=False)
+    """Named sets of events for `htlm stress` (not part of the operation until chosen, nor of its equality)."""
 
     # ----- derived layout -------------------------------------------------------------------------------------
     @property
@@ -286,6 +328,13 @@ class Scenario:
         own = self.agents[i].reward
         return own if own is not None else self.reward
 
+    def with_events(self, events: tuple[EventSpec, ...] | list[EventSpec]) -> Scenario:
+        """A copy whose episodes have `events` (validated against the operation)."""
+        return self.replace(events=tuple(events))
+
+    def __hash__(self) -> int:
+        return hash((self.name, self.kinds, self.sites, self.agents, self.team, self.mode, self.events))
+
     def replace(self, **changes: Any) -> Scenario:
         """A copy with fields changed, validated."""
         new = dataclasses.replace(self, **changes)
@@ -341,6 +390,9 @@ SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 """The scenario files shipped with the package; `load` also takes their names (`load("warehouse")`)."""
 
 _AGENT_FIELDS = frozenset(f.name for f in dataclasses.fields(AgentSpec))
+
+_OPERATION_KEYS = frozenset({"kinds", "sites", "levels", "horizon", "agents", "teams"})
+"""Keys that make a file's operation its own: it does not take the default file's `events` and `stress` sets."""
 
 _LEGACY_KIND_KEYS: dict[str, tuple[str, tuple[str, ...]]] = {
     "fire_growth": ("fire", ("growth",)),
@@ -405,6 +457,9 @@ def from_dict(data: Any, src: str = "<dict>", team: str | None = None) -> Scenar
         reward: dict[str, Any] = given if isinstance(given, dict) else {}
         own["reward"] = {**reward, "reassign_cost": REASSIGN_COSTS[level]}
     merged = {**_base_data(), **own}
+    if _OPERATION_KEYS & own.keys():  # events and stress sets belong to the operation they name
+        for key in ("events", "stress"):
+            merged[key] = own.get(key, [] if key == "events" else {})
     if "agents" in own and "team" not in own:
         merged.pop("team", None)  # a team of the file's own
     _upgrade(merged, src)
@@ -421,6 +476,8 @@ def from_dict(data: Any, src: str = "<dict>", team: str | None = None) -> Scenar
     except ConversionError as e:
         raise ScenarioError(str(e)) from None
     validate(sc, src)
+    for set_name, events in sc.stress.items():  # checked as read (a copy with fields replaced checks its own use)
+        _validate_events(sc, src, f"stress.{set_name}", events)
     return sc
 
 
@@ -600,6 +657,7 @@ def validate(sc: Scenario, src: str) -> None:
                 f"{kind.uses!r} above 0), yet sites hold tasks of it"
             )
     _validate_reward(sc.reward, sc.levels, src, "reward")
+    _validate_events(sc, src, "events", sc.events, placeholder=False)
     if sc.initial_assignment >= sc.n_actions or sc.initial_assignment < -1:
         raise ScenarioError(
             f"{src}: initial_assignment: {sc.initial_assignment!r} is out of range -1..{sc.n_actions - 1}"
@@ -696,3 +754,73 @@ def _validate_reward(r: RewardParams, levels: int, src: str, where: str) -> None
         raise ScenarioError(f"{src}: {where}.idle_incentive: {r.idle_incentive!r} must be >= 0")
     if r.reassign_cost > 0:
         raise ScenarioError(f"{src}: {where}.reassign_cost: {r.reassign_cost!r} must be <= 0 (a cost)")
+
+
+def _validate_events(
+    sc: Scenario, src: str, where: str, events: tuple[EventSpec, ...], placeholder: bool = True
+) -> None:
+    """Events name sites, kinds and agents of the operation, a new task is dormant (start level 0) until it starts,
+    steps are in 1..h and levels and probabilities in range. With `placeholder`, an agent named `most_important` is
+    left to `htlm stress`, which names the agent when it runs."""
+    sites = {site.name: site for site in sc.sites}
+    agents = [a.name for a in sc.agents]
+    top = sc.levels - 1
+    for i, ev in enumerate(events):
+        at = f"{where}[{i}]"
+        if ev.event in ("surge", "new_task"):
+            if ev.site not in sites:
+                raise ScenarioError(f"{src}: {at}.site: {ev.site!r} is not a site (sites: {list(sites)})")
+            tasks = sites[ev.site].tasks
+            if ev.task not in tasks:
+                raise ScenarioError(
+                    f"{src}: {at}.task: {ev.task!r} is not a task of site {ev.site!r} (its tasks: {list(tasks)}); "
+                    "a task that appears later is listed at its site with start level 0"
+                )
+            if ev.event == "new_task" and tasks[ev.task] != 0:
+                raise ScenarioError(
+                    f"{src}: {at}: new_task {ev.task}@{ev.site}: the task starts at level {tasks[ev.task]}; a new "
+                    "task is dormant until it appears: give it start level 0 at its site"
+                )
+            if not 1 <= ev.level <= top:
+                raise ScenarioError(f"{src}: {at}.level: {ev.level!r} is out of range 1..{top}")
+        elif ev.agent == "most_important" and not placeholder:
+            raise ScenarioError(
+                f"{src}: {at}.agent: 'most_important' is allowed only in a stress set (htlm stress names the agent)"
+            )
+        elif ev.agent not in agents and ev.agent != "most_important":
+            raise ScenarioError(f"{src}: {at}.agent: {ev.agent!r} is not an agent of the team {agents}")
+        if not 1 <= ev.at <= sc.horizon:
+            raise ScenarioError(f"{src}: {at}.at: {ev.at!r} is out of range 1..{sc.horizon} (the steps)")
+        _check_prob(src, f"{at}.probability", ev.probability)
+        if ev.probability == 0.0:
+            raise ScenarioError(f"{src}: {at}.probability: 0.0: the event could never happen")
+        if ev.once_done and ev.once_done not in sites:
+            raise ScenarioError(f"{src}: {at}.once_done: {ev.once_done!r} is not a site (sites: {list(sites)})")
+
+
+def read_events(path: str | Path, sc: Scenario) -> tuple[EventSpec, ...]:
+    """The events of an events file (`events:` a list, or the list itself), or of the scenario's stress set named
+    `path`, checked against the operation `sc`.
+
+    Raises:
+        ScenarioError: naming the file, the field and the bad value.
+    """
+    name = str(path)
+    if name in sc.stress:
+        _validate_events(sc, f"scenario {sc.name!r}", f"stress.{name}", sc.stress[name])
+        return sc.stress[name]
+    p = Path(path)
+    if not p.exists():
+        sets = f" or name a stress set of the scenario: {', '.join(sc.stress)}" if sc.stress else ""
+        raise ScenarioError(f"{p}: cannot read events file: No such file or directory{sets}")
+    data = _file_data(p)
+    if isinstance(data, dict) and set(data) == {"events"}:
+        data = data["events"]
+    if not isinstance(data, list):
+        raise ScenarioError(f"{p}: top level: expected a list of events or a mapping with `events:`, got {data!r}")
+    try:
+        with_events = convert({**sc.to_dict(), "events": data}, Scenario, str(p))
+    except ConversionError as e:
+        raise ScenarioError(str(e)) from None
+    _validate_events(sc, str(p), "events", with_events.events)
+    return with_events.events

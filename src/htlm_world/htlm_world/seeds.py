@@ -51,6 +51,10 @@ class Stream(IntEnum):
     (episode, 0)."""
     ROBOT_SENSING = 14
     """One simulated robot's observations in one episode: keys (agent, episode)."""
+    EVENTS = 15
+    """The scenario's events of one episode (or one batch of evaluation episodes): keys (episode, 0)."""
+    TRAIN_EVENTS = 16
+    """The scenario's events of one batch of in-process training episodes: keys (batch, 0)."""
 
 
 def sequence(seed: int, stream: Stream, first: int = 0, second: int = 0) -> np.random.SeedSequence:
@@ -132,6 +136,16 @@ def robot_operation(seed: int, episode: int) -> np.random.Generator:
 def robot_sensing(seed: int, agent: int, episode: int) -> np.random.Generator:
     """Simulated robot `agent`'s observations of its task in `episode`."""
     return generator(seed, Stream.ROBOT_SENSING, agent, episode)
+
+
+def events(seed: int, episode: int) -> np.random.Generator:
+    """The events of `episode` (or of evaluation batch `episode`): what the in-process Team and the world node use."""
+    return generator(seed, Stream.EVENTS, episode)
+
+
+def train_events(seed: int, batch: int) -> np.random.Generator:
+    """The events of in-process training batch `batch`."""
+    return generator(seed, Stream.TRAIN_EVENTS, batch)
 
 
 def random_policy(seed: int, agent: int) -> np.random.Generator:

@@ -134,6 +134,7 @@ def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, flo
     sc, s, seed = learner.scenario, learner.settings, learner.seed
     team.sim.rng = seeds.train_world(seed, batch_index)
     team.sim.channel_rngs = [seeds.train_channel(seed, i, batch_index) for i in range(sc.n_agents)]
+    team.event_rng = seeds.train_events(seed, batch_index)
     rngs = [seeds.train_explore(seed, i, batch_index) for i in range(sc.n_agents)]
     eps, eps_env = episode_epsilons(s, learner.episodes_done, team.batch)
     team.dropped = dropouts(s.dropout, team.batch, sc.n_agents, seeds.train_dropout(seed, batch_index))

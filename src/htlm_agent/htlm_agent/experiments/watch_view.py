@@ -178,6 +178,8 @@ class WatchState:
         self.step: dict[str, Any] | None = None
         self.acted: set[int] | None = None
         self.truth: dict[str, Any] | None = None
+        self.events: list[tuple[int, int, int]] = []
+        """(episode, step, event index) of the scenario's events the ground truth reported, latest last."""
         self.beliefs: dict[str, Belief] = {}
         self.stats = Stats()
 
@@ -241,6 +243,8 @@ class WatchState:
             rec = self._decode("ground_truth", text, S.GROUND_TRUTH)
             if rec is not None:
                 self.truth = rec
+                happened = [(rec["episode"] + i, rec["step"], j) for i, js in enumerate(rec["events"]) for j in js]
+                self.events = (self.events + happened)[-1000:]
 
     def on_metrics(self, text: Any) -> None:
         """A /htlm/episode_metrics record of a finished episode."""
@@ -338,6 +342,10 @@ def _header(state: WatchState) -> Text:
     t.append(f"  step {st['step']}/{sc.horizon}  phase {st['phase']}")
     if size > 1 or int(run["batch"]) > 1:
         t.append(f"  (index {state.shown_index()} of the batch {first}..{first + size - 1}: --episode-in-batch)")
+    events = [(step, j) for e, step, j in state.events if e == shown and j < len(sc.events)]
+    if events:
+        t.append("\nevents: ", style="bold")
+        t.append(", ".join(f"{sc.events[j].label} (step {step})" for step, j in events), style="magenta")
     return t
 
 

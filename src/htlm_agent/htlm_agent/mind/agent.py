@@ -261,15 +261,20 @@ class AgentMind:
         acted: list[int],
         now: float = 0.0,
         worked: bool = True,
+        tasks: IntArray | list[int] | None = None,
     ) -> Effects:
         """The world's observations of step t (B,): draw our channel and broadcast if our actions were applied.
+
+        `tasks` (B,), the world's record of the task we worked on in each episode (-1: none): where it says none
+        although we chose a task, an event of the scenario kept us out of that episode and the world made us idle at
+        the site of our previous assignment, as it does when our actions are missing.
 
         `worked` False (an external operation: our robot had not reached the site of its assignment): the assignment
         stands, but it did nothing this step; our belief update and our broadcast count it as idle at that site, so
         neither we nor our teammates predict work that was not done."""
         out = Effects()
         bad = self._where(episode)
-        if bad is None and len(levels) != self.size:
+        if bad is None and (len(levels) != self.size or (tasks is not None and len(tasks) != self.size)):
             bad = "length"
         p = self.pending
         if bad is None:
@@ -295,6 +300,9 @@ class AgentMind:
         if self.me in p.acted_set:
             p.acted = True
             p.obs = np.asarray(levels, dtype=np.int64)
+            if tasks is not None:
+                chose_task = (p.action >= 0) & (p.action < self.scenario.n_tasks)
+                p.action = np.where(chose_task & (np.asarray(tasks) < 0), self.idle_action(), p.action)
             if not worked:
                 p.effective = np.asarray(self.model.idle_action(p.action), dtype=np.int64)
         else:
@@ -394,6 +402,9 @@ class AgentMind:
         joint = self.known.copy()  # (B, N)
         messages = np.full((size, n), -1, dtype=np.int64)
         heard = np.zeros((size, n), dtype=bool)
+        if p.acted_set is not None:  # a teammate whose actions the world did not apply idled at its site
+            for j in set(range(n)) - p.acted_set - {me}:
+                joint[:, j] = self.model.idle_action(joint[:, j])
         for j, (aj, lj) in p.heard.items():
             if p.acted_set is not None and j not in p.acted_set:
                 continue
@@ -482,10 +493,12 @@ def loopback_episode(
     for t in range(1, h + 1):
         chosen = {i: a for i, a in acts.items() if not (absent and i in absent.get(t, set()))}
         out = world.step(chosen)
+        observed, _cls = model.observes(out.actions, t)  # the world's record (`WorldProtocol`)
+        tasks = np.where(out.observations >= 0, observed, -1)
         sends = []
         effects: list[list[Effects]] = [[] for _ in range(n)]
         for i, m in enumerate(minds):
-            eff = m.observe(episode, t, out.observations[:, i], out.acted)
+            eff = m.observe(episode, t, out.observations[:, i], out.acted, tasks=tasks[:, i])
             if eff.broadcast is not None:
                 sends.append((i, eff.broadcast))
                 msgs[t - 1, :, i] = eff.broadcast[2]

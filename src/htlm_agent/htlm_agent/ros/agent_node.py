@@ -372,7 +372,9 @@ class AgentNode(Node):
                 return
             self._observe_external(self.external.on_robot(rec["episode"], rec["step"], rec["levels"]))
             return
-        eff = self.mind.observe(rec["episode"], rec["step"], rec["levels"], rec["acted"], time.monotonic())
+        eff = self.mind.observe(
+            rec["episode"], rec["step"], rec["levels"], rec["acted"], time.monotonic(), tasks=rec["tasks"]
+        )
         if eff.drop is None:
             self.last_accept = time.monotonic()
         self._apply("observation", eff)

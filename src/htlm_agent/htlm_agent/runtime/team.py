@@ -14,6 +14,7 @@ from htlm_agent.mind import knowledge
 from htlm_agent.mind.context import Context, Policy
 from htlm_agent.mind.reward import RewardTables, reward
 from htlm_world import seeds
+from htlm_world.events import EventRun
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.simulator import BatchSim, StepResult
@@ -29,6 +30,8 @@ class StepInfo:
     messages: IntArray
     parts: dict[str, FloatArray]
     impossible: BoolArray  # (B, N) zero-probability evidence events
+    actions: IntArray  # (B, N) the joint assignment applied (inactive and dropped-out agents idle)
+    events: BoolArray  # (B, E) the scenario's events that happened in the step
 
 
 class Team:
@@ -71,6 +74,8 @@ class Team:
             [seeds.channel(seed, k, episode) for k in range(scenario.n_agents)],
             model=self.model,
         )
+        self.event_rng = seeds.events(seed, episode)
+        """The generator of the scenario's events (`htlm_world.events`); training sets its own per batch."""
         self.filter = bf.filter_tables(self.model)
         self._work = (self._new_sites(), self._new_sites())  # scratch of the filter
         self.impossible_count = 0
@@ -95,6 +100,8 @@ class Team:
         """Start B new episodes; returns the knowledge states (B, N, K)."""
         sc = self.scenario
         self.sim.reset()
+        self.events = EventRun(sc, self.batch, self.event_rng)
+        self._fired: BoolArray | None = None
         b0 = bf.initial_belief(self.model, self.batch)
         self.sites = self._new_sites()
         self.sites[...] = bf.to_sites(b0.swapaxes(0, 1), sc.n_kinds)
@@ -122,9 +129,19 @@ class Team:
         """What policies see now."""
         return Context(self.knowledge(), self.mask(), self.marg, self.prev.copy(), self.t, self.sim.levels.copy())
 
+    def _next_events(self) -> BoolArray:
+        """The events of the next step, decided once on the true levels now (`EventRun.begin_step`) by the first
+        of `force_inactive` and `step` that needs them: who is out and the levels its transition starts from."""
+        if self._fired is None:
+            self._start, self._fired = self.events.begin_step(self.sim.t + 1, self.sim.levels)
+        return self._fired
+
     def force_inactive(self, actions: IntArray) -> IntArray:
         """Replace the actions of inactivated agents by idling at their current site (HT mode: no action): the
-        agents of `inactive` in every episode, and those `dropped` (B, N) marks in single episodes."""
+        agents of `inactive` in every episode, those `dropped` (B, N) marks in single episodes and those the
+        scenario's events keep out."""
+        self._next_events()
+        actions = self.events.force(self.model, actions, self.prev)
         if not self.inactive and self.dropped is None:
             return actions
         actions = actions.copy()
@@ -136,9 +153,10 @@ class Team:
         return actions
 
     def _sit_out(self, actions: IntArray, res: StepResult) -> None:
-        """Inactivated and dropped agents observe nothing and broadcast no level, standing by or not (as an absent
-        agent over ROS: `WorldEpisode.step`); the simulator's draws stay as they were."""
-        out = np.zeros(actions.shape, dtype=bool)
+        """Inactivated and dropped agents and those an event keeps out observe nothing and broadcast no level,
+        standing by or not (as an absent agent over ROS: `WorldEpisode.step`); the simulator's draws stay as they
+        were."""
+        out = self.events.out.copy()
         out[:, list(self.inactive)] = True
         if self.dropped is not None:
             out |= self.dropped
@@ -151,8 +169,11 @@ class Team:
         Returns the next knowledge states (B, N, K), rewards (B, N) and side results.
         """
         actions = self.force_inactive(np.asarray(actions, dtype=np.int64))
+        fired = self._next_events()
+        self.sim.levels = self._start
+        self._fired = None
         res = self.sim.step(actions)
-        if self.model.standby_class >= 0 and (self.inactive or self.dropped is not None):
+        if self.model.standby_class >= 0:
             self._sit_out(actions, res)
         liks = bf.evidence_sites(self.model, actions, res.observations, res.messages, self.t + 1)  # (L, S, N, B)
         caps = self.filter.slot_caps(res.caps.T[:, None, :])  # (S, 1, B): every agent assumes the step's joint
@@ -163,7 +184,7 @@ class Team:
         r, parts = reward(self.model, self.tables, self.prev, self.marg, actions)
         self.prev = np.where(actions >= 0, actions, self.prev)
         self.t += 1
-        info = StepInfo(res.levels, res.observations, res.messages, parts, bad)
+        info = StepInfo(res.levels, res.observations, res.messages, parts, bad, actions, fired)
         self._knowledge = knowledge.build(self.marg, self.prev, self.scenario.n_actions)
         return self.knowledge(), r, info
 

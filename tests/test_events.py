@@ -1,0 +1,163 @@
+"""Events of an operation (docs/model.md, Events): the scenario language refuses bad events, `EventRun` decides them
+by the rules, and both runtimes (the in-process Team and the lockstep protocol of the ROS nodes, here in one process)
+produce the same episodes under them, bit for bit."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from htlm_agent.baselines.heuristics import builtin_policy
+from htlm_agent.mind.agent import loopback_episode
+from htlm_agent.mind.policies import DecentralizedPolicy
+from htlm_agent.runtime.team import Team, rollout
+from htlm_world import seeds
+from htlm_world.events import EventRun
+from htlm_world.metrics import completion_step
+from htlm_world.model import Model
+from htlm_world.scenario import EventSpec, ScenarioError, builtin, from_dict, load, read_events
+
+FIELDS = ("levels", "actions", "observations", "messages", "rewards")
+
+MIXED = [
+    {"event": "surge", "site": "site1", "task": "fire", "level": 4, "at": 6},
+    {"event": "dropout", "agent": "agent2", "at": 3},
+    {"event": "return", "agent": "agent2", "at": 9, "probability": 0.5},
+    {"event": "surge", "site": "site2", "task": "rescue", "level": 3, "at": 2, "probability": 0.3},
+    {"event": "surge", "site": "site1", "task": "rescue", "level": 2, "once_done": "site1"},
+]
+
+
+def _with(events: list[dict[str, object]], **more: object) -> object:
+    return from_dict({"events": events, **more}, "<test>")
+
+
+@pytest.mark.parametrize(
+    ("event", "message"),
+    [
+        ({"event": "surge", "site": "site9", "task": "fire", "level": 3}, "events[0].site: 'site9' is not a site"),
+        ({"event": "surge", "site": "site1", "task": "water", "level": 3}, "events[0].task: 'water' is not a task"),
+        ({"event": "surge", "site": "site1", "task": "fire", "level": 5}, "events[0].level: 5 is out of range 1..4"),
+        ({"event": "new_task", "site": "site1", "task": "fire", "level": 3}, "the task starts at level 4"),
+        ({"event": "dropout", "agent": "agent9"}, "events[0].agent: 'agent9' is not an agent"),
+        ({"event": "dropout", "agent": "most_important"}, "only in a stress set"),
+        ({"event": "dropout", "agent": "agent1", "at": 31}, "events[0].at: 31 is out of range 1..30"),
+        ({"event": "dropout", "agent": "agent1", "probability": 0.0}, "could never happen"),
+        ({"event": "dropout", "agent": "agent1", "once_done": "x"}, "events[0].once_done: 'x' is not a site"),
+        ({"event": "explode", "agent": "agent1"}, "events[0].event"),
+    ],
+)
+def test_a_bad_event_stops_loading_naming_the_field_and_value(event: dict[str, object], message: str) -> None:
+    with pytest.raises(ScenarioError, match="<test>") as e:
+        _with([event])
+    assert message in str(e.value)
+
+
+def test_events_and_stress_sets_belong_to_their_operation(tmp_path: Path) -> None:
+    """A file with its own sites does not inherit the paper's stress sets (they name the paper's sites); an events
+    file is read against the operation, and a stress set is found by name."""
+    assert load("warehouse").stress == {}
+    sc = builtin()
+    assert set(sc.stress) >= {"flare-up", "new-fire", "lose-most-important"} and sc.events == ()
+    (ev := tmp_path / "ev.yaml").write_text("events:\n  - {event: surge, site: site2, task: fire, level: 2, at: 4}\n")
+    assert read_events(ev, sc) == (EventSpec("surge", site="site2", task="fire", level=2, at=4),)
+    (bad := tmp_path / "bad.yaml").write_text("- {event: surge, site: site2, task: fire, level: 9}\n")
+    with pytest.raises(ScenarioError, match=r"bad.yaml: events\[0\].level: 9"):
+        read_events(bad, sc)
+    with pytest.raises(ScenarioError, match="flare-up"):
+        read_events("no-such-set", sc)
+
+
+def test_a_new_task_is_dormant_until_it_appears() -> None:
+    sc = from_dict(
+        {
+            "sites": [{"name": "a", "tasks": {"fire": 3, "rescue": 0}}, {"name": "b", "tasks": {"fire": 2}}],
+            "events": [{"event": "new_task", "site": "a", "task": "rescue", "level": 3, "at": 4}],
+        },
+        "<test>",
+    )
+    run = EventRun(sc, 2, np.random.default_rng(0))
+    levels = np.array([[3, 0, 2], [1, 0, 0]])
+    for t in range(1, 4):
+        out, fired = run.begin_step(t, levels)
+        assert np.array_equal(out, levels) and not fired.any()
+    out, fired = run.begin_step(4, levels)
+    assert out[:, 1].tolist() == [3, 3] and fired.all()
+    out, fired = run.begin_step(5, levels)  # an event happens once
+    assert not fired.any()
+    assert run.log == [(4, 0, 0), (4, 1, 0)]
+
+
+def test_an_event_waits_for_its_condition_and_a_dropout_ends_with_a_return() -> None:
+    sc = _with(
+        [
+            {"event": "surge", "site": "site1", "task": "fire", "level": 4, "at": 2, "once_done": "site1"},
+            {"event": "dropout", "agent": "agent3", "at": 2},
+            {"event": "return", "agent": "agent3", "at": 5},
+        ]
+    )
+    model = Model.build(sc)  # type: ignore[arg-type]
+    run = EventRun(sc, 2, np.random.default_rng(0))  # type: ignore[arg-type]
+    open_, done = np.array([4, 4, 4, 4]), np.array([0, 0, 3, 1])
+    levels = np.stack([open_, done])
+    out, fired = run.begin_step(1, levels)
+    assert not fired.any() and not run.out.any()
+    out, fired = run.begin_step(2, levels)  # site1 done in episode 1 only
+    assert fired[:, 0].tolist() == [False, True] and out[1].tolist() == [4, 0, 3, 1]
+    assert run.out[:, 2].all()
+    prev = np.array([[0, 1, 2, 3, 0], [0, 1, 2, 3, 0]])
+    forced = run.force(model, prev, prev)
+    assert forced[:, 2].tolist() == [5, 5] and np.array_equal(np.delete(forced, 2, 1), np.delete(prev, 2, 1))
+    run.begin_step(5, levels)
+    assert not run.out.any()
+
+
+def test_completion_is_the_step_from_which_every_task_stays_done() -> None:
+    """A surge reopens a finished mission: completion is when it is done for good, failure when it is not at h."""
+    levels = np.array([[[2]], [[0]], [[3]], [[0]], [[0]]])  # done at 1, reopened at 2, done for good from 3
+    comp, failed = completion_step(levels)
+    assert comp.tolist() == [3] and failed.tolist() == [False]
+    comp, failed = completion_step(np.array([[[2]], [[0]], [[0]], [[1]]]))
+    assert comp.tolist() == [3] and failed.tolist() == [True]
+
+
+@pytest.mark.parametrize("batch", [1, 6])
+@pytest.mark.parametrize("name", ["greedy", "random"])
+def test_both_runtimes_give_the_same_episodes_under_events(batch: int, name: str) -> None:
+    """Surges, a dropout and a return (some by chance, one on a condition): the lockstep protocol in one process
+    (WorldEpisode and one AgentMind per agent, as the ROS nodes run them) equals the in-process Team bit for bit, and
+    the events happen in some episodes and not in others."""
+    sc = _with(MIXED)
+    model = Model.build(sc)  # type: ignore[arg-type]
+    out = [builtin_policy(sc, name, i) for i in range(sc.n_agents)]  # type: ignore[arg-type]
+    pols, eps = [p for p, _ in out], out[0][1]
+    steps = set()
+    for seed, b in [(0, 0), (5, 3)]:
+        dp = DecentralizedPolicy(pols, seed, eps)
+        dp.begin(b)
+        team = Team(sc, batch, seed, episode=b, model=model)  # type: ignore[arg-type]
+        tr = rollout(team, dp)
+        lb = loopback_episode(sc, seed, b * batch, pols, epsilon=eps, model=model, batch=batch)  # type: ignore[arg-type]
+        for f in FIELDS:
+            got = getattr(tr, f)[:, 0] if batch == 1 else getattr(tr, f)
+            assert np.array_equal(got, lb[f]), (f, seed, b)
+        assert team.events.happened[:, 0].all(), "the surge at step 6 happens in every episode"
+        steps |= {t for t, _, j in team.events.log if j == 3}
+        assert (tr.actions[2:8, :, 1] >= sc.n_tasks).all(), "agent2 is out from step 3 to 8 at least"  # type: ignore[attr-defined]
+    assert len(steps) > 1, "the chance surge happens at different steps in different episodes"
+
+
+def test_events_draw_from_their_own_stream() -> None:
+    """The same seed gives the same events, and a scenario without events draws nothing from it (the paper's
+    numbers stay what they were)."""
+    sc = _with([{"event": "surge", "site": "site1", "task": "fire", "level": 4, "probability": 0.2}])
+    a, b = (Team(sc, 50, 3, episode=2) for _ in range(2))  # type: ignore[arg-type]
+    for team in (a, b):
+        for _ in range(10):
+            team.step(team.force_inactive(np.zeros((50, 5), dtype=np.int64)))
+    assert np.array_equal(a.events.happened, b.events.happened) and 0 < a.events.happened.sum() < 50
+    plain = Team(builtin(), 4, 3)
+    plain.step(np.zeros((4, 5), dtype=np.int64))
+    assert plain.event_rng.bit_generator.state == seeds.events(3, 0).bit_generator.state
