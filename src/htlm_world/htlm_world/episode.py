@@ -47,7 +47,8 @@ class StepOutcome:
     actions: IntArray  # (B, N) joint assignment applied (absent agents idle at their site; -1 in HT mode)
     acted: list[int]  # agents whose own actions were applied
     levels: IntArray  # (B, p) true levels after the transition
-    observations: IntArray  # (B, N) observed level of each agent's task, -1 when idle or absent
+    observations: IntArray  # (B, N) observed level of each agent's observed task (`Model.observes`), -1 when none
+    # or absent
     events: list[list[int]] = field(default_factory=list)  # per episode, the scenario's events that happened
 
 
@@ -109,12 +110,17 @@ class WorldEpisode:
     def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
         """Apply the step's events (`htlm_world.events`) and T to the joint assignment: `chosen` maps agent -> its
         actions (B,); every other agent is absent (idle in every episode). An agent an event keeps out is idle, not
-        absent, and is not among those that acted when it is out in every episode of the batch."""
+        absent, and is not among those that acted when it is out in every episode of the batch. Absent agents and
+        agents out observe nothing, standing by or not."""
         levels, fired = self.events.begin_step(self.t + 1, self.levels)
         out: np.ndarray = np.asarray(self.events.out.all(axis=0))
         actions, acted = self.joint({k: a for k, a in chosen.items() if not out[k]}, absent=out)
         actions = self.events.force(self.model, actions, self.prev)
-        nxt, obs, _caps = sample_world_step(self.model, levels, actions, self.rng)
+        nxt, obs, _caps = sample_world_step(self.model, levels, actions, self.rng, self.t + 1)
+        if len(acted) < self.scenario.n_agents:
+            obs[:, [k for k in range(self.scenario.n_agents) if k not in acted]] = -1
+        if self.model.standby_class >= 0:
+            obs[self.events.out] = -1
         self.levels = nxt
         self.prev = np.where(actions >= 0, actions, self.prev)
         self.t += 1

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from htlm_world.scenario import Scenario
+from htlm_world.scenario import REOPEN_LEVEL, Scenario
 from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
@@ -31,7 +31,8 @@ def p_drop_table(sc: Scenario, p_drop: tuple[float, ...] | None = None) -> Float
 def kind_table(sc: Scenario, k: int) -> FloatArray:
     """T_k[c, g, l, l']: next level l' of a task of kind k at level l, given the joint capability c on it and the
     level g of the task it depends on at its site (docs/model.md, Transition T). g has L entries when the kind
-    depends on another, else one (g = 0)."""
+    depends on another, else one (g = 0). A finished task reopens at `REOPEN_LEVEL` with the kind's `hazard`,
+    whatever c and g are (level 0 is absorbing when the hazard is 0, as in the paper)."""
     kind = sc.kinds[k]
     cm, L = sc.capability_max, sc.levels
     pd = p_drop_table(sc, kind.p_drop or None)
@@ -41,6 +42,9 @@ def kind_table(sc: Scenario, k: int) -> FloatArray:
     for c in range(cm + 1):
         for g in range(gates):
             t[c, g, 0, 0] = 1.0
+            if kind.hazard > 0.0:
+                t[c, g, 0, 0] -= kind.hazard
+                t[c, g, 0, REOPEN_LEVEL] += kind.hazard
             for lv in range(1, L):
                 p = pd[c, lv]
                 if c == 0:  # unattended: grows with the kind's growth probability
@@ -68,13 +72,21 @@ def accuracy(sc: Scenario, k: int, sensing: int) -> float:
     return min(1.0, base + slope * sensing)
 
 
-def observation_table(sc: Scenario, k: int = 0) -> FloatArray:
+def accuracies(sc: Scenario, k: int | None) -> tuple[float, ...]:
+    """The accuracy of an observation at every sensing 0..capability_max: of a task of kind k by an agent working
+    on it, or (k None) of an agent standing by (`standby_accuracy`, whatever its sensing)."""
+    if k is None:
+        assert sc.standby_accuracy is not None
+        return (sc.standby_accuracy,) * (sc.capability_max + 1)
+    return tuple(accuracy(sc, k, s) for s in range(sc.capability_max + 1))
+
+
+def observation_table(sc: Scenario, k: int | None = 0) -> FloatArray:
     """O_k[s, l, z]: probability of observing z when the true level of a task of kind k is l, for sensing s
-    (docs/model.md)."""
+    (docs/model.md); k None: the observation of an agent standing by."""
     cm, L = sc.capability_max, sc.levels
     t = np.zeros((cm + 1, L, L))
-    for s in range(cm + 1):
-        acc = accuracy(sc, k, s)
+    for s, acc in enumerate(accuracies(sc, k)):
         for lv in range(L):
             nbrs = [n for n in (lv - 1, lv + 1) if 0 <= n < L]
             t[s, lv, lv] = acc
@@ -125,16 +137,20 @@ class Model:
     task_gates: IntArray  # (p,) G of the task's kind (1 or L)
     site_task: IntArray  # (S, K) the task of kind k at site s; -1 when the site has none
     action_site: IntArray  # (|G|,)
+    standby_class: int  # accuracy class of an observation standing by; -1: idle agents observe nothing (the paper)
+    site_first: IntArray  # (S,) the first task of every site (a site's tasks are numbered one after the other)
+    site_count: IntArray  # (S,) the number of tasks of every site
 
     @staticmethod
     def build(sc: Scenario) -> Model:
         """Compute every table of scenario sc."""
         L, p, na = sc.levels, sc.n_tasks, sc.n_actions
         tables = tuple(kind_table(sc, k) for k in range(sc.n_kinds))
-        accs = [tuple(accuracy(sc, k, s) for s in range(sc.capability_max + 1)) for k in range(sc.n_kinds)]
-        classes = list(dict.fromkeys(accs))
+        accs = [accuracies(sc, k) for k in range(sc.n_kinds)]
+        standby = accuracies(sc, None) if sc.standby_accuracy is not None and sc.n_idle else None
+        classes = list(dict.fromkeys(accs if standby is None else [*accs, standby]))
         kind_class = [classes.index(a) for a in accs]
-        first_kind = [kind_class.index(c) for c in range(len(classes))]
+        first_kind: list[int | None] = [kind_class.index(c) if c in kind_class else None for c in range(len(classes))]
         obs = np.stack([observation_table(sc, k) for k in first_kind])
         rows = np.cumsum([0] + [t.shape[0] * t.shape[1] * L for t in tables])
         site_task = np.full((sc.n_sites, sc.n_kinds), -1, dtype=np.int64)
@@ -178,6 +194,9 @@ class Model:
             task_gates=np.array([t.shape[1] for t in tables], dtype=np.int64)[task_kind],
             site_task=site_task,
             action_site=np.array(sc.action_sites, dtype=np.int64),
+            standby_class=-1 if standby is None else classes.index(standby),
+            site_first=np.searchsorted(task_site, np.arange(sc.n_sites)).astype(np.int64),
+            site_count=np.bincount(task_site, minlength=sc.n_sites).astype(np.int64),
         )
 
     def idle_action(self, prev: IntArray) -> IntArray:
@@ -189,6 +208,31 @@ class Model:
             return np.full(prev.shape, -1, dtype=np.int64)
         site = np.where(prev >= 0, self.action_site[np.maximum(prev, 0)], 0)
         return (self.scenario.n_tasks + site).astype(np.int64)
+
+    def observes(self, actions: IntArray, t: int | None) -> tuple[IntArray, IntArray]:
+        """Which task each action observes at step t (1..h), and with which accuracy class (docs/model.md,
+        Observation O): an agent working on a task observes it, with its kind's class; with `standby_accuracy`, an
+        agent idling at site s observes the site's tasks in turn, task t mod m of its m tasks, with the standby
+        class; otherwise -1 (no observation). Every teammate knows it from the action and t, so a standing-by
+        agent's broadcast is evidence like a worker's. The one definition of the rule, for the simulator, the world's
+        records and every belief. Works element-wise on any shape of actions.
+
+        Raises:
+            ValueError: t is None while the scenario has standby (which task depends on the step).
+        """
+        a = np.asarray(actions, dtype=np.int64)
+        p = self.scenario.n_tasks
+        working = (a >= 0) & (a < p)
+        task = np.where(working, a, -1)
+        cls = np.where(working, self.task_class[np.clip(a, 0, p - 1)], -1)
+        if self.standby_class >= 0:
+            if t is None:
+                raise ValueError("the step t is needed: which task a standing-by agent observes depends on it")
+            idle = a >= p
+            site = np.clip(a - p, 0, self.site_first.size - 1)
+            task = np.where(idle, self.site_first[site] + t % self.site_count[site], task)
+            cls = np.where(idle, self.standby_class, cls)
+        return task.astype(np.int64), cls.astype(np.int64)
 
     def action_mask(self, prev: IntArray) -> BoolArray:
         """Â(a_o), the reduced action space (docs/model.md): the p tasks and the idle location at the site of a_o
@@ -244,11 +288,20 @@ class Model:
         """Next levels of T by inverse CDF from uniforms u of shape (..., p) (docs/model.md, Transition T)."""
         return _inverse_cdf(self.transition_cdf, self._rows(levels, caps), u)
 
-    def sample_observation(self, task: IntArray, true_level: IntArray, sensing: IntArray, u: FloatArray) -> IntArray:
+    def sample_observation(
+        self,
+        task: IntArray,
+        true_level: IntArray,
+        sensing: IntArray,
+        u: FloatArray,
+        cls: IntArray | None = None,
+    ) -> IntArray:
         """Observed levels of O by inverse CDF: the observed tasks, their true levels, the observers' sensing and
-        uniforms, all of one shape."""
+        uniforms, all of one shape; `cls` the accuracy classes of the observations (`observes`; None: the tasks'
+        own, every observer working)."""
         L, cm = self.scenario.levels, self.scenario.capability_max
-        return _inverse_cdf(self.obs_cdf, (self.task_class[task] * (cm + 1) + sensing) * L + true_level, u)
+        c = self.task_class[task] if cls is None else cls
+        return _inverse_cdf(self.obs_cdf, (c * (cm + 1) + sensing) * L + true_level, u)
 
     def apply_channel(self, level: IntArray, keep: FloatArray, u_keep: FloatArray, u_level: FloatArray) -> IntArray:
         """The simulated channel: with probability 1 - tau replace the level by a uniformly random one."""

@@ -514,7 +514,8 @@ class WorldProtocol:
         self.answers = {}  # from here on, the agents' answers are their actions of step t + 1 (ready after step h)
         external = isinstance(self.ep, ExternalEpisode)
         if not external:  # in an external operation the robots observe and publish the observations themselves
-            tasks = np.where((res.actions >= 0) & (res.actions < sc.n_tasks), res.actions, -1).T.tolist()
+            observed, _cls = self.model.observes(res.actions, t)
+            tasks = np.where(res.observations >= 0, observed, -1).T.tolist()
             levels = res.observations.T.tolist()
             for k in range(sc.n_agents):
                 out.publish.append(

@@ -20,6 +20,10 @@ import yaml
 
 from htlm_msgs_py.validation import ConversionError, convert
 
+REOPEN_LEVEL = 1
+"""The level a finished task reopens at when its kind's `hazard` strikes (docs/model.md, What the paper fixes and
+what we add): the smallest surprise, one level of work."""
+
 REASSIGN_COSTS: dict[str, float] = {"none": 0.0, "medium": -1.0, "high": -4.0}
 """Traversing cost tc of the reassignment penalty T_RP, by level name (docs/model.md)."""
 
@@ -89,6 +93,9 @@ class KindSpec:
     """Own observation accuracy at sensing 0; None: the scenario's `sensing_base`."""
     sensing_slope: float | None = None
     """Own accuracy gained per sensing level; None: the scenario's `sensing_slope`."""
+    hazard: float = 0.0
+    """Probability per step that a finished task (level 0) of this kind reopens at level `REOPEN_LEVEL` (not in the
+    paper: docs/model.md, What the paper fixes and what we add); 0: level 0 is absorbing, as in the paper."""
 
     @property
     def uses(self) -> str:
@@ -200,6 +207,9 @@ class Scenario:
     """Simulate the communication channel (random replacement of broadcast levels); off for real robots."""
     channel_base: float = 0.2
     """Channel reliability added to comm / capability_max: tau = min(1, channel_base + comm / capability_max)."""
+    standby_accuracy: float | None = None
+    """Accuracy of the observation an agent idling at a site makes of one of the site's tasks, whatever its sensing
+    (not in the paper: docs/model.md, What the paper fixes and what we add); None: idle agents observe nothing."""
     agents: tuple[AgentSpec, ...] = ()
     """The team."""
     team: str = ""
@@ -610,6 +620,8 @@ def validate(sc: Scenario, src: str) -> None:
         _check_prob(src, name, getattr(sc, name))
     if not 0.0 <= sc.sensing_slope <= 1.0:
         raise ScenarioError(f"{src}: sensing_slope: {sc.sensing_slope!r} is not in [0, 1]")
+    if sc.standby_accuracy is not None:
+        _check_prob(src, "standby_accuracy", sc.standby_accuracy)  # HT mode: no idle location, nobody stands by
     if not 0.0 <= sc.gamma <= 1.0:
         raise ScenarioError(f"{src}: gamma: {sc.gamma!r} is not in [0, 1]")
     _validate_kinds(sc, src)
@@ -670,6 +682,7 @@ def _validate_kinds(sc: Scenario, src: str) -> None:
         if not kind.name or "@" in kind.name or kind.name in names[:k]:
             raise ScenarioError(f"{src}: {at}.name: {kind.name!r} must be a unique, non-empty name without '@'")
         _check_prob(src, f"{at}.growth", kind.growth)
+        _check_prob(src, f"{at}.hazard", kind.hazard)
         if kind.p_drop:
             _check_drops(src, f"{at}.p_drop", kind.p_drop)
         for name in ("sensing_base", "sensing_slope"):

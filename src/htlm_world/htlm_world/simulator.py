@@ -23,17 +23,18 @@ class StepResult:
     """What one step produced."""
 
     levels: Levels  # (B, p) true levels after the transition
-    observations: Observations  # (B, N) z of each working agent, -1 if idle
-    messages: Messages  # (B, N) level each agent's broadcast carries after its channel, -1 if idle
+    observations: Observations  # (B, N) z of each observing agent (`Model.observes`), -1 if none
+    messages: Messages  # (B, N) level each agent's broadcast carries after its channel, -1 if none
     caps: IntArray  # (B, p) joint capability of the step
 
 
 def sample_world_step(
-    model: Model, levels: Levels, actions: Actions, rng: np.random.Generator
+    model: Model, levels: Levels, actions: Actions, rng: np.random.Generator, t: int | None = None
 ) -> tuple[Levels, Observations, IntArray]:
-    """Apply T to the joint assignment and draw every working agent's observation O (docs/model.md).
+    """Apply T to the joint assignment of step t (1..h) and draw every observing agent's observation O
+    (docs/model.md; which task an agent observes: `Model.observes`, which needs t when the scenario has standby).
 
-    Returns the next levels, the observations (-1 for idle agents) and the joint capabilities.
+    Returns the next levels, the observations (-1 for agents that observe nothing) and the joint capabilities.
     """
     sc = model.scenario
     b, n = actions.shape
@@ -41,11 +42,13 @@ def sample_world_step(
     caps = model.joint_capability(actions)
     u_t = rng.random((b, p))
     nxt = model.sample_transition(levels, caps, u_t)
-    u_o = rng.random((b, n))
-    working = (actions >= 0) & (actions < p)
-    task = np.where(working, actions, 0)
-    z = model.sample_observation(task, nxt.reshape(-1)[task + p * np.arange(b)[:, None]], model.sensing, u_o)
-    return nxt, np.where(working, z, -1), caps
+    u_o = rng.random((b, n))  # one draw per agent, observing or not: the streams do not depend on who observes
+    target, cls = model.observes(actions, t)
+    seen = target >= 0
+    task = np.where(seen, target, 0)
+    true = nxt.reshape(-1)[task + p * np.arange(b)[:, None]]
+    z = model.sample_observation(task, true, model.sensing, u_o, None if model.standby_class < 0 else cls)
+    return nxt, np.where(seen, z, -1), caps
 
 
 def sample_channel(model: Model, agent: int, observation: IntArray, rng: np.random.Generator) -> IntArray:
@@ -99,7 +102,7 @@ class BatchSim:
     def step(self, actions: Actions) -> StepResult:
         """Advance every episode one step under the joint assignment `actions` (B, N)."""
         assert actions.shape == (self.batch, self.scenario.n_agents), actions.shape
-        nxt, obs, caps = sample_world_step(self.model, self.levels, actions, self.rng)
+        nxt, obs, caps = sample_world_step(self.model, self.levels, actions, self.rng, self.t + 1)
         # every agent's channel draws (B, 2) from its own generator, as `sample_channel` does
         u = np.empty((self.scenario.n_agents, self.batch, 2))
         for k, g in enumerate(self.channel_rngs):

@@ -283,7 +283,9 @@ def solve(sc: Scenario, limits: Limits = DEFAULT_LIMITS, progress: bool = False)
     """Finite-horizon value iteration for the expected completion step (docs/model.md, Reference figures).
 
     V_0(s) = 0; V_k(s) = 0 if s is complete, else 1 + min_c sum_s' T_c(s, s') V_{k-1}(s'). V_h(s0) is the
-    expected completion step with never-completed episodes counted as h.
+    expected completion step with never-completed episodes counted as h. With a kind's hazard (level 0 not
+    absorbing) it is the expected first step with every level 0, a lower bound of the completion step (which then
+    also needs every level to stay 0): still the floor (docs/model.md, Reference figures).
 
     Args:
         sc: the scenario.

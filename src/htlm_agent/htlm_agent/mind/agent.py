@@ -412,7 +412,7 @@ class AgentMind:
             messages[:, j] = lj
             heard[:, j] = True
         joint[:, me] = action if p.effective is None else p.effective
-        lik = bf.agent_evidence(self.model, me, joint, obs, messages, heard)
+        lik = bf.agent_evidence(self.model, me, joint, obs, messages, heard, p.t)
         caps = self.model.joint_capability(joint)
         self.belief, bad = bf.update(self.model, self.belief, caps, lik)
         self.impossible += int(bad.sum())
@@ -493,7 +493,8 @@ def loopback_episode(
     for t in range(1, h + 1):
         chosen = {i: a for i, a in acts.items() if not (absent and i in absent.get(t, set()))}
         out = world.step(chosen)
-        tasks = np.where((out.actions >= 0) & (out.actions < scenario.n_tasks), out.actions, -1)
+        observed, _cls = model.observes(out.actions, t)  # the world's record (`WorldProtocol`)
+        tasks = np.where(out.observations >= 0, observed, -1)
         sends = []
         effects: list[list[Effects]] = [[] for _ in range(n)]
         for i, m in enumerate(minds):

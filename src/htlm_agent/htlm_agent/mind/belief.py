@@ -460,33 +460,50 @@ def _check_levels(levels: IntArray, used: BoolArray, n_levels: int) -> None:
         raise IndexError(f"reported level {int(levels[used].max())} is out of range 0..{n_levels - 1}")
 
 
+def _report_groups(model: Model, actions: IntArray, t: int | None) -> list[tuple[IntArray, IntArray | int]]:
+    """The reports of a step in groups that each take one row of the evidence table per task: (the task every
+    agent reports on, -1 for none, shaped like `actions`; the accuracy class of the group's rows, per task (p,) or
+    one for all). The workers' reports, by their tasks' classes; with standby (`Model.observes`), the standing-by
+    agents' reports, by the standby class."""
+    task, _cls = model.observes(actions, t)
+    if model.standby_class < 0:
+        return [(task, model.task_class)]
+    standby = actions >= model.scenario.n_tasks
+    return [(np.where(standby, -1, task), model.task_class), (np.where(standby, task, -1), model.standby_class)]
+
+
 def evidence_codes(
     model: Model,
     actions: IntArray,
     observations: IntArray,
     messages: IntArray,
-) -> IntArray:
-    """Every agent's evidence code of every task, all messages delivered: (B, N) -> (N, p, B) rows of
-    `FilterTables.evidence` (receiver i's code plus (class · N + i) · base^N)."""
+    t: int | None = None,
+) -> list[IntArray]:
+    """Every agent's evidence codes of every task, all messages delivered: (B, N) -> one (N, p, B) array of rows of
+    `FilterTables.evidence` (receiver i's code plus (class · N + i) · base^N) per group of reports
+    (`_report_groups`); a task's likelihood is the product of its groups' rows, in group order."""
     sc = model.scenario
-    t = filter_tables(model)
+    tab = filter_tables(model)
     p, n = sc.n_tasks, sc.n_agents
-    acts, obs, msgs = actions.T, observations.T, messages.T  # (N, B)
-    if obs.size and max(int(obs.max()), int(msgs.max())) >= sc.levels:
-        works = (acts >= 0) & (acts < p)
-        _check_levels(msgs, works & (msgs >= 0), sc.levels)
-        _check_levels(obs, works & (obs >= 0), sc.levels)
-    powers = t.powers[:, None]
+    obs, msgs = observations.T, messages.T  # (N, B)
+    powers = tab.powers[:, None]
     msg_digit = np.where(msgs >= 0, msgs + 1, 0) * powers  # (N, B)
     own_digit = np.where(obs >= 0, obs + 1, 0) * powers
-    onehot = acts[:, None, :] == np.arange(p)[:, None]  # (N, p, B): agent k works on task j
-    shared = np.einsum("kjb,kb->jb", onehot, msg_digit)  # (p, B): every report weighed as a teammate's (integers)
-    codes: IntArray = np.einsum("kjb,kb->kjb", onehot, own_digit - msg_digit)  # the receiver's own report
-    codes += shared
-    codes += (np.arange(n, dtype=np.int64) * t.base**n)[:, None, None]
-    if model.obs.shape[0] > 1:
-        codes += (model.task_class * (n * t.base**n))[None, :, None]
-    return codes
+    out = []
+    for target, cls in _report_groups(model, actions, t):
+        tasks = target.T  # (N, B)
+        if obs.size and max(int(obs.max()), int(msgs.max())) >= sc.levels:
+            _check_levels(msgs, (tasks >= 0) & (msgs >= 0), sc.levels)
+            _check_levels(obs, (tasks >= 0) & (obs >= 0), sc.levels)
+        onehot = tasks[:, None, :] == np.arange(p)[:, None]  # (N, p, B): agent k reports on task j
+        shared = np.einsum("kjb,kb->jb", onehot, msg_digit)  # (p, B): every report weighed as a teammate's
+        codes: IntArray = np.einsum("kjb,kb->kjb", onehot, own_digit - msg_digit)  # the receiver's own report
+        codes += shared
+        codes += (np.arange(n, dtype=np.int64) * tab.base**n)[:, None, None]
+        if model.obs.shape[0] > 1:
+            codes += (np.asarray(cls) * (n * tab.base**n)).reshape(-1, 1)  # (p, 1) or (1, 1)
+        out.append(codes)
+    return out
 
 
 def agent_codes(
@@ -496,10 +513,12 @@ def agent_codes(
     own_observation: IntArray,
     messages: IntArray,
     heard: BoolArray | None = None,
-) -> IntArray:
-    """Agent `agent`'s evidence code of every task (B, p): rows of `FilterTables.evidence` (see `agent_evidence`)."""
+    t: int | None = None,
+) -> list[IntArray]:
+    """Agent `agent`'s evidence codes of every task (B, p), one array per group of reports (`evidence_codes`):
+    rows of `FilterTables.evidence` (see `agent_evidence`)."""
     sc = model.scenario
-    t = filter_tables(model)
+    tab = filter_tables(model)
     p, n = sc.n_tasks, sc.n_agents
     levels = messages.copy()
     levels[:, agent] = own_observation
@@ -508,15 +527,18 @@ def agent_codes(
         mine = np.zeros(ok.shape[1], dtype=bool)
         mine[agent] = True
         ok &= heard | mine
-    onehot = actions[..., None] == np.arange(p)  # (B, N, p): agent k works on task j
-    if levels.size and int(levels.max()) >= sc.levels:
-        _check_levels(levels, ok & onehot.any(axis=-1), sc.levels)
-    digit = np.where(ok, levels + 1, 0) * t.powers
-    codes: IntArray = np.einsum("bkj,bk->bj", onehot, digit)
-    codes += agent * t.base**n
-    if model.obs.shape[0] > 1:
-        codes += model.task_class * (n * t.base**n)
-    return codes
+    digit = np.where(ok, levels + 1, 0) * tab.powers
+    out = []
+    for target, cls in _report_groups(model, actions, t):
+        onehot = target[..., None] == np.arange(p)  # (B, N, p): agent k reports on task j
+        if levels.size and int(levels.max()) >= sc.levels:
+            _check_levels(levels, ok & (target >= 0), sc.levels)
+        codes: IntArray = np.einsum("bkj,bk->bj", onehot, digit)
+        codes += agent * tab.base**n
+        if model.obs.shape[0] > 1:
+            codes += np.asarray(cls) * (n * tab.base**n)
+        out.append(codes)
+    return out
 
 
 def _agent_evidence_product(
@@ -526,23 +548,24 @@ def _agent_evidence_product(
     own_observation: IntArray,
     messages: IntArray,
     heard: BoolArray | None,
+    t: int | None,
 ) -> FloatArray:
     """`agent_evidence` multiplied out report by report (for teams too large for the evidence table)."""
     sc = model.scenario
     b = actions.shape[0]
-    p = sc.n_tasks
-    lik = np.ones((b, p, sc.levels))
+    lik = np.ones((b, sc.n_tasks, sc.levels))
     rows = np.arange(b)
     tables = [_report_tables(model, agent, c) for c in range(model.obs.shape[0])]
+    target, target_cls = model.observes(actions, t)
     for k in range(sc.n_agents):
-        works = (actions[:, k] >= 0) & (actions[:, k] < p)
-        task = np.where(works, actions[:, k], 0)
+        reports = target[:, k] >= 0
+        task = np.where(reports, target[:, k], 0)
         level = own_observation if k == agent else messages[:, k]
         if k != agent and heard is not None:
-            works = works & heard[:, k]
-        ok = works & (level >= 0)
+            reports = reports & heard[:, k]
+        ok = reports & (level >= 0)
         for c, by_agent in enumerate(tables):
-            sel = ok & (model.task_class[task] == c)
+            sel = ok & (target_cls[:, k] == c)
             if sel.any():
                 lik[rows[sel], task[sel]] *= by_agent[k][:, level[sel]].T
     return lik
@@ -555,47 +578,63 @@ def agent_evidence(
     own_observation: IntArray,
     messages: IntArray,
     heard: BoolArray | None = None,
+    t: int | None = None,
 ) -> FloatArray:
-    """Likelihood of agent `agent`'s evidence of one step for every task level: (B, p, L).
+    """Likelihood of agent `agent`'s evidence of step t for every task level: (B, p, L).
 
     Its own observation is weighed with O, teammate k's message with I_k (docs/model.md, Information I), each of
-    the accuracy class of the task's kind; the likelihood of a task is the product of its reports' rows in
-    increasing agent order.
+    the accuracy class of the report (`Model.observes`: the task's kind's for a worker, the standby class for an
+    agent standing by); the likelihood of a task is the product of its reports' rows in increasing agent order (with
+    standby: the workers', then the standing-by agents').
 
     Args:
         actions: (B, N) the joint assignment of the step (as the agent knows it).
-        own_observation: (B,) the agent's own observation, -1 when idle.
-        messages: (B, N) levels received from each teammate after its channel, -1 when idle or not sent.
+        own_observation: (B,) the agent's own observation, -1 when none.
+        messages: (B, N) levels received from each teammate after its channel, -1 when none or not sent.
         heard: optional (B, N) mask of teammates whose message arrived; all when None.
+        t: the step (1..h); needed when the scenario has standby (which task an idle agent observes).
     """
     tables = filter_tables(model)
     if tables.evidence is None:
-        return _agent_evidence_product(model, agent, actions, own_observation, messages, heard)
-    out: FloatArray = tables.evidence[agent_codes(model, agent, actions, own_observation, messages, heard)]
+        return _agent_evidence_product(model, agent, actions, own_observation, messages, heard, t)
+    groups = agent_codes(model, agent, actions, own_observation, messages, heard, t)
+    out: FloatArray = tables.evidence[groups[0]]
+    for codes in groups[1:]:
+        out *= tables.evidence[codes]
     return out
 
 
-def evidence_sites(model: Model, actions: IntArray, observations: IntArray, messages: IntArray) -> list[FloatArray]:
-    """Every agent's evidence, all messages delivered, for `update_sites`: every slot's likelihoods (L, S, N, B)
-    of (B, N) actions, observations and messages."""
+def evidence_sites(
+    model: Model, actions: IntArray, observations: IntArray, messages: IntArray, t: int | None = None
+) -> list[FloatArray]:
+    """Every agent's evidence of step t, all messages delivered, for `update_sites`: every slot's likelihoods
+    (L, S, N, B) of (B, N) actions, observations and messages."""
     tables = filter_tables(model)
     if tables.by_level is None:
-        lik = evidence(model, actions, observations, messages)  # (B, N, p, L)
+        lik = evidence(model, actions, observations, messages, t)  # (B, N, p, L)
         sites = np.ascontiguousarray(lik.transpose(3, 1, 2, 0))  # (L, N, p, B)
     else:
-        sites = np.take(tables.by_level, evidence_codes(model, actions, observations, messages), axis=1)
+        groups = evidence_codes(model, actions, observations, messages, t)
+        sites = np.take(tables.by_level, groups[0], axis=1)
+        for codes in groups[1:]:
+            sites *= np.take(tables.by_level, codes, axis=1)
     return [x.swapaxes(1, 2) for x in tables.slot_likelihoods(sites, axis=2)]  # (L, S, N, B)
 
 
-def evidence(model: Model, actions: IntArray, observations: IntArray, messages: IntArray) -> FloatArray:
-    """Likelihood of every agent's evidence, all messages delivered: (B, N, p, L) (see `agent_evidence`)."""
+def evidence(
+    model: Model, actions: IntArray, observations: IntArray, messages: IntArray, t: int | None = None
+) -> FloatArray:
+    """Likelihood of every agent's evidence of step t, all messages delivered: (B, N, p, L) (see
+    `agent_evidence`)."""
     tables = filter_tables(model)
     n = actions.shape[1]
     if tables.evidence is None:
-        rows = [_agent_evidence_product(model, i, actions, observations[:, i], messages, None) for i in range(n)]
+        rows = [_agent_evidence_product(model, i, actions, observations[:, i], messages, None, t) for i in range(n)]
         return np.stack(rows, axis=1)
-    codes = evidence_codes(model, actions, observations, messages)  # (N, p, B)
-    out: FloatArray = tables.evidence[codes.transpose(2, 0, 1)]
+    groups = evidence_codes(model, actions, observations, messages, t)  # each (N, p, B)
+    out: FloatArray = tables.evidence[groups[0].transpose(2, 0, 1)]
+    for codes in groups[1:]:
+        out *= tables.evidence[codes.transpose(2, 0, 1)]
     return out
 
 

@@ -17,7 +17,7 @@ from htlm_world import seeds
 from htlm_world.events import EventRun
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.simulator import BatchSim
+from htlm_world.simulator import BatchSim, StepResult
 from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
@@ -152,6 +152,17 @@ class Team:
             actions = np.where(self.dropped, idle, actions)
         return actions
 
+    def _sit_out(self, actions: IntArray, res: StepResult) -> None:
+        """Inactivated and dropped agents and those an event keeps out observe nothing and broadcast no level,
+        standing by or not (as an absent agent over ROS: `WorldEpisode.step`); the simulator's draws stay as they
+        were."""
+        out = self.events.out.copy()
+        out[:, list(self.inactive)] = True
+        if self.dropped is not None:
+            out |= self.dropped
+        res.observations[out] = -1
+        res.messages[out] = -1
+
     def step(self, actions: IntArray) -> tuple[FloatArray, FloatArray, StepInfo]:
         """One step of the data flow of docs/architecture.md for every agent of every episode.
 
@@ -162,7 +173,9 @@ class Team:
         self.sim.levels = self._start
         self._fired = None
         res = self.sim.step(actions)
-        liks = bf.evidence_sites(self.model, actions, res.observations, res.messages)  # each (L, S, N, B)
+        if self.model.standby_class >= 0:
+            self._sit_out(actions, res)
+        liks = bf.evidence_sites(self.model, actions, res.observations, res.messages, self.t + 1)  # (L, S, N, B)
         caps = self.filter.slot_caps(res.caps.T[:, None, :])  # (S, 1, B): every agent assumes the step's joint
         self.sites, bad_site = bf.update_sites(self.filter, self.sites, caps, liks, self._new_sites(), self._work)
         bad = np.asarray(bad_site.any(axis=0).T, dtype=np.bool_)  # (B, N)
