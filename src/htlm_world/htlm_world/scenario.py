@@ -391,7 +391,7 @@ SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 
 _AGENT_FIELDS = frozenset(f.name for f in dataclasses.fields(AgentSpec))
 
-_OPERATION_KEYS = frozenset({"kinds", "sites", "levels", "horizon", "agents", "teams"})
+_OPERATION_KEYS = frozenset({"sites", "levels", "horizon", "agents", "teams"})
 """Keys that make a file's operation its own: it does not take the default file's `events` and `stress` sets."""
 
 _LEGACY_KIND_KEYS: dict[str, tuple[str, tuple[str, ...]]] = {
