@@ -15,6 +15,8 @@ FIGURES = (
     "inactivation.png",
     "baselines.png",
     "learning_curves.png",
+    "resilience.png",
+    "importance_predictor.png",
 )
 
 
@@ -34,12 +36,12 @@ def test_quick_reproduction_produces_every_result(tmp_path: Path) -> None:
     for f in (*FIGURES, "report.md", "results.json", "configs.csv"):
         assert (out / f).stat().st_size > 0, f
     data = json.loads((out / "results.json").read_text())
-    assert [c["id"] for c in data["claims"]] == ["C1", "C2", "C3", "C4", "C5", "Q"]
+    assert [c["id"] for c in data["claims"]] == ["C1", "C2", "C3", "C4", "C5", "C5b", "Q"]
     assert all(isinstance(c["held"], bool) and c["numbers"] for c in data["claims"])
     assert set(data["importance"]) == {"heterogeneous", "semi-heterogeneous", "homogeneous"}
-    # 9 configurations + the 2 of the first calibration, x 2 seeds, each with its own evaluation
+    # 9 configurations + the 2 of the first calibration + 3 for events, x 2 seeds, each with its own evaluation
     rows = (out / "configs.csv").read_text().strip().splitlines()[1:]
-    assert len(rows) == 22
+    assert len(rows) == 28
     assert sum(r.startswith("first-calibration_") for r in rows) == 4
     report = (out / "report.md").read_text()
     for f in FIGURES:
@@ -48,9 +50,13 @@ def test_quick_reproduction_produces_every_result(tmp_path: Path) -> None:
     # the optimum baseline in the table is the value-iteration floor's neighbourhood, not a constant
     assert 5.0 < data["baselines"]["optimal"]["completion"][0] < 10.0
     assert {"random", "greedy", "auction", "optimal"} <= set(data["baselines"]) and "| auction |" in report
+    # the teams under events, and importance judged as a predictor, in their own sections
+    assert set(data["resilience"]["R_II, medium T_RP"]) == {"flare-up", "new-fire", "lose-most-important"}
+    assert "## 8. The unexpected" in report and "## 9. Importance as a predictor" in report
+    assert "before completion, while the mission is open" in data["claims"][0]["numbers"]
     # a second run reuses every finished configuration: no result file is rewritten
     stamps = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/result.json")}
-    assert len(stamps) == 22
+    assert len(stamps) == 28
     p2 = _run(out)
     assert p2.returncode == 0, p2.stderr[-3000:]
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/result.json")} == stamps

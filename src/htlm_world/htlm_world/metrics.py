@@ -37,6 +37,7 @@ class EpisodeMetrics:
     failed: np.ndarray  # (B,) bool
     unused_capability: FloatArray  # (B,) per agent per step
     unused_fraction: FloatArray  # (B,) unused capability / mean total capability per agent
+    unused_open: FloatArray  # (B,) the same over the steps up to completion only (the load while the mission is open)
     idle_before: IntArray  # (B,) team idle decisions at steps <= completion
     reassign_before: IntArray  # (B,) team decisions changing site at steps <= completion
     agent_unused: FloatArray  # (B, N) unused capability of each agent per step
@@ -69,12 +70,40 @@ def episode_metrics(sc: Scenario, levels: IntArray, actions: IntArray) -> Episod
         failed=failed,
         unused_capability=unused,
         unused_fraction=unused / mean_cap if mean_cap > 0 else np.zeros_like(unused),
+        unused_open=_open_share(idle, total_cap, before[..., 0]),
         idle_before=agent_idle.sum(axis=1),
         reassign_before=agent_moves.sum(axis=1),
         agent_unused=agent_unused,
         agent_idle_before=agent_idle,
         agent_reassign_before=agent_moves,
     )
+
+
+def _open_share(idle: np.ndarray, total_cap: FloatArray, before: np.ndarray) -> FloatArray:
+    """Per episode, the share of the team's capability left unused over the steps up to completion (h, B) `before`."""
+    team = max(float(total_cap.sum()), 1e-12)
+    per_step = (idle * total_cap).sum(axis=2) / team  # (h, B)
+    steps = np.maximum(before.sum(axis=0), 1)
+    out: FloatArray = (per_step * before).sum(axis=0) / steps
+    return out
+
+
+def spearman(x: FloatArray | list[float], y: FloatArray | list[float]) -> float:
+    """Spearman's rank correlation of two samples (ties share their average rank); nan when either is constant."""
+    rx, ry = (_ranks(np.asarray(v, dtype=np.float64)) for v in (x, y))
+    if rx.std() == 0 or ry.std() == 0:
+        return float("nan")
+    return float(np.corrcoef(rx, ry)[0, 1])
+
+
+def _ranks(v: FloatArray) -> FloatArray:
+    order = np.argsort(v, kind="stable")
+    ranks = np.empty(len(v))
+    ranks[order] = np.arange(len(v), dtype=np.float64)
+    for value in np.unique(v):  # ties: the mean of their ranks
+        same = v == value
+        ranks[same] = ranks[same].mean()
+    return ranks
 
 
 def mean_se(x: FloatArray | IntArray) -> tuple[float, float]:

@@ -10,7 +10,7 @@ import argparse
 import time
 from pathlib import Path
 
-from htlm_world.scenario import REASSIGN_COSTS, Scenario, builtin, load
+from htlm_world.scenario import REASSIGN_COSTS, Scenario, builtin, load, read_events
 
 TEAM_HELP = (
     "a team of the scenario's `teams` (default: the scenario's `team`; paper: heterogeneous, semi-heterogeneous, "
@@ -47,6 +47,14 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="htlm (default) or ht: the HT Dec-POMDP baseline (no idle locations, R_LM = 0)",
     )
+    g.add_argument(
+        "--events",
+        nargs="+",
+        default=None,
+        metavar="FILE|SET",
+        help="events in every episode (surges, new tasks, dropouts; docs/model.md, Events): events files or names "
+        "of the scenario's stress sets",
+    )
 
 
 def scenario_from_args(args: argparse.Namespace) -> Scenario:
@@ -58,7 +66,13 @@ def scenario_from_args(args: argparse.Namespace) -> Scenario:
         sc = sc.with_reward(reassign_cost=REASSIGN_COSTS[args.reassign])
     if args.mode is not None:
         sc = sc.replace(mode=args.mode)
-    return sc
+    return with_events_from_args(sc, args)
+
+
+def with_events_from_args(sc: Scenario, args: argparse.Namespace) -> Scenario:
+    """The scenario with the events of --events added to its own (files or stress sets, in the order given)."""
+    names = getattr(args, "events", None) or []
+    return sc.with_events(sc.events + tuple(e for n in names for e in read_events(n, sc))) if names else sc
 
 
 def experiment_name(sc: Scenario) -> str:

@@ -20,6 +20,7 @@ from htlm_agent.cli.common import (
     experiment_name,
     run_name,
     scenario_from_args,
+    with_events_from_args,
 )
 from htlm_world.scenario import Scenario, ScenarioError
 
@@ -123,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
             if given:
                 raise SystemExit(f"htlm evaluate: {given} apply to --baseline; a policy acts in its own scenario")
             ck = load_checkpoint(args.policy)
-            sc = ck.scenario
+            sc = with_events_from_args(ck.scenario, args)
             policy: Any = QPolicy.from_checkpoint(ck)
             learner_settings: Any = ck.settings
             name = "htlm-dqn" if sc.mode == "htlm" else "ht-dqn"

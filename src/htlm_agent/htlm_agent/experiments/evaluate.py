@@ -154,6 +154,7 @@ def summarize(
         },
         "unused_capability": _ms(em.unused_capability),
         "unused_fraction": _ms(em.unused_fraction),
+        "unused_fraction_open": _ms(em.unused_open),
         "idle_before_completion": _ms(em.idle_before),
         "reassign_before_completion": _ms(em.reassign_before),
         "agents": agents,

@@ -23,8 +23,19 @@ QUALITY = {"completion": 8.5, "failure_rate": 0.005, "unused_fraction": 0.72}
 """The project's target for the default team (R_II, medium T_RP): 1.2 times the optimum 7.09, rare failures."""
 
 
-def claims(idle: dict[str, Any], reassign: dict[str, Any], inact: dict[str, Any]) -> list[dict[str, Any]]:
-    """C1-C5 of the paper, each held / not held with its numbers."""
+PREDICTOR_RHO = 0.7
+"""C5b holds when ζ's rank correlation with the cost of losing an agent is at least this in every team."""
+
+
+def claims(
+    idle: dict[str, Any],
+    reassign: dict[str, Any],
+    inact: dict[str, Any],
+    unused_open: dict[str, Any] | None = None,
+    predictor: dict[str, Any] | None = None,
+) -> list[dict[str, Any]]:
+    """C1-C5 of the paper, each held / not held with its numbers, and C5b (importance as a predictor of the cost of
+    losing an agent) when `predictor` is given."""
 
     def cfg(idle_on: bool, rp: str) -> dict[str, Any]:
         return dict(idle[Config(HET, idle_on, rp).name])
@@ -38,7 +49,13 @@ def claims(idle: dict[str, Any], reassign: dict[str, Any], inact: dict[str, Any]
             "claim": "with R_II unused capability is a large share (paper ≈ 71%; held at ≥ 70%); without it "
             "nearly none (paper ≈ 2.5%; held at ≤ 10%)",
             "held": bool(on >= 0.70 and off <= 0.10),
-            "numbers": f"medium T_RP: unused fraction {on:.1%} with R_II, {off:.1%} without",
+            "numbers": f"medium T_RP: unused fraction {on:.1%} with R_II, {off:.1%} without"
+            + (
+                f" (before completion, while the mission is open: {unused_open[_cfg_name(True)][0]:.1%} with, "
+                f"{unused_open[_cfg_name(False)][0]:.1%} without)"
+                if unused_open
+                else ""
+            ),
         }
     )
     parts, ok = [], True
@@ -105,6 +122,23 @@ def claims(idle: dict[str, Any], reassign: dict[str, Any], inact: dict[str, Any]
             "numbers": "; ".join(parts),
         }
     )
+    if predictor:
+        rho = {team: r["spearman_full"][0] for team, r in predictor.items()}
+        n_seeds = len(next(iter(predictor.values()))["per_seed"])
+        out.append(
+            {
+                "id": "C5b",
+                "claim": "importance predicts the cost of losing an agent (not a claim of the paper: held when "
+                f"Spearman's ρ of ζ with the completion steps lost is at least {PREDICTOR_RHO} in every team)",
+                "held": bool(all(v >= PREDICTOR_RHO for v in rho.values())),
+                "numbers": "; ".join(
+                    f"{team}: ρ {r['spearman_full'][0]:+.2f} (whole episode), {r['spearman_dropout'][0]:+.2f} "
+                    f"(dropout at step 3); least important cheapest to lose in {r['least_is_cheapest_full']} of "
+                    f"{n_seeds} seeds"
+                    for team, r in predictor.items()
+                ),
+            }
+        )
     q = cfg(True, "medium")
     fail = q["failure_rate"]
     out.append(
@@ -291,6 +325,7 @@ def write_report(out: Path, data: dict[str, Any], command: str, wall: float) -> 
                 f"| {k} | {v['completion'][0]:.2f} ± {v['completion'][1]:.2f} | {v['failure_rate']:.1%} | "
                 f"{v['unused_fraction'][0]:.3f} ± {v['unused_fraction'][1]:.3f} |"
             )
+    lines += _resilience_lines(data)
     lines += [
         "",
         "![learning curves](learning_curves.png)",
@@ -300,3 +335,100 @@ def write_report(out: Path, data: dict[str, Any], command: str, wall: float) -> 
         "",
     ]
     (out / "report.md").write_text("\n".join(lines))
+
+
+def _resilience_lines(data: dict[str, Any]) -> list[str]:
+    """Sections 8 (teams under events: the premise of load management) and 9 (importance as a predictor)."""
+    stress, pred = data.get("resilience"), data.get("importance_predictor")
+    if not stress:
+        return []
+    lines = [
+        "",
+        "## 8. The unexpected: does load management buy resilience?",
+        "",
+        "The paper's reason for load management: a team that keeps capacity in reserve copes better when something "
+        "goes wrong. Every team is put under the paper scenario's stress sets (`htlm stress`; docs/model.md, Events): "
+        "a fire that flares back to level 4 at a site already cleared (from step 10), a new fire at step 5, and the "
+        "team's own most important agent dropping out at step 3. Same episodes for every team (seed 1000), "
+        f"{data['eval_episodes']} per team, set and seed; mean ± SE across the training seeds. Recovery: steps from "
+        "the event until its tasks are at level 0 (episodes that recover); never: episodes still not recovered at the "
+        "horizon. Unused capability: the share of the team's capability idle before the event, and from the event "
+        "until the recovery. `paper-standby` teams run in the model that admits surprises (a fire hazard and "
+        "standing by, docs/model.md); the team trained with `random-events` met events in training.",
+        "",
+        "![resilience](resilience.png)",
+        "",
+    ]
+    for set_name in next(iter(stress.values())):
+        lines += [
+            f"**{set_name}** ({'; '.join(next(iter(stress.values()))[set_name]['events'])})",
+            "",
+            "| team | completion with events | failures | without events | recovery | never | unused before | "
+            "unused while recovering |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for team, sets in stress.items():
+            r = sets[set_name]
+            lines.append(
+                f"| {team} | {_ms(r['completion_with'])} | {r['failures_with'][0]:.1%} | "
+                f"{_ms(r['completion_without'])} | {_ms(r['recovery'])} | {r['never_recovered'][0]:.1%} | "
+                f"{_pct(r['unused_before_event'])} | {_pct(r['unused_while_recovering'])} |"
+            )
+        lines.append("")
+    lines += ["**What this says.** " + premise_answer(stress), ""]
+    if pred:
+        lines += [
+            "## 9. Importance as a predictor",
+            "",
+            "For every agent of the three teams (R_II, medium T_RP) and every seed: ζ (Eq. 6) beside the completion "
+            "steps lost when the agent is inactive for the whole episode and when it drops out at step 3. Spearman's "
+            "ρ per seed, mean ± SE across seeds; and in how many seeds the least important agent (lowest ζ) is the "
+            "cheapest to lose. C5 above keeps the paper's test (least vs most important); this is its own row, C5b.",
+            "",
+            "![importance as a predictor](importance_predictor.png)",
+            "",
+            "| team | ρ (whole episode) | ρ (dropout at step 3) | least important is the cheapest to lose |",
+            "|---|---|---|---|",
+        ]
+        for team, r in pred.items():
+            k = len(r["per_seed"])
+            lines.append(
+                f"| {team} | {_ms(r['spearman_full'])} | {_ms(r['spearman_dropout'])} | whole episode "
+                f"{r['least_is_cheapest_full']}/{k}, dropout {r['least_is_cheapest_dropout']}/{k} |"
+            )
+        lines.append("")
+    return lines
+
+
+def premise_answer(stress: dict[str, Any]) -> str:
+    """A sentence per stress set: does the load-managed team (R_II) recover faster or fail less than the one without
+    R_II, with the numbers, whatever the answer (differences within 2 SE are called no difference)."""
+    on = next(k for k in stress if k.startswith("R_II, medium T_RP") and "(" not in k and "trained" not in k)
+    off = next(k for k in stress if k.startswith("no R_II, medium T_RP") and "(" not in k)
+    parts = []
+    for set_name in stress[on]:
+        a, b = stress[on][set_name], stress[off][set_name]
+        verdicts = []
+        for key, what in (("completion_with", "completion"), ("failures_with", "failures"), ("recovery", "recovery")):
+            d = a[key][0] - b[key][0]
+            se = float(np.hypot(a[key][1], b[key][1]))
+            if not np.isfinite(d):
+                continue
+            if abs(d) <= 2 * se:
+                verdicts.append(f"{what} no different ({a[key][0]:.2f} vs {b[key][0]:.2f})")
+            else:
+                verdicts.append(f"{what} {'better' if d < 0 else 'worse'} ({a[key][0]:.2f} vs {b[key][0]:.2f})")
+        parts.append(f"{set_name}: with R_II vs without, " + ", ".join(verdicts))
+    return "; ".join(parts) + "."
+
+
+def _ms(x: list[float]) -> str:
+    return "-" if x[0] != x[0] else f"{x[0]:.2f} ± {x[1]:.2f}"
+
+
+def _pct(x: list[float]) -> str:
+    return "-" if x[0] != x[0] else f"{x[0]:.0%}"
+
+
+def _cfg_name(idle_on: bool) -> str:
+    return Config(HET, idle_on, "medium").name

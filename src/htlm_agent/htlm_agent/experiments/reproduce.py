@@ -25,20 +25,23 @@ from htlm_agent.experiments.configs import (
     HET,
     HT_CONFIG,
     IDLE_CONFIGS,
+    STRESS_TEAMS,
     TEAM_NAMES,
     Config,
     all_configs,
 )
 from htlm_agent.experiments.evaluate import evaluate, evaluate_run, importance_table
 from htlm_agent.experiments.report import claims, git_commit, write_report
+from htlm_agent.experiments.stress import run_stress
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
 from htlm_agent.progress import Progress
 from htlm_agent.runtime.team import Team, rollout
-from htlm_world.metrics import mean_se
-from htlm_world.scenario import REASSIGN_COSTS
+from htlm_world.events import resolve_agent
+from htlm_world.metrics import mean_se, spearman
+from htlm_world.scenario import REASSIGN_COSTS, EventSpec, read_events
 
 
 @dataclass(frozen=True)
@@ -309,6 +312,151 @@ def importance_and_inactivation(runs: Path, seeds: tuple[int, ...], budget: Budg
     return result
 
 
+# ----- 8. beyond the paper: the unexpected (events) and importance as a predictor ---------------------------------
+
+STRESS_SETS = ("flare-up", "new-fire", "lose-most-important")
+"""The paper scenario's stress sets (paper.yaml `stress`) every team of STRESS_TEAMS is put under."""
+STRESS_SEED = 1000
+"""Seed of the stress episodes: every team meets the same worlds (common random numbers)."""
+
+
+def resilience(runs: Path, seeds: tuple[int, ...], budget: Budget, out: Path) -> dict[str, Any]:
+    """The premise of load management: every team of STRESS_TEAMS under every stress set, per training seed, with
+    and without the events (`htlm stress`); mean ± SE across seeds of completion, failures, time to recover and the
+    unused capability before the event and while recovering. The dropout set drops each team's own most important
+    agent (ζ of that seed's policy)."""
+    plt = _plt()
+    table: dict[str, Any] = {}
+    for cfg in STRESS_TEAMS:
+        sc = cfg.scenario().replace(events=())
+        per_seed: dict[str, list[dict[str, Any]]] = {s: [] for s in STRESS_SETS}
+        for seed in seeds:
+            pol = load_policy(runs / f"{cfg.name}__{seed}")
+            imp = importance_table(pol, sc, budget.inactivation_episodes, seed=STRESS_SEED)
+            top = max(imp["agents"], key=lambda a: a["zeta"])["agent"]
+            for set_name in STRESS_SETS:
+                events = resolve_agent(sc, read_events(set_name, sc), top)
+                (row,) = run_stress({cfg.label: (pol, sc)}, events, set_name, budget.eval_episodes, STRESS_SEED)
+                per_seed[set_name].append(row)
+        table[cfg.label] = {s: _across_seeds(rows) for s, rows in per_seed.items()}
+    fig, axes = plt.subplots(2, len(STRESS_SETS), figsize=(4.8 * len(STRESS_SETS), 7.0), squeeze=False)
+    labels = list(table)
+    x = np.arange(len(labels))
+    for col, set_name in enumerate(STRESS_SETS):
+        for k, (tag, colour) in enumerate((("without", "0.65"), ("with", "#c0392b"))):
+            vals = [table[lb][set_name][f"completion_{tag}"] for lb in labels]
+            axes[0][col].bar(x + (k - 0.5) * 0.38, [v[0] for v in vals], 0.38, yerr=[v[1] for v in vals],
+                             color=colour, capsize=2, label=f"{tag} the events")  # fmt: skip
+        rec = [table[lb][set_name]["recovery"] for lb in labels]
+        never = [table[lb][set_name]["never_recovered"][0] for lb in labels]
+        axes[1][col].bar(x, [r[0] for r in rec], 0.6, yerr=[r[1] for r in rec], color="#2c7fb8", capsize=2)
+        for i, nv in enumerate(never):
+            axes[1][col].text(i, 0.2, f"never\n{nv:.0%}", ha="center", va="bottom", fontsize=7, color="white")
+        axes[0][col].set_title(set_name, fontsize=10)
+        axes[0][col].set_ylabel("completion step")
+        axes[1][col].set_ylabel("steps to recover (recovered episodes)")
+        for ax in axes[:, col]:
+            ax.set_xticks(x, labels, rotation=35, ha="right", fontsize=7)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(
+        f"Teams under events (mean ± SE over seeds {list(seeds)}, {budget.eval_episodes} episodes)", fontsize=10
+    )
+    fig.tight_layout()
+    fig.savefig(out / "resilience.png", dpi=110)
+    plt.close(fig)
+    return table
+
+
+def _across_seeds(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """One stress set's figures of one team, mean ± SE across the seeds' rows."""
+
+    def stat(get: Any) -> list[float]:
+        vals = np.array([get(r) for r in rows], dtype=np.float64)
+        vals = vals[np.isfinite(vals)]
+        return list(mean_se(vals)) if vals.size else [float("nan"), 0.0]
+
+    return {
+        "events": rows[0]["events"],
+        "completion_with": stat(lambda r: r["with"]["completion"]["mean"]),
+        "completion_without": stat(lambda r: r["without"]["completion"]["mean"]),
+        "failures_with": stat(lambda r: r["with"]["failure_rate"]),
+        "failures_without": stat(lambda r: r["without"]["failure_rate"]),
+        "recovery": stat(lambda r: r["with"]["recovery"]["mean"]),
+        "never_recovered": stat(lambda r: r["with"]["recovery"]["never"]),
+        "unused_before_event": stat(lambda r: r["with"]["unused_before_event"] or np.nan),
+        "unused_while_recovering": stat(lambda r: r["with"]["unused_while_recovering"] or np.nan),
+        "per_seed_completion_with": [r["with"]["completion"]["mean"] for r in rows],
+    }
+
+
+DROPOUT_STEP = 3
+"""The step of the mid-episode dropout when importance is judged as a predictor."""
+
+
+def importance_as_predictor(runs: Path, seeds: tuple[int, ...], budget: Budget, out: Path) -> dict[str, Any]:
+    """For every agent of the three teams and every seed: ζ (Eq. 6) beside the cost of losing it, for the whole
+    episode (inactive) and from step DROPOUT_STEP on (a dropout event); Spearman's rank correlation of ζ with each
+    cost per team and seed, and whether the least important agent is the cheapest to lose."""
+    plt = _plt()
+    n = budget.inactivation_episodes
+    result: dict[str, Any] = {}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for t_i, team in enumerate(TEAM_NAMES):
+        cfg = Config(team, True, "medium")
+        sc = cfg.scenario()
+        rows = []
+        for seed in seeds:
+            pol = load_policy(runs / f"{cfg.name}__{seed}")
+            zeta = [a["zeta"] for a in importance_table(pol, sc, n, seed=STRESS_SEED)["agents"]]
+            base = evaluate_run(pol, sc, n, seed=STRESS_SEED).metrics["completion"]["mean"]
+            full, mid = [], []
+            for k, a in enumerate(sc.agents):
+                full.append(
+                    evaluate_run(pol, sc, n, seed=STRESS_SEED, inactive=(k,)).metrics["completion"]["mean"] - base
+                )
+                dropped = sc.with_events([EventSpec("dropout", agent=a.name, at=DROPOUT_STEP)])
+                mid.append(evaluate_run(pol, dropped, n, seed=STRESS_SEED).metrics["completion"]["mean"] - base)
+            least = int(np.argmin(zeta))
+            rows.append(
+                {
+                    "seed": seed,
+                    "zeta": zeta,
+                    "cost_full": full,
+                    "cost_dropout": mid,
+                    "spearman_full": spearman(zeta, full),
+                    "spearman_dropout": spearman(zeta, mid),
+                    "least_is_cheapest_full": bool(full[least] == min(full)),
+                    "least_is_cheapest_dropout": bool(mid[least] == min(mid)),
+                }
+            )
+            for ax, cost in zip(axes, (full, mid), strict=True):
+                ax.scatter(zeta, cost, s=18, color=f"C{t_i}", label=team if seed == seeds[0] else None)
+        rho_f = [r["spearman_full"] for r in rows]
+        rho_d = [r["spearman_dropout"] for r in rows]
+        result[team] = {
+            "agents": [a.name for a in sc.agents],
+            "per_seed": rows,
+            "spearman_full": list(mean_se(np.array(rho_f))),
+            "spearman_dropout": list(mean_se(np.array(rho_d))),
+            "least_is_cheapest_full": sum(r["least_is_cheapest_full"] for r in rows),
+            "least_is_cheapest_dropout": sum(r["least_is_cheapest_dropout"] for r in rows),
+        }
+    for ax, title in zip(
+        axes, ("agent inactive for the whole episode", f"agent drops out at step {DROPOUT_STEP}"), strict=True
+    ):
+        ax.set_xlabel("importance ζ (Eq. 6)")
+        ax.set_ylabel("completion steps lost")
+        ax.set_title(title, fontsize=9)
+        ax.legend(fontsize=8)
+    fig.suptitle(
+        f"Importance as a predictor of the cost of losing an agent (seeds {list(seeds)}, {n} episodes)", fontsize=10
+    )
+    fig.tight_layout()
+    fig.savefig(out / "importance_predictor.png", dpi=110)
+    plt.close(fig)
+    return result
+
+
 # ----- 6. beyond the paper: baselines, learning curves ------------------------------------------------------------
 
 
@@ -425,7 +573,11 @@ def reproduce(
     inact = importance_and_inactivation(runs, budget.seeds, budget, out)
     base = baselines(budget, res, out)
     learning_curves(runs, budget.seeds, out)
-    data = {
+    print("reproduce: teams under events", file=sys.stderr)
+    stress = resilience(runs, budget.seeds, budget, out)
+    predictor = importance_as_predictor(runs, budget.seeds, budget, out)
+    unused_open = {c.name: list(seed_stats(res[c.name], ("unused_fraction_open",))[:2]) for c in IDLE_CONFIGS}
+    data: dict[str, Any] = {
         "quick": quick,
         "seeds": list(budget.seeds),
         "train_episodes": budget.episodes,
@@ -436,8 +588,11 @@ def reproduce(
         "behaviour": behaviour,
         "importance": inact,
         "baselines": base,
+        "resilience": stress,
+        "importance_predictor": predictor,
+        "unused_open": unused_open,
     }
-    data["claims"] = claims(idle, reassign, inact)
+    data["claims"] = claims(idle, reassign, inact, unused_open, predictor)
     wall = time.perf_counter() - t0
     data["wall_time_s"] = wall
     (out / "results.json").write_text(json.dumps(data, indent=2) + "\n")
