@@ -39,9 +39,9 @@ def test_quick_reproduction_produces_every_result(tmp_path: Path) -> None:
     assert [c["id"] for c in data["claims"]] == ["C1", "C2", "C3", "C4", "C5", "C5b", "Q"]
     assert all(isinstance(c["held"], bool) and c["numbers"] for c in data["claims"])
     assert set(data["importance"]) == {"heterogeneous", "semi-heterogeneous", "homogeneous"}
-    # 9 configurations + the 2 of the first calibration + 3 for events, x 2 seeds, each with its own evaluation
+    # 9 configurations + the 2 of the first calibration + 4 for events, x 2 seeds, each with its own evaluation
     rows = (out / "configs.csv").read_text().strip().splitlines()[1:]
-    assert len(rows) == 28
+    assert len(rows) == 30
     assert sum(r.startswith("first-calibration_") for r in rows) == 4
     report = (out / "report.md").read_text()
     for f in FIGURES:
@@ -56,7 +56,7 @@ def test_quick_reproduction_produces_every_result(tmp_path: Path) -> None:
     assert "before completion, while the mission is open" in data["claims"][0]["numbers"]
     # a second run reuses every finished configuration: no result file is rewritten
     stamps = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/result.json")}
-    assert len(stamps) == 28
+    assert len(stamps) == 30
     p2 = _run(out)
     assert p2.returncode == 0, p2.stderr[-3000:]
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/result.json")} == stamps

@@ -62,9 +62,10 @@ FIRST_CONFIGS = [Config(HET, idle, "medium", base="first-calibration") for idle 
 RESILIENCE_CONFIGS = [
     Config(HET, True, "medium", events="random-events"),
     *(Config(HET, idle, "medium", base="paper-standby") for idle in (False, True)),
+    Config(HET, True, "medium", base="paper-standby", events="random-events"),
 ]
-"""Beyond the paper (issue: the unexpected): a team trained with random events, and the two teams of the model that
-admits surprises (hazard and standby, `paper-standby`)."""
+"""Beyond the paper (the unexpected): a team trained with random events, the two teams of the model that admits
+surprises (hazard and standby, `paper-standby`), and a team of that model trained with random events."""
 STRESS_TEAMS = [Config(HET, True, "medium"), Config(HET, False, "medium"), HT_CONFIG, *RESILIENCE_CONFIGS]
 """The teams put under the stress sets in the report's resilience section."""
 
