@@ -400,11 +400,24 @@ def _resilience_lines(data: dict[str, Any]) -> list[str]:
     return lines
 
 
+PREMISE_PAIRS = (
+    ("R_II, medium T_RP", "no R_II, medium T_RP", "the paper's model"),
+    ("R_II, medium T_RP (paper-standby)", "no R_II, medium T_RP (paper-standby)", "with hazard and standing by"),
+)
+"""The load-managed team and the same team without R_II, in the paper's model and in the one that admits surprises."""
+
+
 def premise_answer(stress: dict[str, Any]) -> str:
-    """A sentence per stress set: does the load-managed team (R_II) recover faster or fail less than the one without
+    """Per model and stress set: does the load-managed team (R_II) recover faster or fail less than the one without
     R_II, with the numbers, whatever the answer (differences within 2 SE are called no difference)."""
-    on = next(k for k in stress if k.startswith("R_II, medium T_RP") and "(" not in k and "trained" not in k)
-    off = next(k for k in stress if k.startswith("no R_II, medium T_RP") and "(" not in k)
+    return " ".join(
+        f"In {model}: " + _premise_pair(stress, on, off)
+        for on, off, model in PREMISE_PAIRS
+        if on in stress and off in stress
+    )
+
+
+def _premise_pair(stress: dict[str, Any], on: str, off: str) -> str:
     parts = []
     for set_name in stress[on]:
         a, b = stress[on][set_name], stress[off][set_name]
