@@ -173,3 +173,30 @@ def test_render_draws_the_scene_from_above(tmp_path: Path) -> None:
         assert (np.abs(rgb - np.array(colour)).max(axis=1) < 0.02).sum() > 50, colour
     M.render(M.DELETE_ALL, str(tmp_path / "empty.png"))  # nothing to draw: an empty picture, no error
     assert (tmp_path / "empty.png").stat().st_size > 0
+
+
+def test_the_status_line_names_the_events_of_the_shown_episode() -> None:
+    """A scenario event (docs/model.md, Events) reaches the markers through the world's ground truth, and the world
+    logs it."""
+    from htlm_world.scenario import EventSpec
+
+    sc = SC.with_events([EventSpec("surge", site="site2", task="fire", level=4, at=2, name="flare")])
+    p = WorldProtocol(sc, LockstepSettings(episodes=1, linger=0.0, run_id="t"))
+    view = M.MarkerView(sc)
+    logs: list[str] = []
+
+    def feed(eff: WorldEffects) -> None:
+        logs.extend(text for _, text in eff.log)
+        for kind, fields in eff.publish:
+            view.on_record(kind, fields, 0)
+
+    feed(p.start(0.0))
+    feed(p.tick(0.5))
+    now = 1.0
+    while p.t < 3 or p.phase != "act":
+        for k in range(N):
+            feed(p.on_action({"agent": k, "episode": 0, "step": p.t, "actions": [P]}, now))
+        now += 0.01
+    (status,) = [m for m in view.marks() if m.ns == "status"]
+    assert status.text == "episode 0, step 2 of 30; flare" and M.parse_status(status.text) == (0, 2)
+    assert "episode 0, step 2: event 'flare'" in logs

@@ -12,7 +12,7 @@ from rich.console import Console
 from htlm_agent.experiments.watch_view import WatchState, render, snapshot
 from htlm_msgs_py import schema as S
 from htlm_msgs_py.signing import Signer
-from htlm_world.scenario import builtin
+from htlm_world.scenario import EventSpec, Scenario, builtin
 
 SC = builtin()
 KEY = b"0123456789abcdef-team-key"
@@ -35,7 +35,7 @@ def encode(schema: S.Schema, fields: dict[str, Any], signer: Signer | None = Non
     return S.encode(schema, full, signer)
 
 
-def scenario_record(run: str = "watch-test", batch: int = 2, signer: Signer | None = None) -> str:
+def scenario_record(run: str = "watch-test", batch: int = 2, signer: Signer | None = None, sc: Scenario = SC) -> str:
     return encode(
         S.SCENARIO,
         {
@@ -48,8 +48,8 @@ def scenario_record(run: str = "watch-test", batch: int = 2, signer: Signer | No
             "batch": batch,
             "trainer_lag": 0,
             "state": "running",
-            "layout": SC.layout_hash(),
-            "scenario": SC.to_dict(),
+            "layout": sc.layout_hash(),
+            "scenario": sc.to_dict(),
         },
         signer,
     )
@@ -237,3 +237,16 @@ def test_metrics_of_another_run_are_dropped() -> None:
     st.on_metrics(encode(S.EPISODE_METRICS, {**S.decode(metrics(5, 3), S.EPISODE_METRICS, st.lim), "run": "old-run"}))
     out = text(st)
     assert "2 episodes finished" in out and "dropped episode_metrics/other_run 1" in out
+
+
+def test_the_view_names_the_events_of_the_shown_episode() -> None:
+    """The ground truth's events (indices into the announced scenario's `events`) show under the episode line."""
+    sc = SC.with_events(
+        [EventSpec("dropout", agent="agent3", at=2), EventSpec("surge", site="site1", task="fire", level=3)]
+    )
+    st = WatchState()
+    st.on_scenario(scenario_record(sc=sc))
+    st.on_step(encode(S.STEP, {"episode": 2, "size": 2, "step": 2, "phase": "step", "acted": [0, 1, 3, 4]}))
+    truth = {"episode": 2, "step": 2, "levels": [[4, 3, 2, 1]] * 2, "actions": [[0, 1, 4, 4, 5]] * 2}
+    st.on_ground_truth(encode(S.GROUND_TRUTH, {**truth, "events": [[0, 1], [1]]}))
+    assert "events: dropout agent3 (step 2), surge fire@site1 to 3 (step 2)" in text(st)
