@@ -9,17 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from htlm_agent.baselines.heuristics import builtin_policy
-from htlm_agent.mind.agent import loopback_episode
-from htlm_agent.mind.policies import DecentralizedPolicy
-from htlm_agent.runtime.team import Team, rollout
+from htlm_agent.runtime.team import Team
 from htlm_world import seeds
 from htlm_world.events import EventRun
 from htlm_world.metrics import completion_step
 from htlm_world.model import Model
 from htlm_world.scenario import EventSpec, ScenarioError, builtin, from_dict, load, read_events
-
-FIELDS = ("levels", "actions", "observations", "messages", "rewards")
+from lockstep_tools import assert_loopback_equals_team
 
 MIXED = [
     {"event": "surge", "site": "site1", "task": "fire", "level": 4, "at": 6},
@@ -130,19 +126,9 @@ def test_both_runtimes_give_the_same_episodes_under_events(batch: int, name: str
     (WorldEpisode and one AgentMind per agent, as the ROS nodes run them) equals the in-process Team bit for bit, and
     the events happen in some episodes and not in others."""
     sc = _with(MIXED)
-    model = Model.build(sc)  # type: ignore[arg-type]
-    out = [builtin_policy(sc, name, i) for i in range(sc.n_agents)]  # type: ignore[arg-type]
-    pols, eps = [p for p, _ in out], out[0][1]
     steps = set()
     for seed, b in [(0, 0), (5, 3)]:
-        dp = DecentralizedPolicy(pols, seed, eps)
-        dp.begin(b)
-        team = Team(sc, batch, seed, episode=b, model=model)  # type: ignore[arg-type]
-        tr = rollout(team, dp)
-        lb = loopback_episode(sc, seed, b * batch, pols, epsilon=eps, model=model, batch=batch)  # type: ignore[arg-type]
-        for f in FIELDS:
-            got = getattr(tr, f)[:, 0] if batch == 1 else getattr(tr, f)
-            assert np.array_equal(got, lb[f]), (f, seed, b)
+        team, tr = assert_loopback_equals_team(sc, name, seed, b, batch)  # type: ignore[arg-type]
         assert team.events.happened[:, 0].all(), "the surge at step 6 happens in every episode"
         steps |= {t for t, _, j in team.events.log if j == 3}
         assert (tr.actions[2:8, :, 1] >= sc.n_tasks).all(), "agent2 is out from step 3 to 8 at least"  # type: ignore[attr-defined]

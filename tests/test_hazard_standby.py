@@ -18,6 +18,7 @@ from htlm_world.model import Model, kind_table
 from htlm_world.protocol import WorldProtocol
 from htlm_world.scenario import REOPEN_LEVEL, Scenario, ScenarioError, builtin, from_dict, from_record, load
 from htlm_world.simulator import sample_world_step
+from lockstep_tools import assert_loopback_equals_team
 
 FIELDS = ("levels", "actions", "observations", "messages", "rewards")
 
@@ -157,17 +158,8 @@ def test_loopback_equals_team_with_hazard_and_standby(name: str, batch: int) -> 
     """The per-agent minds of the ROS runtime (AgentMind through the lockstep protocol) and the batched Team agree
     bit for bit on a scenario with a hazard and standby."""
     sc = _standby()
-    model = Model.build(sc)
-    out = [builtin_policy(sc, name, i) for i in range(sc.n_agents)]
-    pols, eps = [q for q, _ in out], out[0][1]
     for seed, b in [(0, 0), (3, 2)]:
-        dp = DecentralizedPolicy(pols, seed, eps)
-        dp.begin(b)
-        tr = rollout(Team(sc, batch, seed, episode=b, model=model), dp)
-        lb = loopback_episode(sc, seed, b * batch, pols, epsilon=eps, model=model, batch=batch)
-        for f in FIELDS:
-            got = lb[f] if batch > 1 else lb[f][:, None]
-            assert np.array_equal(getattr(tr, f), got), (f, seed, b)
+        _, tr = assert_loopback_equals_team(sc, name, seed, b, batch)
         assert (tr.observations[tr.actions >= sc.n_tasks] >= 0).all()  # the idle agents stood by
 
 
@@ -277,16 +269,7 @@ def test_both_runtimes_agree_under_events_with_hazard_and_standby(batch: int) ->
     from test_events import MIXED
 
     sc = from_dict({"events": MIXED, "kinds": load("paper-standby").to_dict()["kinds"], "standby_accuracy": 0.6})
-    model = Model.build(sc)
-    out = [builtin_policy(sc, "greedy", i) for i in range(sc.n_agents)]
-    pols, eps = [q for q, _ in out], out[0][1]
     for seed, b in [(0, 0), (5, 3)]:
-        dp = DecentralizedPolicy(pols, seed, eps)
-        dp.begin(b)
-        tr = rollout(Team(sc, batch, seed, episode=b, model=model), dp)
-        lb = loopback_episode(sc, seed, b * batch, pols, epsilon=eps, model=model, batch=batch)
-        for f in FIELDS:
-            got = lb[f] if batch > 1 else lb[f][:, None]
-            assert np.array_equal(getattr(tr, f), got), (f, seed, b)
+        _, tr = assert_loopback_equals_team(sc, "greedy", seed, b, batch)
         assert (tr.observations[2:8, :, 1] == -1).all(), "agent2 is out from step 3 to 8: it observes nothing"
         assert (tr.observations[tr.actions >= sc.n_tasks] >= 0).any(), "the others stand by"
