@@ -328,9 +328,25 @@ class Scenario:
         own = self.agents[i].reward
         return own if own is not None else self.reward
 
-    def with_events(self, events: tuple[EventSpec, ...] | list[EventSpec]) -> Scenario:
-        """A copy whose episodes have `events` (validated against the operation)."""
-        return self.replace(events=tuple(events))
+    def with_events(self, events: tuple[EventSpec, ...] | list[EventSpec], src: str = "events") -> Scenario:
+        """A copy whose episodes have `events`, checked against the operation (errors name `src`)."""
+        new = dataclasses.replace(self, events=tuple(events))
+        validate(new, src)
+        return new
+
+    def with_shipped_stress(self) -> Scenario:
+        """This scenario, with the stress sets of the shipped file of its name when it has none (a checkpoint written
+        before stress sets) and that file's operation is the same."""
+        if self.stress or self.name not in named_scenarios():
+            return self
+        shipped = load(self.name)
+        same = (shipped.kinds, shipped.sites, shipped.horizon, shipped.levels) == (
+            self.kinds,
+            self.sites,
+            self.horizon,
+            self.levels,
+        )
+        return dataclasses.replace(self, stress=shipped.stress) if same else self
 
     def __hash__(self) -> int:
         return hash((self.name, self.kinds, self.sites, self.agents, self.team, self.mode, self.events))
@@ -811,7 +827,7 @@ def read_events(path: str | Path, sc: Scenario) -> tuple[EventSpec, ...]:
         return sc.stress[name]
     p = Path(path)
     if not p.exists():
-        sets = f" or name a stress set of the scenario: {', '.join(sc.stress)}" if sc.stress else ""
+        sets = f" (or name a stress set of the scenario: {', '.join(sc.stress)})" if sc.stress else ""
         raise ScenarioError(f"{p}: cannot read events file: No such file or directory{sets}")
     data = _file_data(p)
     if isinstance(data, dict) and set(data) == {"events"}:

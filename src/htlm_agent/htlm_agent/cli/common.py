@@ -72,7 +72,10 @@ def scenario_from_args(args: argparse.Namespace) -> Scenario:
 def with_events_from_args(sc: Scenario, args: argparse.Namespace) -> Scenario:
     """The scenario with the events of --events added to its own (files or stress sets, in the order given)."""
     names = getattr(args, "events", None) or []
-    return sc.with_events(sc.events + tuple(e for n in names for e in read_events(n, sc))) if names else sc
+    if not names:
+        return sc
+    sc = sc.with_shipped_stress()
+    return sc.with_events(sc.events + tuple(e for n in names for e in read_events(n, sc)), " ".join(names))
 
 
 def experiment_name(sc: Scenario) -> str:

@@ -86,7 +86,8 @@ def format_metrics(m: dict[str, Any]) -> str:
     lines = [
         f"{m['policy']} · {team} · {m['mode']} · R_II x{m['idle_incentive']:g} · tc {m['reassign_cost']:g} · "
         f"{m['episodes']} episodes (seed {m['seed']})"
-        + (f" · inactive: {', '.join(m['inactive'])}" if m["inactive"] else ""),
+        + (f" · inactive: {', '.join(m['inactive'])}" if m["inactive"] else "")
+        + (f" · events: {'; '.join(m['events'])}" if m.get("events") else ""),
         f"completion step {c['mean']:.2f} ± {c['se']:.2f} (failure rate {c['failure_rate']:.1%}, of which every agent "
         f"believed the operation complete {c['false_completion_rate']:.1%}; completed episodes "
         f"{'-' if c['mean_completed'] is None else format(c['mean_completed'], '.2f')})",

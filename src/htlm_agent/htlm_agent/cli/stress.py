@@ -7,7 +7,6 @@ the event and while recovering. Writes stress.json, stress.csv and stress.png, a
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -49,17 +48,13 @@ def run(args: argparse.Namespace) -> int:
     from htlm_agent.learning.qpolicy import QPolicy
     from htlm_agent.progress import Progress
     from htlm_world.events import resolve_agent
-    from htlm_world.scenario import ScenarioError, load, named_scenarios, read_events
+    from htlm_world.scenario import ScenarioError, read_events
 
     if args.episodes < 1:
         raise SystemExit(f"htlm stress: --episodes must be >= 1, got {args.episodes}")
     try:
         ck = load_checkpoint(args.policy)
-        sc = ck.scenario.replace(events=())
-        if not sc.stress and sc.name in named_scenarios():  # a checkpoint from before stress sets: the shipped ones
-            shipped = load(sc.name)
-            if (shipped.kinds, shipped.sites, shipped.horizon) == (sc.kinds, sc.sites, sc.horizon):
-                sc = dataclasses.replace(sc, stress=shipped.stress)
+        sc = ck.scenario.replace(events=()).with_shipped_stress()
         names = args.events if args.events is not None else list(sc.stress)
         if not names:
             raise ScenarioError(f"scenario {sc.name!r} has no stress sets: give events files with --events FILE")

@@ -145,6 +145,7 @@ def summarize(
         "episodes": n_ep,
         "seed": seed,
         "inactive": [scenario.agents[i].name for i in inactive],
+        "events": [e.label for e in scenario.events],
         "completion": {
             "mean": comp_mean,
             "se": comp_se,
