@@ -402,7 +402,7 @@ def _resilience_lines(data: dict[str, Any]) -> list[str]:
 
 PREMISE_PAIRS = (
     ("R_II, medium T_RP", "no R_II, medium T_RP", "the paper's model"),
-    ("R_II, medium T_RP (paper-standby)", "no R_II, medium T_RP (paper-standby)", "with hazard and standing by"),
+    ("R_II, medium T_RP (paper-standby)", "no R_II, medium T_RP (paper-standby)", "the model with hazard and standby"),
 )
 """The load-managed team and the same team without R_II, in the paper's model and in the one that admits surprises."""
 
@@ -411,7 +411,7 @@ def premise_answer(stress: dict[str, Any]) -> str:
     """Per model and stress set: does the load-managed team (R_II) recover faster or fail less than the one without
     R_II, with the numbers, whatever the answer (differences within 2 SE are called no difference)."""
     return " ".join(
-        f"In {model}: " + _premise_pair(stress, on, off)
+        f"In {model}, the team with R_II against the same team without it: " + _premise_pair(stress, on, off)
         for on, off, model in PREMISE_PAIRS
         if on in stress and off in stress
     )
@@ -422,16 +422,21 @@ def _premise_pair(stress: dict[str, Any], on: str, off: str) -> str:
     for set_name in stress[on]:
         a, b = stress[on][set_name], stress[off][set_name]
         verdicts = []
-        for key, what in (("completion_with", "completion"), ("failures_with", "failures"), ("recovery", "recovery")):
+        for key, what, scale, unit in (
+            ("completion_with", "completion", 1.0, " steps"),
+            ("failures_with", "failures", 100.0, " %"),
+            ("recovery", "time to recover", 1.0, " steps"),
+        ):
             d = a[key][0] - b[key][0]
             se = float(np.hypot(a[key][1], b[key][1]))
             if not np.isfinite(d):
                 continue
-            if abs(d) <= 2 * se:
-                verdicts.append(f"{what} no different ({a[key][0]:.2f} vs {b[key][0]:.2f})")
-            else:
-                verdicts.append(f"{what} {'better' if d < 0 else 'worse'} ({a[key][0]:.2f} vs {b[key][0]:.2f})")
-        parts.append(f"{set_name}: with R_II vs without, " + ", ".join(verdicts))
+            word = "no different" if abs(d) <= 2 * se else ("better" if d < 0 else "worse")
+            verdicts.append(
+                f"{what} {word} ({scale * a[key][0]:.1f} ± {scale * a[key][1]:.1f} vs "
+                f"{scale * b[key][0]:.1f} ± {scale * b[key][1]:.1f}{unit})"
+            )
+        parts.append(f"*{set_name}*: " + ", ".join(verdicts))
     return "; ".join(parts) + "."
 
 

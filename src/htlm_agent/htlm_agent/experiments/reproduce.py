@@ -325,7 +325,6 @@ def resilience(runs: Path, seeds: tuple[int, ...], budget: Budget, out: Path) ->
     and without the events (`htlm stress`); mean ± SE across seeds of completion, failures, time to recover and the
     unused capability before the event and while recovering. The dropout set drops each team's own most important
     agent (ζ of that seed's policy)."""
-    plt = _plt()
     table: dict[str, Any] = {}
     for cfg in STRESS_TEAMS:
         sc = cfg.scenario().replace(events=())
@@ -339,32 +338,44 @@ def resilience(runs: Path, seeds: tuple[int, ...], budget: Budget, out: Path) ->
                 (row,) = run_stress({cfg.label: (pol, sc)}, events, set_name, budget.eval_episodes, STRESS_SEED)
                 per_seed[set_name].append(row)
         table[cfg.label] = {s: _across_seeds(rows) for s, rows in per_seed.items()}
-    fig, axes = plt.subplots(2, len(STRESS_SETS), figsize=(4.8 * len(STRESS_SETS), 7.0), squeeze=False)
-    labels = list(table)
-    x = np.arange(len(labels))
-    for col, set_name in enumerate(STRESS_SETS):
-        for k, (tag, colour) in enumerate((("without", "0.65"), ("with", "#c0392b"))):
-            vals = [table[lb][set_name][f"completion_{tag}"] for lb in labels]
-            axes[0][col].bar(x + (k - 0.5) * 0.38, [v[0] for v in vals], 0.38, yerr=[v[1] for v in vals],
-                             color=colour, capsize=2, label=f"{tag} the events")  # fmt: skip
-        rec = [table[lb][set_name]["recovery"] for lb in labels]
-        never = [table[lb][set_name]["never_recovered"][0] for lb in labels]
-        axes[1][col].bar(x, [r[0] for r in rec], 0.6, yerr=[r[1] for r in rec], color="#2c7fb8", capsize=2)
-        for i, nv in enumerate(never):
-            axes[1][col].text(i, 0.2, f"never\n{nv:.0%}", ha="center", va="bottom", fontsize=7, color="white")
-        axes[0][col].set_title(set_name, fontsize=10)
-        axes[0][col].set_ylabel("completion step")
-        axes[1][col].set_ylabel("steps to recover (recovered episodes)")
-        for ax in axes[:, col]:
-            ax.set_xticks(x, labels, rotation=35, ha="right", fontsize=7)
-    axes[0][0].legend(fontsize=8)
-    fig.suptitle(
-        f"Teams under events (mean ± SE over seeds {list(seeds)}, {budget.eval_episodes} episodes)", fontsize=10
-    )
-    fig.tight_layout()
-    fig.savefig(out / "resilience.png", dpi=110)
-    plt.close(fig)
+    plot_resilience(table, seeds, budget.eval_episodes, out / "resilience.png")
     return table
+
+
+def plot_resilience(table: dict[str, Any], seeds: tuple[int, ...] | list[int], episodes: int, path: Path) -> None:
+    """One column per stress set, one row of bars per team: completion with and without the events (top), and the
+    share of episodes never recovered with the mean steps to recover written beside (bottom); mean ± SE over seeds."""
+    plt = _plt()
+    labels = list(table)
+    sets = list(next(iter(table.values())))
+    y = np.arange(len(labels))
+    fig, axes = plt.subplots(2, len(sets), figsize=(4.2 * len(sets) + 2.6, 2.0 + 0.75 * len(labels)), sharey=True,
+                             squeeze=False)  # fmt: skip
+    for col, set_name in enumerate(sets):
+        top, bottom = axes[0][col], axes[1][col]
+        for k, (tag, colour) in enumerate((("with", "#c0392b"), ("without", "0.65"))):
+            vals = [table[lb][set_name][f"completion_{tag}"] for lb in labels]
+            top.barh(y + (k - 0.5) * 0.38, [v[0] for v in vals], 0.38, xerr=[v[1] for v in vals], color=colour,
+                     capsize=2, label=f"{tag} the events")  # fmt: skip
+        never = [100 * table[lb][set_name]["never_recovered"][0] for lb in labels]
+        never_se = [100 * table[lb][set_name]["never_recovered"][1] for lb in labels]
+        bottom.barh(y, never, 0.6, xerr=never_se, color="#2c7fb8", capsize=2)
+        for i, lb in enumerate(labels):
+            rec = table[lb][set_name]["recovery"][0]
+            text = "-" if rec != rec else f"recovers in {rec:.1f}"
+            bottom.text(never[i] + never_se[i] + 2.0, i, text, va="center", fontsize=7)
+        bottom.set_xlim(0, 130)
+        top.set_title(set_name, fontsize=10)
+        top.set_xlabel("completion step", fontsize=8)
+        bottom.set_xlabel("episodes never recovered (%)", fontsize=8)
+    for ax in axes[:, 0]:
+        ax.set_yticks(y, labels, fontsize=8)
+    axes[0][0].invert_yaxis()  # the axes share y: once inverts them all
+    fig.legend(*axes[0][0].get_legend_handles_labels(), loc="upper right", fontsize=8, ncol=2)
+    fig.suptitle(f"Teams under events (mean ± SE over seeds {list(seeds)}, {episodes} episodes each)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _across_seeds(rows: list[dict[str, Any]]) -> dict[str, Any]:
