@@ -59,10 +59,12 @@ TEAM_CONFIGS = [Config(t, True, "medium") for t in TEAM_NAMES]
 HT_CONFIG = Config(HET, False, "none", mode="ht")
 FIRST_CONFIGS = [Config(HET, idle, "medium", base="first-calibration") for idle in (False, True)]
 """The model's first calibration, kept to show its failure mode beside the defaults."""
+TRAINING_EVENTS = "random-events"
+"""The paper scenario's stress set the resilience-trained configurations train with (not one they are tested under)."""
 RESILIENCE_CONFIGS = [
-    Config(HET, True, "medium", events="random-events"),
+    Config(HET, True, "medium", events=TRAINING_EVENTS),
     *(Config(HET, idle, "medium", base="paper-standby") for idle in (False, True)),
-    Config(HET, True, "medium", base="paper-standby", events="random-events"),
+    Config(HET, True, "medium", base="paper-standby", events=TRAINING_EVENTS),
 ]
 """Beyond the paper (the unexpected): a team trained with random events, the two teams of the model that admits
 surprises (hazard and standby, `paper-standby`), and a team of that model trained with random events."""

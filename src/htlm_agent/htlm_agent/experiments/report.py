@@ -347,14 +347,14 @@ def _resilience_lines(data: dict[str, Any]) -> list[str]:
         "## 8. The unexpected: does load management buy resilience?",
         "",
         "The paper's reason for load management: a team that keeps capacity in reserve copes better when something "
-        "goes wrong. Every team is put under the paper scenario's stress sets (`htlm stress`; docs/model.md, Events): "
-        "a fire that flares back to level 4 at a site already cleared (from step 10), a new fire at step 5, and the "
-        "team's own most important agent dropping out at step 3. Same episodes for every team (seed 1000), "
+        "goes wrong. Every team is put under the paper scenario's stress sets (`htlm stress`; docs/model.md, Events; "
+        "what happens in each is named above its table; `most important` is each team's own, by ζ) but the one "
+        "used for training. Same episodes for every team (seed 1000), "
         f"{data['eval_episodes']} per team, set and seed; mean ± SE across the training seeds. Recovery: steps from "
         "the event until its tasks are at level 0 (episodes that recover); never: episodes still not recovered at the "
         "horizon. Unused capability: the share of the team's capability idle before the event, and from the event "
-        "until the recovery. `paper-standby` teams run in the model that admits surprises (a fire hazard and "
-        "standing by, docs/model.md); the team trained with `random-events` met events in training.",
+        "until the recovery. `paper-standby` teams run in the model that admits surprises (a hazard and standing by, "
+        "docs/model.md); the teams trained with `random-events` met events in training.",
         "",
         "![resilience](resilience.png)",
         "",

@@ -27,6 +27,7 @@ from htlm_agent.experiments.configs import (
     IDLE_CONFIGS,
     STRESS_TEAMS,
     TEAM_NAMES,
+    TRAINING_EVENTS,
     Config,
     all_configs,
 )
@@ -41,7 +42,7 @@ from htlm_agent.progress import Progress
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.events import resolve_agent
 from htlm_world.metrics import mean_se, spearman
-from htlm_world.scenario import REASSIGN_COSTS, EventSpec, read_events
+from htlm_world.scenario import REASSIGN_COSTS, EventSpec, Scenario, read_events
 
 
 @dataclass(frozen=True)
@@ -314,8 +315,13 @@ def importance_and_inactivation(runs: Path, seeds: tuple[int, ...], budget: Budg
 
 # ----- 8. beyond the paper: the unexpected (events) and importance as a predictor ---------------------------------
 
-STRESS_SETS = ("flare-up", "new-fire", "lose-most-important")
-"""The paper scenario's stress sets (paper.yaml `stress`) every team of STRESS_TEAMS is put under."""
+
+def stress_sets(sc: Scenario) -> list[str]:
+    """The scenario's stress sets (paper.yaml `stress`) every team of STRESS_TEAMS is put under: all but the one
+    teams train with."""
+    return [name for name in sc.stress if name != TRAINING_EVENTS]
+
+
 STRESS_SEED = 1000
 """Seed of the stress episodes: every team meets the same worlds (common random numbers)."""
 
@@ -328,12 +334,12 @@ def resilience(runs: Path, seeds: tuple[int, ...], budget: Budget, out: Path) ->
     table: dict[str, Any] = {}
     for cfg in STRESS_TEAMS:
         sc = cfg.scenario().replace(events=())
-        per_seed: dict[str, list[dict[str, Any]]] = {s: [] for s in STRESS_SETS}
+        per_seed: dict[str, list[dict[str, Any]]] = {s: [] for s in stress_sets(sc)}
         for seed in seeds:
             pol = load_policy(runs / f"{cfg.name}__{seed}")
             imp = importance_table(pol, sc, budget.inactivation_episodes, seed=STRESS_SEED)
             top = max(imp["agents"], key=lambda a: a["zeta"])["agent"]
-            for set_name in STRESS_SETS:
+            for set_name in stress_sets(sc):
                 events = resolve_agent(sc, read_events(set_name, sc), top)
                 (row,) = run_stress({cfg.label: (pol, sc)}, events, set_name, budget.eval_episodes, STRESS_SEED)
                 per_seed[set_name].append(row)
