@@ -417,3 +417,19 @@ def test_an_agent_outside_the_team_or_without_a_policy_fails() -> None:
     t = _session(0, policy="auto")
     eff = t.on_scenario(_announce(mode="evaluate"), 0.0)
     assert eff.fatal and "no policy" in eff.fatal and eff.log == [("error", eff.fatal)]
+
+
+def test_goals_follow_the_assignment_and_the_robot_s_arrival_is_logged_once() -> None:
+    s = _session(0)
+    assert s.arrival() == ("unknown", -1.0) and s.status() == "waiting for the world"
+    s.on_scenario(_announce(episodes=1), 0.0)
+    eff = s.on_step(_begin(0), 0.1)
+    ((x, y),) = eff.goals
+    site = s.last_site
+    assert (x, y) == tuple(float(v) for v in SC.site_positions[site])
+    assert s.on_pose(x + 100.0, y, 0.2).log == [("info", f"robot on its way to site {SC.site_names[site]} (100 m)")]
+    assert s.on_pose(x + 50.0, y, 0.3).log == []  # still on its way: logged once
+    assert s.on_pose(x, y + 1.0, 0.4).log == [("info", f"robot at site {SC.site_names[site]}")]
+    vals = s.values()
+    assert (vals["arrived"], vals["distance_to_site"], vals["episode"], vals["step"]) == ("yes", "1", "0", "1")
+    assert s.status() == "episode 0 step 1"
