@@ -1,7 +1,8 @@
 """One agent's side of the lockstep protocol, without ROS: its mind (belief, previous assignment, policy, channel)
 and the order in which it accepts the world's and its teammates' messages.
 
-The agent node (agent_node.py) only decodes messages, calls `AgentMind` and publishes what it returns. The mind
+The agent's session (htlm_agent.session.core.AgentSession, which the agent node feeds) calls `AgentMind` and turns
+what it returns into records. The mind
 keeps the agent's B beliefs of a batch of B episodes and acts for all of them with one batched call of its policy;
 it computes exactly what the in-process `Team(scenario, B, seed, b)` computes for that agent's column (same
 functions of belief.py and reward.py, same generators from `htlm_world.seeds`), so an evaluation over ROS
@@ -49,7 +50,7 @@ class Transition:
 
 @dataclass
 class Effects:
-    """What the node must publish after feeding the mind one message, in this order."""
+    """What the session must publish after feeding the mind one message, in this order."""
 
     broadcast: tuple[int, IntArray, IntArray] | None = None  # (step, actions (B,), levels after the channel (B,))
     transition: Transition | None = None  # a step finished: send the transition
@@ -90,7 +91,7 @@ class AgentMind:
     whose arrays do not have the batch's length is dropped as "length".
 
     With a `gate`, the mind asks it for the policy of each step before acting; while it answers None, the actions
-    wait (`deferred`) until the node calls `act_now` (the trainer's weights arrived, or waiting is over).
+    wait (`deferred`) until the session calls `act_now` (the trainer's weights arrived, or waiting is over).
     """
 
     def __init__(
@@ -170,7 +171,7 @@ class AgentMind:
         """The world's begin of the batch of `size` episodes from `episode` on: reset and answer with the actions of
         step 1 (ε one number, or one per episode).
 
-        Accepted when fresh, once the previous batch's last step is reached, or with `force` (the node's resync
+        Accepted when fresh, once the previous batch's last step is reached, or with `force` (the session's resync
         after a long silence). A repeated begin of the current batch gets the same answer again.
         """
         out = Effects()

@@ -2,7 +2,7 @@
 change at run time.
 
 Plain dataclasses (no rclpy): `htlm_msgs_py.ros.declare_settings` declares the parameters from them, the unit tests
-check them without ROS, and the nodes hand the ROS-free cores (htlm_agent.mind.agent.AgentMind,
+check them without ROS, and the nodes hand the ROS-free cores (htlm_agent.session.core.AgentSession,
 htlm_agent.trainer.core.TrainerCore) what they need.
 """
 
@@ -12,6 +12,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
+from htlm_agent.session.core import SessionSettings
 from htlm_agent.trainer.core import Schedule, load_learner_data
 from htlm_msgs_py.params import SECONDS, problems, setting
 
@@ -84,6 +85,10 @@ class AgentSettings:
     observation_wait: float = setting(-1.0, lo=-1.0, hi=SECONDS[1])
     """External operation: seconds after the world's step record to wait for the robot's observation before
     updating without one; -1: a quarter of the world's clock period."""
+
+    def session(self) -> SessionSettings:
+        """The agent session's settings from these parameters."""
+        return SessionSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(SessionSettings)})
 
 
 def validate_agent_settings(s: AgentSettings) -> list[str]:
