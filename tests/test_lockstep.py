@@ -323,9 +323,17 @@ def test_launch_specs_and_environment(tmp_path: Path) -> None:
     assert [s[0] for s in specs] == ["world", "trainer", "agent1", "agent2", "agent3", "agent4", "agent5"]
     assert specs[2][2]["agent"] == "agent1" and specs[0][2]["mode"] == "evaluate"
     env = ros_env(cfg)
-    assert env["ROS_DOMAIN_ID"] == "77" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
-    # no shared-memory transport unless asked for: a SIGKILLed process must not freeze the others (launch.ros_env)
+    assert env["ROS_DOMAIN_ID"] == "77"
+    # no shared-memory transport unless asked for: a SIGKILLed process must not freeze the others (launch.ros_env);
+    # localhost discovery through the loopback-only profile, since Jazzy's LOCALHOST range brings shared memory back
     assert env["FASTDDS_BUILTIN_TRANSPORTS"] == os.environ.get("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+    if "FASTRTPS_DEFAULT_PROFILES_FILE" not in os.environ:
+        assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+        assert env["FASTRTPS_DEFAULT_PROFILES_FILE"].endswith("fastdds_loopback.xml")
+    wide = ros_env(dataclasses.replace(cfg, discovery="subnet"))
+    assert wide["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET" and not wide["FASTRTPS_DEFAULT_PROFILES_FILE"].endswith(
+        "loopback.xml"
+    )
     only = process_specs(dataclasses.replace(cfg, only=("agent2",)))
     assert [s[0] for s in only] == ["agent2"]
     p = write_params(tmp_path / "p.yaml", {"a": "x: y", "b": 1.5, "c": True})

@@ -8,10 +8,10 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test", "test.*"]),
-    package_data={PACKAGE: ["fastdds.xml"]},
+    package_data={PACKAGE: ["fastdds.xml", "fastdds_loopback.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
-        (f"share/{PACKAGE}", ["package.xml", f"{PACKAGE}/fastdds.xml"]),
+        (f"share/{PACKAGE}", ["package.xml", f"{PACKAGE}/fastdds.xml", f"{PACKAGE}/fastdds_loopback.xml"]),
     ],
     install_requires=["msgspec>=0.18"],
     python_requires=">=3.11",

@@ -122,3 +122,19 @@ def test_ros_evaluation_under_events_equals_in_process(ros_team: Any, tmp_path: 
     surges = {t for e in range(4) for t, label in logged[e]["events"] if label == "surge fire@site2 to 4"}
     assert len(surges) > 1, f"the chance surge came at the same step in every episode: {surges}"
     assert all(sum(w["metrics"]["absent"]) == 0 for w in logged.values()), "a dropout is not an absence"
+
+
+def test_no_launched_process_maps_fast_dds_shared_memory(ros_team: Any) -> None:
+    """The cause of a process that stops hearing the world after a teammate was SIGKILLed: a Fast DDS shared-memory
+    port whose lock the dead process held. The launch keeps every process on UDP (htlm_msgs_py/fastdds_loopback.xml;
+    Jazzy's LOCALHOST discovery range would add shared memory), so none may map a Fast DDS segment."""
+    team = ros_team(policy="greedy", seed=3, episodes=4)
+    team.start()
+    team.wait_for(lambda: len(team.world_episodes()) >= 1, 60, "the first episode")
+    mapped = {}
+    for name, p in team.procs.items():
+        maps = Path(f"/proc/{p.popen.pid}/maps").read_text()
+        mapped[name] = sorted({line.split()[-1] for line in maps.splitlines() if "/dev/shm/fastrtps" in line})
+    assert mapped == {name: [] for name in team.procs}, mapped
+    assert team.wait("world", 60) == 0
+    assert team.wait_all(30) == dict.fromkeys(team.procs, 0)

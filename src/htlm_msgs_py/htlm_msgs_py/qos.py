@@ -12,6 +12,9 @@ from typing import Literal
 
 FASTDDS_PROFILE = Path(__file__).with_name("fastdds.xml")
 """The Fast DDS participant profile of the launched processes (discovery announcements every 0.25 s)."""
+FASTDDS_LOOPBACK_PROFILE = Path(__file__).with_name("fastdds_loopback.xml")
+"""The same with UDP on the loopback interface only and no shared memory: what the launched processes use with
+discovery localhost (under ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET; docs/ros.md, "Running a team")."""
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,8 @@
 """Start a team over ROS 2 as separate OS processes: the world, one process per agent, the trainer.
 
 Every process gets its own parameters file and log file under the run directory, the ROS domain and discovery
-settings of the launch (by default ROS_DOMAIN_ID=42 and ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, so nothing
-leaves this machine), and dies with the launcher. Ctrl-C (SIGINT) or SIGTERM is forwarded to every process; the
+settings of the launch (by default ROS_DOMAIN_ID=42 and discovery on localhost: UDP on 127.0.0.1 only, see
+`ros_env`, so nothing leaves this machine), and dies with the launcher. Ctrl-C (SIGINT) or SIGTERM is forwarded to every process; the
 launcher waits for them, kills stragglers, and its exit code says how the run ended (see `EXIT_CODES`).
 
 Agents on other hosts: start the same launch on every host with `--only` naming the processes of that host and
@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from htlm_msgs_py.qos import FASTDDS_PROFILE
+from htlm_msgs_py.qos import FASTDDS_LOOPBACK_PROFILE, FASTDDS_PROFILE
 from htlm_world.scenario import Scenario
 
 EXIT_CODES = {
@@ -134,6 +134,12 @@ def ros_env(cfg: LaunchConfig) -> dict[str, str]:
     env = dict(os.environ)
     env["ROS_DOMAIN_ID"] = str(cfg.domain_id)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = DISCOVERY[cfg.discovery]
+    if cfg.discovery == "localhost" and "FASTRTPS_DEFAULT_PROFILES_FILE" not in env:
+        # Jazzy's LOCALHOST range makes rmw_fastrtps add Fast DDS's shared-memory transport whatever the settings
+        # below say; SUBNET with a profile that binds UDP to 127.0.0.1 only keeps the team on this machine without it
+        # (htlm_msgs_py/fastdds_loopback.xml says why shared memory must go)
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(FASTDDS_LOOPBACK_PROFILE)
     if cfg.peers:
         env["ROS_STATIC_PEERS"] = cfg.peers
     else:
@@ -141,7 +147,8 @@ def ros_env(cfg: LaunchConfig) -> dict[str, str]:
     env.pop("ROS_LOCALHOST_ONLY", None)  # deprecated in Jazzy; the discovery range replaces it
     # UDP only, no Fast DDS shared-memory transport: a process killed (SIGKILL, OOM) while it writes into another's
     # shared-memory port leaves that port's interprocess mutex locked, and every later writer to it blocks for good
-    # (a restarted node hangs on start). Over UDP a dead process takes nothing with it. An explicit setting wins.
+    # (a restarted node hangs on start). Over UDP a dead process takes nothing with it. An explicit setting wins. (With
+    # the LOCALHOST range rmw_fastrtps adds shared memory anyway: localhost discovery is arranged above.)
     env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
     # participants announce themselves every 0.25 s, not 3 s: a process joining a running graph (a restarted node, a
     # viewer) matches the others within 0.4 s instead of up to 3 s (htlm_msgs_py/fastdds.xml). An explicit file wins.
