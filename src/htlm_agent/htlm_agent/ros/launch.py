@@ -2,8 +2,9 @@
 
 Every process gets its own parameters file and log file under the run directory, the ROS domain and discovery
 settings of the launch (by default ROS_DOMAIN_ID=42 and discovery on localhost: UDP on 127.0.0.1 only, see
-`ros_env`, so nothing leaves this machine), and dies with the launcher. Ctrl-C (SIGINT) or SIGTERM is forwarded to every process; the
-launcher waits for them, kills stragglers, and its exit code says how the run ended (see `EXIT_CODES`).
+`ros_env`, so nothing leaves this machine), and dies with the launcher. Ctrl-C (SIGINT) or SIGTERM is forwarded to
+every process; the launcher waits for them, kills stragglers, and its exit code says how the run ended (see
+`EXIT_CODES`).
 
 Agents on other hosts: start the same launch on every host with `--only` naming the processes of that host and
 `--discovery subnet` (or `--peers` with the other hosts' addresses for unicast discovery), with the same
