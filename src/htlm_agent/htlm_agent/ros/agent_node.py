@@ -155,11 +155,7 @@ class AgentNode(Node):
     # ----- effects out ------------------------------------------------------------------------------------------
     def _apply(self, eff: SessionEffects) -> None:
         h = self.health
-        for topic, reason in eff.drops:
-            h.drop(topic, reason)
-        for topic, reason, detail in eff.rejects:
-            h.reject(topic, reason, detail)
-        h.counters.update(eff.counters)
+        h.take(eff.drops, eff.rejects, eff.counters)
         if eff.heard_world:
             self.world.heard()
         log = self.get_logger()

@@ -135,11 +135,7 @@ class TrainerNode(Node):
     # ----- effects out ------------------------------------------------------------------------------------------
     def _apply(self, eff: TrainerEffects) -> None:
         h = self.health
-        for topic, reason in eff.drops:
-            h.drop(topic, reason)
-        for topic, reason, detail in eff.rejects:
-            h.reject(topic, reason, detail)
-        h.counters.update(eff.counters)
+        h.take(eff.drops, eff.rejects, eff.counters)
         log = self.get_logger()
         for level, text in eff.log:  # one call site per severity: rclpy's logger refuses to mix them on one line
             if level == "error":

@@ -13,7 +13,7 @@ import sys
 import time
 import typing
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
 import rclpy
@@ -149,6 +149,20 @@ class Health:
             self._warned[topic] = now
             n = self.counters[f"rejected/{topic}/{reason}"]
             self.node.get_logger().warning(f"rejected a record on {topic} ({reason}, {n} so far): {str(detail)[:200]}")
+
+    def take(
+        self,
+        drops: Iterable[tuple[str, str]],
+        rejects: Iterable[tuple[str, str, object]],
+        counters: Mapping[str, int],
+    ) -> None:
+        """Count what a ROS-free core (WorldProtocol, AgentSession, TrainerCore) decided to drop or reject, and its
+        own counters: the one place a node carries a core's effects into its health."""
+        for topic, reason in drops:
+            self.drop(topic, reason)
+        for topic, reason, detail in rejects:
+            self.reject(topic, reason, detail)
+        self.counters.update(counters)
 
     def drop(self, topic: str, reason: str) -> None:
         """Count a well-formed record dropped by the protocol (past or future step, duplicate, ...)."""

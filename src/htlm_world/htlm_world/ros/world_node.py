@@ -199,11 +199,7 @@ class WorldNode(Node):
     # ----- effects out ------------------------------------------------------------------------------------------
     def _apply(self, eff: WorldEffects) -> None:
         h = self.health
-        for topic, reason in eff.drops:
-            h.drop(topic, reason)
-        for topic, reason, detail in eff.rejects:
-            h.reject(topic, reason, detail)
-        h.counters.update(eff.counters)
+        h.take(eff.drops, eff.rejects, eff.counters)
         for kind, fields in eff.publish:
             if self.markers is not None:  # every record, also ground truth that nobody subscribes to
                 self.markers.on_record(kind, fields)
