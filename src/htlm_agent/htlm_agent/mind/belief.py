@@ -446,10 +446,12 @@ def marginals_sites(x: FloatArray, levels: int, kinds: int) -> list[FloatArray]:
 
 
 def task_marginals(model: Model, slots: list[FloatArray]) -> FloatArray:
-    """The marginals (L, p, ...) of every task, in task order, of every slot's marginals (L, S, ...)."""
-    stacked = np.stack(slots)  # (K, L, S, ...)
-    out: FloatArray = stacked[model.task_kind, :, model.task_site]  # (p, L, ...)
-    return out.swapaxes(0, 1)
+    """The marginals (L, p, ...) of every task, in task order, of every slot's marginals (L, S, ...) (contiguous)."""
+    first = slots[0]
+    out: FloatArray = np.empty((first.shape[0], model.task_kind.size) + first.shape[2:])
+    for j, (kind, site) in enumerate(zip(model.task_kind.tolist(), model.task_site.tolist(), strict=True)):
+        out[:, j] = slots[kind][:, site]
+    return out
 
 
 # ----- the evidence ---------------------------------------------------------------------------------------------
@@ -478,30 +480,37 @@ def evidence_codes(
     observations: IntArray,
     messages: IntArray,
     t: int | None = None,
+    tasks: IntArray | None = None,
 ) -> list[IntArray]:
-    """Every agent's evidence codes of every task, all messages delivered: (B, N) -> one (N, p, B) array of rows of
+    """Every agent's evidence codes of every task, all messages delivered: (B, N) -> one (p, N, B) array of rows of
     `FilterTables.evidence` (receiver i's code plus (class · N + i) · base^N) per group of reports
-    (`_report_groups`); a task's likelihood is the product of its groups' rows, in group order."""
+    (`_report_groups`); a task's likelihood is the product of its groups' rows, in group order.
+
+    With `tasks` (task indices of any shape, p for none: `FilterTables.slot_task`), the codes of those tasks
+    instead, (tasks.shape..., N, B); the code of "none" is that of no report (a likelihood of 1)."""
     sc = model.scenario
     tab = filter_tables(model)
     p, n = sc.n_tasks, sc.n_agents
+    sel = np.arange(p) if tasks is None else tasks
     obs, msgs = observations.T, messages.T  # (N, B)
     powers = tab.powers[:, None]
     msg_digit = np.where(msgs >= 0, msgs + 1, 0) * powers  # (N, B)
     own_digit = np.where(obs >= 0, obs + 1, 0) * powers
+    receiver = np.arange(n, dtype=np.int64)[:, None] * tab.base**n  # (N, 1)
     out = []
     for target, cls in _report_groups(model, actions, t):
-        tasks = target.T  # (N, B)
+        reporting = target.T  # (N, B)
         if obs.size and max(int(obs.max()), int(msgs.max())) >= sc.levels:
-            _check_levels(msgs, (tasks >= 0) & (msgs >= 0), sc.levels)
-            _check_levels(obs, (tasks >= 0) & (obs >= 0), sc.levels)
-        onehot = tasks[:, None, :] == np.arange(p)[:, None]  # (N, p, B): agent k reports on task j
-        shared = np.einsum("kjb,kb->jb", onehot, msg_digit)  # (p, B): every report weighed as a teammate's
-        codes: IntArray = np.einsum("kjb,kb->kjb", onehot, own_digit - msg_digit)  # the receiver's own report
-        codes += shared
-        codes += (np.arange(n, dtype=np.int64) * tab.base**n)[:, None, None]
+            _check_levels(msgs, (reporting >= 0) & (msgs >= 0), sc.levels)
+            _check_levels(obs, (reporting >= 0) & (obs >= 0), sc.levels)
+        hit = reporting == sel[..., None, None]  # (..., N, B): agent k reports on the task
+        shared = np.einsum("...kb,kb->...b", hit, msg_digit)  # every report weighed as a teammate's
+        codes: IntArray = hit * (own_digit - msg_digit)  # the receiver's own report weighed as its own
+        codes += shared[..., None, :]
+        codes += receiver
         if model.obs.shape[0] > 1:
-            codes += (np.asarray(cls) * (n * tab.base**n)).reshape(-1, 1)  # (p, 1) or (1, 1)
+            task_cls = np.append(np.broadcast_to(np.asarray(cls), (p,)), 0)  # "none": any class, no digits
+            codes += (task_cls[sel] * (n * tab.base**n))[..., None, None]
         out.append(codes)
     return out
 
@@ -613,12 +622,12 @@ def evidence_sites(
     if tables.by_level is None:
         lik = evidence(model, actions, observations, messages, t)  # (B, N, p, L)
         sites = np.ascontiguousarray(lik.transpose(3, 1, 2, 0))  # (L, N, p, B)
-    else:
-        groups = evidence_codes(model, actions, observations, messages, t)
-        sites = np.take(tables.by_level, groups[0], axis=1)
-        for codes in groups[1:]:
-            sites *= np.take(tables.by_level, codes, axis=1)
-    return [x.swapaxes(1, 2) for x in tables.slot_likelihoods(sites, axis=2)]  # (L, S, N, B)
+        return [x.swapaxes(1, 2) for x in tables.slot_likelihoods(sites, axis=2)]  # (L, S, N, B)
+    groups = evidence_codes(model, actions, observations, messages, t, tables.slot_task)  # each (K, S, N, B)
+    slots = np.take(tables.by_level, groups[0], axis=1)  # (L, K, S, N, B)
+    for codes in groups[1:]:
+        slots *= np.take(tables.by_level, codes, axis=1)
+    return [slots[:, k] for k in range(tables.kinds)]
 
 
 def evidence(
@@ -631,10 +640,10 @@ def evidence(
     if tables.evidence is None:
         rows = [_agent_evidence_product(model, i, actions, observations[:, i], messages, None, t) for i in range(n)]
         return np.stack(rows, axis=1)
-    groups = evidence_codes(model, actions, observations, messages, t)  # each (N, p, B)
-    out: FloatArray = tables.evidence[groups[0].transpose(2, 0, 1)]
+    groups = evidence_codes(model, actions, observations, messages, t)  # each (p, N, B)
+    out: FloatArray = tables.evidence[groups[0].transpose(2, 1, 0)]
     for codes in groups[1:]:
-        out *= tables.evidence[codes.transpose(2, 0, 1)]
+        out *= tables.evidence[codes.transpose(2, 1, 0)]
     return out
 
 

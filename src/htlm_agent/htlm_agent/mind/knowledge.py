@@ -26,7 +26,7 @@ def build(marg: Marginals, prev: IntArray, n_actions: int) -> Knowledge:
     """K from marginals (..., p, L) and previous assignments (...,): (..., p·L + |Ḡ|)."""
     lead, size = marg.shape[:-2], marg.shape[-2] * marg.shape[-1]
     out: Knowledge = np.empty(lead + (size + n_actions,))
-    out[..., :size] = marg.reshape(lead + (size,))
+    out[..., :size].reshape(marg.shape)[...] = marg  # a view of out (its last axis split): one copy, any layout
     if prev.size and int(prev.min()) >= -1 and int(prev.max()) < n_actions:
         out[..., size:] = _one_hot(n_actions)[prev]  # row -1, the last, is all zeros
     else:

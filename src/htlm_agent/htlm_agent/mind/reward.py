@@ -42,10 +42,22 @@ class RewardTables:
 
 
 def confident_levels(marg: Marginals, threshold: FloatArray) -> IntArray:
-    """Smallest l with P(level <= l) >= b_th, per task: (B, N, p, L) -> (B, N, p); threshold (N,)."""
-    cdf = np.cumsum(marg, axis=-1)
-    ok = cdf >= threshold[:, None, None] - 1e-9
-    return np.asarray(ok.argmax(axis=-1), dtype=np.int64)
+    """Smallest l with P(level <= l) >= b_th, per task: (B, N, p, L) -> (B, N, p); threshold (N,). 0 where no level
+    reaches it (the cumulative sum can fall short of b_th by round-off only when b_th is about 1).
+
+    The cumulative sums are added level by level as `np.cumsum` adds them, and they never decrease (marginals are
+    not negative), so the level is the number of sums below the threshold. One pass per level over (B, N, p): fast
+    whatever the layout of `marg` (the in-process team passes a level-major view, `Team.marg`)."""
+    L = marg.shape[-1]
+    limit = threshold[:, None] - 1e-9
+    cdf = marg[..., 0].copy(order="K")  # every array below in the layout of `marg`
+    below = np.empty_like(cdf, dtype=bool)
+    count = np.less(cdf, limit).astype(np.int64)
+    for level in range(1, L):
+        cdf += marg[..., level]
+        count += np.less(cdf, limit, out=below)
+    out: IntArray = np.where(count < L, count, 0)
+    return out
 
 
 def idle_weight(model: Model, tables: RewardTables, marg: Marginals, actions: IntArray) -> FloatArray:
@@ -57,11 +69,14 @@ def idle_weight(model: Model, tables: RewardTables, marg: Marginals, actions: In
     if kinds == {"constant"}:
         return weight
     done = marg[..., 0]  # (B, N, p) P(level_j = 0)
-    mission = np.prod(done, axis=-1)
-    site_of_task = model.task_site  # (p,)
+    # products over the tasks in task order, as np.prod multiplies; a task elsewhere would be a factor 1.0 (exact)
+    by_site = np.ones((model.scenario.n_sites + 1,) + actions.shape)  # the product of every site's tasks, then all
+    for j, s in enumerate(model.task_site.tolist()):
+        by_site[s] *= done[..., j]
+        by_site[-1] *= done[..., j]
+    mission = by_site[-1]
     action_site = model.action_site[np.maximum(actions, 0)]  # (B, N)
-    at_site = site_of_task[None, None, :] == action_site[..., None]  # (B, N, p)
-    site = np.prod(np.where(at_site, done, 1.0), axis=-1)
+    site = np.take_along_axis(by_site, action_site[None], axis=0)[0]
     for i, kind in enumerate(tables.idle_belief):
         if kind == "site":
             weight[:, i] = site[:, i]
@@ -87,9 +102,10 @@ def reward(
     p = sc.n_tasks
     lv = confident_levels(marg, tables.threshold)  # (B, N, p)
     n = actions.shape[1]
-    r_levels = np.take_along_axis(
-        np.broadcast_to(tables.level_rewards[None], (lv.shape[0],) + tables.level_rewards.shape), lv, axis=2
-    )
+    levels = tables.level_rewards.shape[1]
+    rows = np.arange(n)[:, None] * levels  # (N, 1): agent i's row of level_rewards, flattened
+    # R_l of every task's confident level, (B, N, p) in C order: numpy then sums each agent's p rewards as before
+    r_levels = np.ascontiguousarray(tables.level_rewards.reshape(-1)[lv + rows])
     comp = r_levels.mean(axis=-1)
     if not tables.load_management:
         zero = np.zeros_like(comp)

@@ -78,6 +78,7 @@ class Team:
         """The generator of the scenario's events (`htlm_world.events`); training sets its own per batch."""
         self.filter = bf.filter_tables(self.model)
         self._work = (self._new_sites(), self._new_sites())  # scratch of the filter
+        self._spare = self._new_sites()  # where the next step writes its beliefs (the step after swaps them back)
         self.impossible_count = 0
         self.reset()
 
@@ -91,7 +92,8 @@ class Team:
     def belief(self) -> FloatArray:
         """Every agent's belief (B, N, S, L, ..., L): a view of the site-major beliefs the filter keeps
         (`belief.to_sites` of the (N, B) agent-major batch), so writing into it changes the team's beliefs until the
-        next step."""
+        next step. The team keeps two such arrays and writes a step's beliefs into the one its step before last
+        left: copy a view to keep it beyond the next step."""
         sc = self.scenario
         view: FloatArray = bf.from_sites(self.sites, sc.levels, sc.n_kinds).swapaxes(0, 1)
         return view
@@ -112,10 +114,12 @@ class Team:
         return self.knowledge()
 
     def _marginals(self) -> FloatArray:
-        """Per-task marginals (B, N, p, L) of the beliefs (`belief.marginals`)."""
+        """Per-task marginals (B, N, p, L) of the beliefs (`belief.marginals`), as a view of level-major (L, p, N, B)
+        ones: the reward's passes over levels and tasks then run over long contiguous rows."""
         sc = self.scenario
         slots = bf.marginals_sites(self.sites, sc.levels, sc.n_kinds)  # each (L, S, N, B)
-        return np.ascontiguousarray(bf.task_marginals(self.model, slots).transpose(3, 2, 1, 0))
+        marg: FloatArray = bf.task_marginals(self.model, slots).transpose(3, 2, 1, 0)
+        return marg
 
     def knowledge(self) -> FloatArray:
         """Current knowledge states (B, N, K)."""
@@ -177,7 +181,8 @@ class Team:
             self._sit_out(actions, res)
         liks = bf.evidence_sites(self.model, actions, res.observations, res.messages, self.t + 1)  # (L, S, N, B)
         caps = self.filter.slot_caps(res.caps.T[:, None, :])  # (S, 1, B): every agent assumes the step's joint
-        self.sites, bad_site = bf.update_sites(self.filter, self.sites, caps, liks, self._new_sites(), self._work)
+        new, bad_site = bf.update_sites(self.filter, self.sites, caps, liks, self._spare, self._work)
+        self.sites, self._spare = new, self.sites
         bad = np.asarray(bad_site.any(axis=0).T, dtype=np.bool_)  # (B, N)
         self.impossible_count += int(bad.sum())
         self.marg = self._marginals()
