@@ -64,6 +64,8 @@ class Bands:
     """From this unit on, the first band's coefficient is 1.0 for every capability: its terms are copies."""
     table: FloatArray
     """(C+2, rows) the coefficients of every band's output units, by joint capability (row C+1: no task, 1.0)."""
+    by_row: FloatArray
+    """`table` transposed, (rows, C+2): what `coefficients` gathers from."""
 
     @staticmethod
     def build(tabs: list[tuple[int, FloatArray]], levels: int) -> Bands:
@@ -108,11 +110,11 @@ class Bands:
             row += hi - lo
         rows = tabs[0][1].shape[0] if tabs else 1
         table = np.concatenate([f[3] for f in found], axis=1) if found else np.zeros((rows, 0))
-        return Bands(width, tuple(bands), starts, ones, np.ascontiguousarray(table))
+        return Bands(width, tuple(bands), starts, ones, np.ascontiguousarray(table), np.ascontiguousarray(table.T))
 
     def coefficients(self, caps: IntArray) -> FloatArray:
         """Every band's coefficients for capabilities caps (...): (rows, 1, ...), unit-major, for `apply`."""
-        flat = np.ascontiguousarray(self.table[caps.reshape(-1)].T)
+        flat = np.take(self.by_row, caps.reshape(-1), axis=1)  # (rows, caps.size)
         out: FloatArray = flat.reshape((self.table.shape[1], 1) + caps.shape)
         return out
 

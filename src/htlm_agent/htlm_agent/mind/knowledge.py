@@ -26,7 +26,13 @@ def build(marg: Marginals, prev: IntArray, n_actions: int) -> Knowledge:
     """K from marginals (..., p, L) and previous assignments (...,): (..., p·L + |Ḡ|)."""
     lead, size = marg.shape[:-2], marg.shape[-2] * marg.shape[-1]
     out: Knowledge = np.empty(lead + (size + n_actions,))
-    out[..., :size].reshape(marg.shape)[...] = marg  # a view of out (its last axis split): one copy, any layout
+    dst = out[..., :size].reshape(marg.shape)  # a view of out (its last axis split)
+    if marg.strides[-1] == marg.itemsize or marg[..., 0, 0].size < 2048:
+        dst[...] = marg
+    else:  # level-major marginals (`Team.marg`): numpy copies them faster one task and level at a time
+        for j in range(marg.shape[-2]):
+            for level in range(marg.shape[-1]):
+                dst[..., j, level] = marg[..., j, level]
     if prev.size and int(prev.min()) >= -1 and int(prev.max()) < n_actions:
         out[..., size:] = _one_hot(n_actions)[prev]  # row -1, the last, is all zeros
     else:

@@ -70,7 +70,8 @@ def idle_weight(model: Model, tables: RewardTables, marg: Marginals, actions: In
         return weight
     done = marg[..., 0]  # (B, N, p) P(level_j = 0)
     # products over the tasks in task order, as np.prod multiplies; a task elsewhere would be a factor 1.0 (exact)
-    by_site = np.ones((model.scenario.n_sites + 1,) + actions.shape)  # the product of every site's tasks, then all
+    # the product of every site's tasks, then of all, (S + 1, B, N) in the layout of `done`
+    by_site = np.ones_like(np.broadcast_to(done[..., 0], (model.scenario.n_sites + 1,) + actions.shape))
     for j, s in enumerate(model.task_site.tolist()):
         by_site[s] *= done[..., j]
         by_site[-1] *= done[..., j]
@@ -102,11 +103,15 @@ def reward(
     p = sc.n_tasks
     lv = confident_levels(marg, tables.threshold)  # (B, N, p)
     n = actions.shape[1]
-    levels = tables.level_rewards.shape[1]
-    rows = np.arange(n)[:, None] * levels  # (N, 1): agent i's row of level_rewards, flattened
-    # R_l of every task's confident level, (B, N, p) in C order: numpy then sums each agent's p rewards as before
-    r_levels = np.ascontiguousarray(tables.level_rewards.reshape(-1)[lv + rows])
-    comp = r_levels.mean(axis=-1)
+    rows = np.arange(n)[:, None] * tables.level_rewards.shape[1]  # (N, 1): agent i's row of level_rewards, flat
+    r_levels = tables.level_rewards.reshape(-1)[lv + rows]  # (B, N, p) R_l of every task's confident level
+    if p < 8:  # numpy's sum of fewer than 8 numbers adds them one after the other (in any layout): the same here
+        total = r_levels[..., 0].copy(order="K")
+        for j in range(1, p):
+            total += r_levels[..., j]
+        comp = total / p
+    else:  # pairwise: along a contiguous axis, as numpy's mean
+        comp = np.ascontiguousarray(r_levels).mean(axis=-1)
     if not tables.load_management:
         zero = np.zeros_like(comp)
         return comp, {"comp": comp, "idle": zero, "reassign": zero}
