@@ -19,6 +19,7 @@ import pytest
 from htlm_agent.baselines.heuristics import GreedyPolicy, RandomPolicy
 from htlm_agent.mind import belief as bf
 from htlm_agent.mind import knowledge
+from htlm_agent.mind.policies import epsilon_greedy, team_epsilon_greedy
 from htlm_agent.mind.reward import RewardTables, reward
 from htlm_agent.runtime.team import Team
 from htlm_world import seeds
@@ -448,3 +449,37 @@ def test_batch_sim_draws_equal_the_reference() -> None:
         want = ref.step(a)
         for got, key in ((res.levels, "levels"), (res.observations, "obs"), (res.messages, "msgs")):
             assert np.array_equal(got, want[key]) and got.dtype == want[key].dtype, key
+
+
+def ref_epsilon_greedy(greedy: np.ndarray, mask: np.ndarray, epsilon: Any, rng: np.random.Generator) -> np.ndarray:
+    """One agent's ε-greedy as first written: two uniforms per row, the ⌊u · |Â|⌋-th allowed action."""
+    u = rng.random((greedy.shape[0], 2))
+    allowed = mask.sum(axis=1)
+    nth = np.minimum((u[:, 1] * allowed).astype(np.int64), allowed - 1)
+    uniform = np.array([np.flatnonzero(row)[k] for row, k in zip(mask, nth, strict=True)], dtype=np.int64)
+    return np.where(u[:, 0] < epsilon, uniform, greedy).astype(np.int64)
+
+
+@pytest.mark.parametrize("epsilon", [0.0, 0.3, 1.0, "per-row"])
+def test_team_exploration_equals_every_agent_on_its_own(epsilon: Any) -> None:
+    """The learner draws the team's ε-greedy actions in one call; each agent's actions and generator must be those of
+    the agent deciding alone (as the ROS agents do), and of the plain rule."""
+    sc = builtin()
+    model = Model.build(sc)
+    rng = np.random.default_rng(4)
+    b, n = 200, sc.n_agents
+    prev = rng.integers(-1, sc.n_actions, (b, n))
+    mask = model.action_mask(prev)
+    greedy = np.argmax(mask * rng.random(mask.shape), axis=-1)  # some allowed action
+    eps = rng.random(b) if epsilon == "per-row" else epsilon
+    team = team_epsilon_greedy(greedy, mask, eps, [np.random.default_rng(10 + i) for i in range(n)])
+    for i in range(n):
+        alone, ref = np.random.default_rng(10 + i), np.random.default_rng(10 + i)
+        got = epsilon_greedy(greedy[:, i], mask[:, i], eps, alone)
+        want = ref_epsilon_greedy(greedy[:, i], mask[:, i], eps, ref)
+        assert np.array_equal(team[:, i], want) and np.array_equal(got, want)
+        assert alone.random() == ref.random()  # the generators stayed in step
+    if epsilon == 0.0:
+        assert np.array_equal(team, greedy)
+    if epsilon == 1.0:
+        assert not np.array_equal(team, greedy)

@@ -44,7 +44,7 @@ from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
 from htlm_agent.learning.update import Minibatches, TwinNets, UpdateBatch, flush_denormals
 from htlm_agent.mind.knowledge import AnyFloats, previous
-from htlm_agent.mind.policies import epsilon_greedy
+from htlm_agent.mind.policies import team_epsilon_greedy
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
@@ -117,8 +117,7 @@ class Learner:
         episode (B,); agent i explores with rngs[i] (`policies.epsilon_greedy`, as the agents' processes do)."""
         with flush_denormals():
             greedy = self._greedy(knowledge, mask)
-        cols = [epsilon_greedy(greedy[:, i], mask[:, i], epsilon, g) for i, g in enumerate(rngs)]
-        return np.stack(cols, axis=1)
+        return team_epsilon_greedy(greedy, mask, epsilon, rngs)
 
     def _greedy(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
         """`qpolicy.greedy_actions` of the online networks (the same numbers) in buffers made once per batch size."""

@@ -1,12 +1,14 @@
 """One agent's decision rule and ε-greedy exploration (docs/model.md, Reduced action space), shared by every runtime.
 
-`epsilon_greedy` is the one definition of exploration: the in-process learner (`Learner.act`), the agent processes
-over ROS (`AgentMind`, through `choose`) and `DecentralizedPolicy` (the ROS agents' rule inside `team.rollout`) all
-call it, each agent with its own generator from `htlm_world.seeds`.
+`team_epsilon_greedy` is the one definition of exploration: the in-process learner (`Learner.act`) calls it for the
+whole team, and the agent processes over ROS (`AgentMind`, through `choose`) and `DecentralizedPolicy` (the ROS
+agents' rule inside `team.rollout`) call it for one agent (`epsilon_greedy`), each agent with its own generator from
+`htlm_world.seeds`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
@@ -45,12 +47,25 @@ def epsilon_greedy(
         (B,) actions.
     """
     greedy = np.asarray(greedy, dtype=np.int64)
-    u = rng.random((greedy.shape[0], 2))
-    allowed = mask.sum(axis=1)
-    nth = np.minimum((u[:, 1] * allowed).astype(np.int64), allowed - 1)
-    uniform = (np.cumsum(mask, axis=1) > nth[:, None]).argmax(axis=1)
-    out = np.where(u[:, 0] < epsilon, uniform, greedy).astype(np.int64)
-    assert mask[np.arange(out.shape[0]), out].all(), f"policy chose {out} outside the mask {mask}"
+    return team_epsilon_greedy(greedy[:, None], mask[:, None], epsilon, [rng])[:, 0]
+
+
+def team_epsilon_greedy(
+    greedy: IntArray, mask: BoolArray, epsilon: float | FloatArray, rngs: Sequence[np.random.Generator]
+) -> IntArray:
+    """`epsilon_greedy` for N agents at once, agent i with its own generator rngs[i] (the same draws and actions as
+    N calls): greedy (B, N), mask (B, N, |Ḡ|), ε one number or one per row (B,) -> (B, N) actions."""
+    greedy = np.asarray(greedy, dtype=np.int64)
+    b, n = greedy.shape
+    u = np.empty((n, b, 2))
+    for i, rng in enumerate(rngs):
+        rng.random(out=u[i])  # what rng.random((B, 2)) draws
+    eps = epsilon if np.ndim(epsilon) == 0 else np.asarray(epsilon)[:, None]
+    allowed = mask.sum(axis=-1)  # (B, N)
+    nth = np.minimum((u[..., 1].T * allowed).astype(np.int64), allowed - 1)
+    uniform = (np.cumsum(mask, axis=-1) > nth[..., None]).argmax(axis=-1)
+    out = np.where(np.less(u[..., 0].T, eps), uniform, greedy).astype(np.int64)
+    assert np.take_along_axis(mask, out[..., None], axis=-1).all(), f"policy chose {out} outside the mask {mask}"
     return out
 
 
