@@ -69,15 +69,23 @@ def idle_weight(model: Model, tables: RewardTables, marg: Marginals, actions: In
     if kinds == {"constant"}:
         return weight
     done = marg[..., 0]  # (B, N, p) P(level_j = 0)
-    # products over the tasks in task order, as np.prod multiplies; a task elsewhere would be a factor 1.0 (exact)
-    # the product of every site's tasks, then of all, (S + 1, B, N) in the layout of `done`
-    by_site = np.ones_like(np.broadcast_to(done[..., 0], (model.scenario.n_sites + 1,) + actions.shape))
-    for j, s in enumerate(model.task_site.tolist()):
-        by_site[s] *= done[..., j]
-        by_site[-1] *= done[..., j]
-    mission = by_site[-1]
-    action_site = model.action_site[np.maximum(actions, 0)]  # (B, N)
-    site = np.take_along_axis(by_site, action_site[None], axis=0)[0]
+    # products of P(level_j = 0) over tasks in task order, as np.prod multiplies (and a factor 1.0 changes nothing)
+    mission, site = weight, weight
+    if "mission" in kinds:
+        mission = done[..., 0].copy(order="K")
+        for j in range(1, done.shape[-1]):
+            mission *= done[..., j]
+    if "site" in kinds:
+        at_site: dict[int, FloatArray] = {}  # every site's product
+        for j, s in enumerate(model.task_site.tolist()):
+            if s in at_site:
+                at_site[s] *= done[..., j]
+            else:
+                at_site[s] = done[..., j].copy(order="K")
+        action_site = model.action_site[np.maximum(actions, 0)]  # (B, N)
+        site = np.ones(actions.shape)  # a site without tasks: 1
+        for s, prod in at_site.items():
+            np.copyto(site, prod, where=action_site == s)
     for i, kind in enumerate(tables.idle_belief):
         if kind == "site":
             weight[:, i] = site[:, i]
