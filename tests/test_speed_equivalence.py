@@ -483,3 +483,20 @@ def test_team_exploration_equals_every_agent_on_its_own(epsilon: Any) -> None:
         assert np.array_equal(team, greedy)
     if epsilon == 1.0:
         assert not np.array_equal(team, greedy)
+
+
+@pytest.mark.parametrize("name", ["heterogeneous", "semi-heterogeneous-ht", "three-kinds"])
+def test_action_masks_from_the_table_equal_the_rule(name: str) -> None:
+    """`Model.action_mask` reads a table of every a_o; it must give the rule's mask for any shape and value."""
+    sc = SCENARIOS[name]
+    model = Model.build(sc)
+    prev = np.random.default_rng(1).integers(-2, sc.n_actions, (7, 3, sc.n_agents))
+    want = np.zeros(prev.shape + (sc.n_actions,), dtype=bool)
+    want[..., : sc.n_tasks] = True
+    if sc.n_idle:  # the idle location at the site of a_o, site 1 without a_o
+        site = np.where(prev >= 0, np.asarray(sc.action_sites)[np.maximum(prev, 0)], 0)
+        np.put_along_axis(want, (sc.n_tasks + site)[..., None], True, axis=-1)
+    assert (prev == -2).any() and (prev == -1).any()
+    assert np.array_equal(model.action_mask(prev), want)  # with -2 among them: worked out by the rule
+    assert np.array_equal(model.action_mask(np.maximum(prev, -1)), want)  # read from the table
+    assert np.array_equal(model.action_mask(np.int64(-1)), want[prev == -1][0])  # one a_o

@@ -6,6 +6,7 @@ and the optimal baseline use (inverse-CDF sampling), so the three can never disa
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -238,6 +239,18 @@ class Model:
         """Â(a_o), the reduced action space (docs/model.md): the p tasks and the idle location at the site of a_o
         (HT mode: the p tasks). (...,) previous assignments -> (..., |G|) mask."""
         prev = np.asarray(prev, dtype=np.int64)
+        if prev.size and int(prev.min()) >= -1 and int(prev.max()) < self.scenario.n_actions:
+            out: BoolArray = self._action_masks[prev]  # row -1, the last, is a_o = -1
+            return out
+        return self._action_mask_rule(prev)
+
+    @functools.cached_property
+    def _action_masks(self) -> BoolArray:
+        """`action_mask` of a_o = 0, ..., |G| - 1, then of -1 (none): the rows it reads, made once."""
+        return self._action_mask_rule(np.append(np.arange(self.scenario.n_actions, dtype=np.int64), -1))
+
+    def _action_mask_rule(self, prev: IntArray) -> BoolArray:
+        """`action_mask` worked out for every element of prev."""
         p = self.scenario.n_tasks
         mask = np.zeros(prev.shape + (self.scenario.n_actions,), dtype=bool)
         mask[..., :p] = True
