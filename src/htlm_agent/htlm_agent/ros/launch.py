@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from htlm_agent.learning.settings import Settings
 from htlm_msgs_py.qos import FASTDDS_LOOPBACK_PROFILE, FASTDDS_PROFILE
 from htlm_world.scenario import Scenario
 
@@ -167,6 +168,7 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     run = cfg.run_dir.resolve()
     sc = cfg.scenario
     specs: list[tuple[str, str, dict[str, Any]]] = []
+    learner = {**DEFAULT_LEARNER, "episodes": max(cfg.episodes, 1), **cfg.learner}
     world = {
         "team": sc.team,
         "seed": cfg.seed,
@@ -177,12 +179,13 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         "run_dir": str(run),
         "run_id": f"{run.name}"[:64].replace(" ", "_"),
         **({"operation": "external", "clock": "free", "period": cfg.period} if external(cfg) else {}),
+        # the agents act with the networks the learner's trainer_lag says, and the world paces its steps by it
+        **({"trainer_lag": Settings.from_dict(learner, "learner").trainer_lag} if cfg.mode == "train" else {}),
         **cfg.world_params,
     }
     if cfg.scenario_file:
         world["scenario"] = str(Path(cfg.scenario_file).resolve())
     specs.append(("world", "htlm_world.ros.world_node", world))
-    learner = {**DEFAULT_LEARNER, "episodes": max(cfg.episodes, 1), **cfg.learner}
     settings_file = run / "parameters" / "learner.json"
     settings_file.parent.mkdir(parents=True, exist_ok=True)
     settings_file.write_text(json.dumps(learner, indent=1) + "\n")

@@ -156,6 +156,7 @@ class TrainerCore:
         self.run_range = (0, 0)
         self.batch = 1
         self.first_step = 0
+        self.run_lag = 0  # the announced run's trainer_lag
         self.trained = 0
         """Every round with a global step index below it is done."""
         self.rounds: dict[int, _Round] = {}
@@ -240,6 +241,7 @@ class TrainerCore:
         self.batch = rec["batch"]
         self.stopping = rec["state"] == "stopped"
         self.stop_at = now
+        self.run_lag = rec["trainer_lag"]
         try:
             self.start(sc, rec["seed"], out)
         except (StoreError, ValueError, OSError) as e:
@@ -306,6 +308,14 @@ class TrainerCore:
             )
         else:
             self.learner = Learner(sc, settings, seed)
+        if self.run_lag != settings.trainer_lag:
+            out.log.append(
+                (
+                    "warning",
+                    f"the run's trainer_lag {self.run_lag} differs from the learner's {settings.trainer_lag}: the "
+                    "agents act with other networks than `htlm train` would (set both, or the learner's alone)",
+                )
+            )
         self.selection = Selection(self.learner, info)
         if info:
             self.selection.restore(ckpt)
