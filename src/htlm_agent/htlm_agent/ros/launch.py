@@ -152,6 +152,10 @@ def ros_env(cfg: LaunchConfig) -> dict[str, str]:
     # (a restarted node hangs on start). Over UDP a dead process takes nothing with it. An explicit setting wins. (With
     # the LOCALHOST range rmw_fastrtps adds shared memory anyway: localhost discovery is arranged above.)
     env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+    # one thread per process for torch's (OpenMP's) kernels: a team is seven or more processes, and a second thread
+    # per process only spins waiting for a core (the trainer's gradient updates took 4x as long on two cores). An
+    # explicit setting wins; the trainer then uses the learner's `threads`, as `htlm train` does.
+    env.setdefault("OMP_NUM_THREADS", "1")
     # participants announce themselves every 0.25 s, not 3 s: a process joining a running graph (a restarted node, a
     # viewer) matches the others within 0.4 s instead of up to 3 s (htlm_msgs_py/fastdds.xml). An explicit file wins.
     env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))

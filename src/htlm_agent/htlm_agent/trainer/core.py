@@ -269,11 +269,14 @@ class TrainerCore:
             StoreError: a store of another layout, or a store or checkpoint while `resume` is off.
             ValueError: bad learner settings, or a checkpoint that cannot be resumed.
         """
+        import torch
+
         from htlm_agent.learning.checkpoint import CheckpointError
         from htlm_agent.learning.dqn import Learner
         from htlm_agent.learning.loop import Selection
 
         settings = self.learner_settings(seed)
+        torch.set_num_threads(settings.threads)  # as `htlm train`
         self.scenario = sc
         self.first_step = self.global_step(self.run_range[0], 1)
         self.trained = self.first_step
@@ -482,11 +485,10 @@ class TrainerCore:
             out.counters["partial_rounds"] += 1
             for i in sorted(rnd.records):
                 self._store_one(rnd.records[i])
-        for _ in range(self.learner.settings.updates_per_step):
-            loss = self.learner.train_step()
-            if loss is not None:
-                self.last_loss = loss
-                self.updates += 1
+        losses = self.learner.train_steps(self.learner.settings.updates_per_step)  # as `htlm train`: drawn together
+        if losses:
+            self.last_loss = losses[-1]
+            self.updates += len(losses)
         out.counters["train_rounds"] += 1
 
     def _store_one(self, rec: dict[str, Any]) -> None:

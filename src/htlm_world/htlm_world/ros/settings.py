@@ -66,7 +66,8 @@ class WorldSettings:
     pace: str = setting("auto", choices=("auto", "on", "off"))
     """Wait for the trainer's updates before each step (auto: in train mode with the lockstep clock)."""
     trainer_lag: int = setting(0, lo=0, hi=1000)
-    """k of the rate limiter: step g waits until the trainer has done the updates of every step before g - k."""
+    """k of the rate limiter: step g waits until the trainer has done the updates of every step before g - k (`htlm
+    launch train` sets it to the learner's trainer_lag, with which the agents act)."""
     trainer_deadline: float = setting(30.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
     """Longest wait for the trainer's progress, seconds; then the world goes on without it until it is heard."""
     end_hold: float = setting(60.0, lo=0.0, hi=SECONDS[1], tunable=True)
