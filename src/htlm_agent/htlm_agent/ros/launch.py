@@ -184,7 +184,7 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         "run_id": f"{run.name}"[:64].replace(" ", "_"),
         **({"operation": "external", "clock": "free", "period": cfg.period} if external(cfg) else {}),
         # the agents act with the networks the learner's trainer_lag says, and the world paces its steps by it
-        **({"trainer_lag": Settings.from_dict(learner, "learner").trainer_lag} if cfg.mode == "train" else {}),
+        **({"trainer_lag": learner.get("trainer_lag", Settings().trainer_lag)} if cfg.mode == "train" else {}),
         **cfg.world_params,
     }
     if cfg.scenario_file:
