@@ -45,7 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=1024,
         help="ros: episodes of the timed training runs, over ROS and in process (default 1024; 0: none; the "
-        "default budget of htlm train is 32768)",
+        "default budget of htlm train is 12288)",
     )
     p.add_argument("--domain-id", type=int, default=99, help="ros: ROS_DOMAIN_ID of the timed team (default 99)")
     p.add_argument("--keep", default="", metavar="DIR", help="ros: keep the run directories here")
