@@ -98,7 +98,7 @@ def test_record_text_is_compact_json_in_field_order() -> None:
     assert json.loads(text) == {"schema": "htlm/transition", "v": 3, **plain(rec), "k": packed("<f4", k)}
     assert list(json.loads(text)) == ["schema", "v", *S.TRANSITION.fields]
     # the header of every binary array before its bytes, so a cut `ros2 topic echo` still says what it holds
-    assert '"step":3,"k":{"dtype":"<f4","shape":[2,26],"data":"' in text
+    assert '"step":3,"k":{"shape":[2,26],"dtype":"<f4","data":"' in text
     got = S.decode(text, S.TRANSITION, PAPER_LIMITS)
     assert got["k"].dtype == np.float32 and (got["k"] == k.astype(np.float32)).all()  # knowledge travels as float32
     assert plain(got) == {**plain(rec), "k": packed("<f4", k)}
@@ -223,8 +223,8 @@ def test_a_batched_transition_of_128_episodes_round_trips() -> None:
     signed = S.encode(S.TRANSITION, rec, signer)
     assert plain(S.decode(signed, S.TRANSITION, lim, signer)) == plain(want)
     # the signature covers the whole text, the bytes of the arrays too
-    head, data = signed.split('"r":{"dtype":"<f8","shape":[128],"data":"', 1)
-    flipped = head + '"r":{"dtype":"<f8","shape":[128],"data":"' + ("B" if data[0] == "A" else "A") + data[1:]
+    head, data = signed.split('"r":{"shape":[128],"dtype":"<f8","data":"', 1)
+    flipped = head + '"r":{"shape":[128],"dtype":"<f8","data":"' + ("B" if data[0] == "A" else "A") + data[1:]
     assert _reason_under(flipped, S.TRANSITION, lim, signer) == ("signature", "sig")
     assert _reason_under(_with(S.TRANSITION, k=packed("<f4", rec["k"][:1].repeat(129, 0))), S.TRANSITION, lim) == (
         "length",
@@ -262,7 +262,7 @@ def test_a_per_episode_array_longer_than_the_batch_is_rejected(name: str, key: s
 
 def _raw(dtype: str, shape: list[int], data: bytes) -> dict[str, object]:
     """A binary array with any header and any bytes."""
-    return {"dtype": dtype, "shape": shape, "data": base64.b64encode(data).decode()}
+    return {"shape": shape, "dtype": dtype, "data": base64.b64encode(data).decode()}
 
 
 _K2 = [[0.0] * 26, [0.25] * 26]
@@ -301,7 +301,7 @@ _MASK = [[True] * 5 + [False], [False] * 4 + [True] * 2]
         # bad base64, a missing or an unknown member, not an object
         ("k2", packed("<f4", _K2) | {"data": "!!!!"}, "encoding", "k2.data"),
         ("k2", packed("<f4", _K2) | {"data": "AAA"}, "encoding", "k2.data"),
-        ("r", {"dtype": "<f8", "shape": [2]}, "missing_field", "r.data"),
+        ("r", {"shape": [2], "dtype": "<f8"}, "missing_field", "r.data"),
         ("r", packed("<f8", [1.0, 2.0]) | {"order": "C"}, "unknown_field", "r.order"),
         ("r", [1.0, 2.0], "type", "r"),
     ],

@@ -15,10 +15,10 @@ from htlm_msgs_py import schema as S
 
 
 def packed(dtype: str, values: Any, shape: list[Any] | None = None) -> dict[str, Any]:
-    """A binary array field as it travels (`schema.Array`): its dtype, its shape and its C-order bytes in base64,
+    """A binary array field as it travels (`schema.Array`): its shape, its dtype and its C-order bytes in base64,
     written here independently of the encoder; `shape` overrides the header's shape."""
     a = np.asarray(values, dtype=dtype)
-    return {"dtype": dtype, "shape": list(a.shape) if shape is None else shape, "data": _b64(a.tobytes())}
+    return {"shape": list(a.shape) if shape is None else shape, "dtype": dtype, "data": _b64(a.tobytes())}
 
 
 def unpacked(rec: dict[str, Any]) -> dict[str, Any]:
@@ -26,7 +26,7 @@ def unpacked(rec: dict[str, Any]) -> dict[str, Any]:
     dtype, shape and data) as the numpy array it holds."""
     return {
         k: np.frombuffer(base64.b64decode(v["data"]), v["dtype"]).reshape(v["shape"])
-        if isinstance(v, dict) and v.keys() == {"dtype", "shape", "data"}
+        if isinstance(v, dict) and v.keys() == {"shape", "dtype", "data"}
         else v
         for k, v in rec.items()
     }
@@ -170,7 +170,7 @@ def out_of_range(fld: S.Field, rng: random.Random, lim: dict[str, int]) -> Any:
         if fld.dtype == "|b1":
             raw = np.zeros(shape, dtype=np.uint8)
             raw.flat[rng.randrange(raw.size)] = rng.choice([2, 255])
-            return {"dtype": fld.dtype, "shape": shape, "data": _b64(raw.tobytes())}
+            return {"shape": shape, "dtype": fld.dtype, "data": _b64(raw.tobytes())}
         a = np.full(shape, lo, dtype=fld.dtype)
         floats = np.dtype(fld.dtype).kind == "f"
         a.flat[rng.randrange(a.size)] = rng.choice([lo - 1, hi + 1, *([np.nan, np.inf, -np.inf] if floats else [])])
@@ -194,7 +194,7 @@ def bad_array(fld: S.Array, good: dict[str, Any], rng: random.Random, lim: dict[
         {**good, "data": _b64(data + data[:1])},  # a byte too many
         {**good, "data": _b64(data * (rows + 2))},  # more bytes than any record of the batch holds
         {**good, "data": rng.choice(["!!!!", good["data"][:-1], "A", good["data"] + "=", "@" + good["data"][1:]])},
-        {k: v for k, v in good.items() if k != rng.choice(["dtype", "shape", "data"])},  # a missing member
+        {k: v for k, v in good.items() if k != rng.choice(["shape", "dtype", "data"])},  # a missing member
         {**good, "order": "C"},  # an unknown member
     ]
     return rng.choice(choices)

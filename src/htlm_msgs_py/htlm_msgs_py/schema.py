@@ -13,7 +13,7 @@ say all of the above, and one msgspec JSON decoder parses and validates a record
 (tests/benchmarks/bench_decode.py measures it). Records are encoded by msgspec's JSON encoder (compact, no spaces).
 
 Arrays that grow with the batch (`Array`: the transitions an agent sends the trainer) travel in binary inside the
-record: a JSON object `{"dtype": "<f4", "shape": [128, 26], "data": "<base64>"}` whose header says what the bytes
+record: a JSON object `{"shape": [128, 26], "dtype": "<f4", "data": "<base64>"}` whose header says what the bytes
 hold, so `ros2 topic echo` still shows it; msgspec decodes the base64 into bytes, and `decode` checks the byte length
 against the shape and every value against its range with numpy, then hands the array over as a read-only numpy
 array (`htlm bench` measures encode and decode against the JSON lists they replace).
@@ -293,7 +293,7 @@ class Rows(Field):
 
 @dataclass(frozen=True)
 class Array(Field):
-    """Numbers in binary, one row per episode of a batch: the JSON object `{"dtype": ..., "shape": [rows, *dims],
+    """Numbers in binary, one row per episode of a batch: the JSON object `{"shape": [rows, *dims], "dtype": ...,
     "data": "<base64>"}`, the array's bytes in C order (`pack` writes it). Accepted when `dtype` is exactly the
     declared one (numpy's notation with its byte order: "<f4", "<f8", "<i2", "|b1"), `shape` has 1..max_rows rows
     and then exactly `dims`, `data` is valid base64 of exactly prod(shape) x itemsize bytes, and every value is in
@@ -314,8 +314,8 @@ class Array(Field):
         shape = tuple.__class_getitem__((_int(1, rows), *[_int(n, n) for n in dims]))
         most = rows * math.prod(dims) * np.dtype(self.dtype).itemsize
         spec = [
-            ("dtype", Literal[self.dtype]),
             ("shape", shape),
+            ("dtype", Literal[self.dtype]),
             ("data", Annotated[bytes, msgspec.Meta(max_length=most)]),
         ]
         return msgspec.defstruct("Array", spec, forbid_unknown_fields=True, module=__name__)
@@ -328,7 +328,7 @@ class Array(Field):
     def pack(self, value: Any) -> dict[str, Any]:
         """The JSON object of `value` (an array-like, cast to `dtype`); msgspec writes its bytes as base64."""
         a = np.ascontiguousarray(value, dtype=self.dtype)
-        return {"dtype": self.dtype, "shape": a.shape, "data": a.data.cast("B")}
+        return {"shape": a.shape, "dtype": self.dtype, "data": a.data.cast("B")}
 
 
 @dataclass(frozen=True)
@@ -697,7 +697,7 @@ def _reason(steps: list[str | int], problem: str, name: str | None) -> str:
         return "schema"
     if steps[0] == "v":
         return "version"
-    part = steps[1] if len(steps) > 1 else None  # inside a binary array's header: "dtype", "shape" or "data"
+    part = steps[1] if len(steps) > 1 else None  # inside a binary array: "shape", "dtype" or "data"
     if part == "dtype":
         return "type"
     if part == "data" and "base64" in problem:
