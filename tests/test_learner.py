@@ -492,3 +492,10 @@ def test_dropout_sits_one_teammate_out_of_a_share_of_training_episodes() -> None
         rp = learner.replay
         stored = rp.data[i, : 16 * sc.horizon, rp.cols["a"]].reshape(sc.horizon, 16)  # slots in (step, episode) order
         assert (stored[:, rows] >= sc.n_tasks).all()
+
+
+def test_the_world_paces_by_the_learners_default_trainer_lag() -> None:
+    from htlm_world.protocol import LockstepSettings
+    from htlm_world.ros.settings import WorldSettings
+
+    assert WorldSettings().trainer_lag == LockstepSettings().trainer_lag == Settings().trainer_lag

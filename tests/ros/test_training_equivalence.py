@@ -6,7 +6,6 @@ learner's default lag (the agents act with networks k steps older while the trai
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ LEARNER = {"envs": 32, "learning_starts": 300, "batch_size": 32, "validate_every
 EPISODES, SEED = 96, 0
 
 
-@pytest.mark.parametrize("lag", sorted({0, int(os.environ.get("HTLM_TEST_LAG", Settings().trainer_lag))}))
+@pytest.mark.parametrize("lag", sorted({0, Settings().trainer_lag}))
 def test_training_over_ros_equals_htlm_train(ros_team: Any, tmp_path: Path, lag: int) -> None:
     from htlm_agent.experiments.train import train
 
