@@ -310,6 +310,7 @@ class _ProgressTail(_Tail):
     """Follow the world's log and show its finished episodes as a progress line (rate, ETA, running completion)."""
 
     PATTERN = re.compile(r"episodes? (\d+)(?:\.\.(\d+))?: completion ([0-9.]+)(?: \(mean\))?(?:, (\d+) failed)?")
+    SECONDS = re.compile(r", ([0-9.]+) s$")
 
     def __init__(self, path: Path, total: int, first: int) -> None:
         from htlm_agent.progress import Progress
@@ -320,6 +321,25 @@ class _ProgressTail(_Tail):
         self.done = 0
         self.comp_sum = 0.0
         self.failed = 0
+        self.told = False
+
+    def _tell(self, n: int, line: str) -> None:
+        """Once, after the first batch: how long the whole run will take, from that batch's time."""
+        from htlm_agent.progress import format_duration
+
+        self.told = True
+        m = self.SECONDS.search(line.rstrip())
+        if m is None:
+            return
+        batch_s, total = float(m.group(1)), self.bar.total
+        left = (total - self.done) / n * batch_s
+        print(
+            f"htlm launch train: {total:,} episodes in batches of {n}; the first batch took {batch_s:.1f} s after "
+            f"{format_duration(max(self.bar.elapsed - batch_s, 0.0))} of start-up: about {format_duration(left)} "
+            "more of training",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def poll(self) -> None:
         for line in self.lines():
@@ -331,6 +351,8 @@ class _ProgressTail(_Tail):
             self.done = hi + 1 - self.first
             self.comp_sum += float(m.group(3)) * n
             self.failed += int(m.group(4) or ("(failed)" in line))
+            if not self.told:
+                self._tell(n, line)
             seen = max(self.done, 1)
             self.bar.update(
                 self.done, completion=f"{self.comp_sum / seen:.2f}", failed=f"{self.failed / seen:.1%}", last=m.group(3)
