@@ -9,8 +9,10 @@ known, generous static limits apply. Anything else raises `WireError`, which nam
 
 The fields are declared here (Int, Float, ... with their bounds); the checking is msgspec's: for every schema and
 set of limits, the declarations become one msgspec Struct type (`Schema.struct`) whose constrained annotations
-say all of the above, and one msgspec JSON decoder parses and validates a record text in a single pass
-(tests/benchmarks/bench_decode.py measures it). Records are encoded by msgspec's JSON encoder (compact, no spaces).
+say all of the above, and one msgspec JSON decoder parses and validates a record text in a single pass. msgspec was
+chosen (2026-11) by timing each candidate doing the whole job on the one-transition JSON record of the time: 5.7 µs,
+against 12.7 µs with pydantic v2 and 27.4 µs with hand-written checks. Records are encoded by msgspec's JSON encoder
+(compact, no spaces).
 
 Arrays that grow with the batch (`Array`: the transitions an agent sends the trainer) travel in binary inside the
 record: a JSON object `{"shape": [128, 26], "dtype": "<f4", "data": "<base64>"}` whose header says what the bytes
