@@ -169,3 +169,26 @@ def test_every_process_the_launcher_starts_has_its_parameters_checked(tmp_path: 
     cfg = LaunchConfig(mode="evaluate", scenario=builtin(), run_dir=tmp_path / "run", robots="sim")
     modules = {module for _, module, _ in process_specs(cfg)}
     assert modules <= set(NODES), modules - set(NODES)
+
+
+def test_the_progress_of_a_launched_training_says_how_long_it_will_take(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from htlm_agent.ros.launch import _ProgressTail
+
+    log = tmp_path / "world.log"
+    log.write_text("[INFO] [1.0] [htlm_world]: run started\n")
+    tail = _ProgressTail(log, total=1024, first=0)
+    tail.poll()
+    assert "about" not in capsys.readouterr().err  # no batch yet: nothing to estimate from
+    with log.open("a") as f:
+        f.write("[INFO] [2.0] [htlm_world]: episodes 0..255: completion 22.26 (mean), 24 failed, absent [0], 2.50 s\n")
+    tail.poll()
+    err = capsys.readouterr().err
+    assert "1,024 episodes in batches of 256; the first batch took 2.5 s" in err
+    assert "about 0:08 more of training" in err  # 3 batches of 2.5 s
+    with log.open("a") as f:
+        f.write("[INFO] [3.0] [htlm_world]: episodes 256..511: completion 20.00 (mean), 2 failed, absent [0], 2.00 s\n")
+    tail.poll()
+    tail.close()
+    assert capsys.readouterr().err.count("more of training") == 0  # said once

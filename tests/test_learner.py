@@ -16,6 +16,7 @@ from htlm_agent.experiments.evaluate import evaluate
 from htlm_agent.experiments.train import train, train_batch
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.dqn import Learner
+from htlm_agent.learning.loop import LaggedNets
 from htlm_agent.learning.optim import StackedAdam
 from htlm_agent.learning.qnet import AgentQ, StackedQ, layer_sizes, masked_argmax, pack_weights, unpack_weights
 from htlm_agent.learning.qpolicy import QPolicy
@@ -38,8 +39,11 @@ TINY = Settings(
     validate_episodes=8,
     eval_episodes=16,
     checkpoint_every=0,
+    updates_per_step=2,
+    trainer_lag=0,
 )
-"""A run of a few seconds."""
+"""A run of a few seconds (the learner's defaults before 2026-11-26 where they are not set here: the paper's digests
+in tests/data/paper_pinned.json come from it)."""
 
 
 @pytest.fixture(autouse=True)
@@ -317,6 +321,44 @@ def test_resuming_continues_exactly(tmp_path: Path) -> None:
     assert torch.equal(resumed.target.flat, straight.target.flat)
 
 
+def test_under_a_trainer_lag_the_agents_act_with_the_networks_of_k_steps_before() -> None:
+    sc = builtin()
+    s = TINY.replace(episodes=32, validate_every=0, select_best=False, learning_starts=20, trainer_lag=3)
+    learner = Learner(sc, s)
+    lagged = LaggedNets(learner, first_step=0)
+    team = Team(sc, s.envs, s.seed)
+    k, m = team.reset(), team.mask()
+    rngs = [np.random.default_rng(i) for i in range(sc.n_agents)]
+    seen: list[torch.Tensor] = []  # the online networks at each step, before its action
+    for g in range(12):
+        seen.append(learner.net.flat.detach().clone())
+        net = lagged.at(g)
+        assert net is not None
+        assert torch.equal(net.flat, seen[max(0, g - 3)]), f"step {g} acts with the networks of {max(0, g - 3)}"
+        a = learner.act(k, m, 1.0, rngs, net)
+        k2, r, _ = team.step(a)
+        learner.store_batch(k, a, r, k2, team.mask(), False)
+        learner.train_steps(1)
+        k, m = k2, team.mask()
+    assert not torch.equal(seen[3], seen[0]), "the networks changed: the test tells the versions apart"
+    assert len(lagged.versions) <= 4  # only the versions still needed are kept
+    assert LaggedNets(Learner(sc, s.replace(trainer_lag=0)), 0).at(5) is None  # lag 0: the current networks
+
+
+def test_a_trainer_lag_changes_the_learned_networks_and_a_run_repeats_exactly(tmp_path: Path) -> None:
+    sc = builtin()
+    s = TINY.replace(episodes=32, validate_every=0, select_best=False, learning_starts=20)
+    nets = []
+    for lag in (0, 2, 2):
+        learner = Learner(sc, s.replace(trainer_lag=lag))
+        team, lagged = Team(sc, s.envs, s.seed), LaggedNets(learner, 0)
+        for b in range(2):
+            train_batch(learner, team, b, lagged)
+        nets.append(learner.net.flat.detach().clone())
+    assert not torch.equal(nets[0], nets[1])
+    assert torch.equal(nets[1], nets[2])
+
+
 def test_a_short_training_run_beats_the_random_baseline(tmp_path: Path) -> None:
     # The HT mode (no idle locations) of the same learner: the quickest to learn, so the test stays short.
     sc = builtin(mode="ht")
@@ -450,3 +492,10 @@ def test_dropout_sits_one_teammate_out_of_a_share_of_training_episodes() -> None
         rp = learner.replay
         stored = rp.data[i, : 16 * sc.horizon, rp.cols["a"]].reshape(sc.horizon, 16)  # slots in (step, episode) order
         assert (stored[:, rows] >= sc.n_tasks).all()
+
+
+def test_the_world_paces_by_the_learners_default_trainer_lag() -> None:
+    from htlm_world.protocol import LockstepSettings
+    from htlm_world.ros.settings import WorldSettings
+
+    assert WorldSettings().trainer_lag == LockstepSettings().trainer_lag == Settings().trainer_lag

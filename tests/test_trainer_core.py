@@ -19,6 +19,7 @@ import pytest
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.settings import Settings
 from htlm_agent.trainer.core import Schedule, TrainerCore, TrainerEffects, load_learner_data
+from htlm_msgs_py import schema as S
 from htlm_world.model import Model
 from htlm_world.scenario import builtin
 
@@ -176,13 +177,20 @@ def test_rounds_are_deterministic_whatever_the_arrival_order(tmp_path: Path) -> 
     assert runs[0][3] == 2  # the first batch of 2 episodes is done
 
 
-def test_trainer_rounds_equal_the_in_process_learner(tmp_path: Path) -> None:
+@pytest.mark.parametrize("wire", [False, True])
+def test_trainer_rounds_equal_the_in_process_learner(tmp_path: Path, wire: bool) -> None:
     """Round by round the trainer does what `htlm train` does per step: store_batch of every agent's transitions,
-    then train_steps(updates_per_step); the networks are identical."""
+    then train_steps(updates_per_step); the networks are identical. Also when the records went through the wire
+    (`wire`: K and K' as float32, the rest exactly) while the in-process learner gets the float64 originals."""
     batch, steps = 4, 2 * H + 5
     core = _core(tmp_path, batch=batch)
     recs = _steps(0, steps, batch, seed=2)
-    _feed(core, sorted(recs, key=lambda r: (r["agent"], r["seq"])))
+    sent = sorted(recs, key=lambda r: (r["agent"], r["seq"]))
+    if wire:
+        lim = S.limits(SC.n_agents, SC.n_tasks, SC.n_actions, SC.levels, SC.horizon, batch)
+        sent = [S.decode(S.encode(S.TRANSITION, r), S.TRANSITION, lim) for r in sent]
+        assert sent[0]["k"].dtype == np.float32 and not np.array_equal(sent[0]["k"], np.asarray(recs[0]["k"]))
+    _feed(core, sent)
     assert core.trained == steps
     learner = Learner(SC, Settings.from_dict({"seed": 7, **LEARNER, "envs": batch}, "test"), 7)
     for g in range(steps):

@@ -240,6 +240,12 @@ def test_bench_json(capsys: pytest.CaptureFixture[str]) -> None:
         "learner_updates_per_s",
     ):
         assert out[key] > 0, key
+    for b in (128, 1024):  # the transition record's wire cost, binary beside JSON lists, in the same run
+        w = out[f"transition_wire_B{b}"]
+        assert all(w[f"{kind}_{op}_us"] > 0 for kind in ("binary", "json") for op in ("encode", "decode"))
+        assert w["decode_ratio"] == pytest.approx(w["json_decode_us"] / w["binary_decode_us"], rel=0.05)
+        assert w["encode_ratio"] == pytest.approx(w["json_encode_us"] / w["binary_encode_us"], rel=0.05)
+        assert w["binary_chars"] < w["json_chars"]
 
 
 def test_bench_measures_a_scenario_beside_the_papers_team(capsys: pytest.CaptureFixture[str]) -> None:

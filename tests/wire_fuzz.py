@@ -3,12 +3,44 @@ integration test (tests/ros/test_fuzz.py). Deterministic for a given generator."
 
 from __future__ import annotations
 
+import base64
 import json
 import random
 from collections.abc import Iterator
 from typing import Any
 
+import numpy as np
+
 from htlm_msgs_py import schema as S
+
+
+def packed(dtype: str, values: Any, shape: list[Any] | None = None) -> dict[str, Any]:
+    """A binary array field as it travels (`schema.Array`): its shape, its dtype and its C-order bytes in base64,
+    written here independently of the encoder; `shape` overrides the header's shape."""
+    a = np.asarray(values, dtype=dtype)
+    return {"shape": list(a.shape) if shape is None else shape, "dtype": dtype, "data": _b64(a.tobytes())}
+
+
+def unpacked(rec: dict[str, Any]) -> dict[str, Any]:
+    """The fields of a record as a sender passes them to `schema.encode`: every binary array (a JSON object of
+    dtype, shape and data) as the numpy array it holds."""
+    return {
+        k: np.frombuffer(base64.b64decode(v["data"]), v["dtype"]).reshape(v["shape"])
+        if isinstance(v, dict) and v.keys() == {"shape", "dtype", "data"}
+        else v
+        for k, v in rec.items()
+    }
+
+
+def plain(rec: dict[str, Any]) -> dict[str, Any]:
+    """Decoded fields as VALID writes them: every numpy array packed with its own dtype and shape (so comparing
+    with VALID also compares dtypes, shapes and every byte)."""
+    return {k: packed(v.dtype.str, v) if isinstance(v, np.ndarray) else v for k, v in rec.items()}
+
+
+def _b64(data: bytes) -> str:
+    return base64.b64encode(data).decode()
+
 
 VALID: dict[str, dict[str, Any]] = {
     "htlm/scenario": {
@@ -39,11 +71,11 @@ VALID: dict[str, dict[str, Any]] = {
         "seq": 0,
         "episode": 2,
         "step": 3,
-        "k": [[0.0] * 26, [0.5] * 26],
-        "a": [2, 5],
-        "r": [1.5, -0.25],
-        "k2": [[0.0] * 26, [0.25] * 26],
-        "mask2": [[True] * 5 + [False], [False] * 4 + [True] * 2],
+        "k": packed("<f4", [[0.0] * 26, [0.5] * 26]),
+        "a": packed("<i2", [2, 5]),
+        "r": packed("<f8", [1.5, -0.25]),
+        "k2": packed("<f4", [[0.0] * 26, [0.25] * 26]),
+        "mask2": packed("|b1", [[True] * 5 + [False], [False] * 4 + [True] * 2]),
         "done": False,
     },
     "htlm/transition_ack": {"agent": 1, "session": "0123456789abcdef", "upto": 5},
@@ -132,7 +164,40 @@ def out_of_range(fld: S.Field, rng: random.Random, lim: dict[str, int]) -> Any:
     if isinstance(fld, S.Rows):  # one episode's value out of range
         inner = out_of_range(fld.item, rng, lim)
         return None if inner is None else [inner]
+    if isinstance(fld, S.Array):  # one value of one row out of range: NaN, infinity, beyond a bound, a bool byte of 2
+        lo, hi = fld.value_range(lim)
+        shape = [1, *(S.bound(d, lim) for d in fld.dims)]
+        if fld.dtype == "|b1":
+            raw = np.zeros(shape, dtype=np.uint8)
+            raw.flat[rng.randrange(raw.size)] = rng.choice([2, 255])
+            return {"shape": shape, "dtype": fld.dtype, "data": _b64(raw.tobytes())}
+        a = np.full(shape, lo, dtype=fld.dtype)
+        floats = np.dtype(fld.dtype).kind == "f"
+        a.flat[rng.randrange(a.size)] = rng.choice([lo - 1, hi + 1, *([np.nan, np.inf, -np.inf] if floats else [])])
+        return packed(fld.dtype, a)
     return None
+
+
+def bad_array(fld: S.Array, good: dict[str, Any], rng: random.Random, lim: dict[str, int]) -> Any:
+    """A binary array whose header or bytes are wrong: dtype, shape against the limits, byte length, base64."""
+    shape, data = good["shape"], base64.b64decode(good["data"])
+    rows = S.bound(fld.max_rows, lim)
+    other = "<f8" if fld.dtype != "<f8" else "<f4"
+    choices = [
+        {**good, "dtype": other},  # another dtype (its bytes as long as this dtype's)
+        {**good, "dtype": rng.choice(["float32", "f4", "<F4", ">f4", "", 7])},
+        {**good, "shape": [rows + 1, *shape[1:]]},  # more rows than the batch
+        {**good, "shape": [0, *shape[1:]]},  # no row
+        {**good, "shape": shape[:-1] if len(shape) > 1 else [*shape, 1]},  # another rank
+        {**good, "shape": [shape[0], *(n + 1 for n in shape[1:])] if len(shape) > 1 else [shape[0] + 1]},
+        {**good, "data": _b64(data[: -rng.randrange(1, 3)])},  # bytes short of the shape
+        {**good, "data": _b64(data + data[:1])},  # a byte too many
+        {**good, "data": _b64(data * (rows + 2))},  # more bytes than any record of the batch holds
+        {**good, "data": rng.choice(["!!!!", good["data"][:-1], "A", good["data"] + "=", "@" + good["data"][1:]])},
+        {k: v for k, v in good.items() if k != rng.choice(["shape", "dtype", "data"])},  # a missing member
+        {**good, "order": "C"},  # an unknown member
+    ]
+    return rng.choice(choices)
 
 
 def valid(schema: S.Schema) -> dict[str, Any]:
@@ -193,12 +258,16 @@ def malformed(
             yield json.dumps({"schema": schema.name, "v": schema.version, **rec})
         elif kind == 11:  # lists of the wrong length or with bad entries
             lists = [
-                k for k, fld in schema.fields.items() if isinstance(fld, (S.IntList, S.FloatList, S.BoolList, S.Rows))
+                k
+                for k, fld in schema.fields.items()
+                if isinstance(fld, (S.IntList, S.FloatList, S.BoolList, S.Rows, S.Array))
             ]
             if lists:
                 k = rng.choice(lists)
                 fld = schema.fields[k]
-                if isinstance(fld, S.Rows):  # per-episode arrays: no rows, too many, a row of the wrong length
+                if isinstance(fld, S.Array):
+                    rec[k] = bad_array(fld, rec[k], rng, lim)
+                elif isinstance(fld, S.Rows):  # per-episode arrays: no rows, too many, a row of the wrong length
                     row = rec[k][0]
                     if isinstance(row, list):
                         wrong = [row[:-1]] if len(row) > 1 else [row * 2]

@@ -13,7 +13,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml", f"{PACKAGE}/fastdds.xml", f"{PACKAGE}/fastdds_loopback.xml"]),
     ],
-    install_requires=["msgspec>=0.18"],
+    install_requires=["msgspec>=0.18", "numpy>=1.26,<3"],  # numpy: the binary arrays of the bulk records
     python_requires=">=3.11",
     zip_safe=False,
     maintainer="HTLM maintainers",

@@ -3,6 +3,7 @@ on a ROS domain of its own per test and with localhost-only discovery, always cl
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
@@ -73,10 +74,14 @@ class RosTeam:
 
     def wait(self, name: str, timeout: float) -> int:
         """Exit code of a process, waiting for it at most `timeout` seconds (fails the test after that)."""
+        popen = self.procs[name].popen
         try:
-            return self.procs[name].popen.wait(timeout=timeout)
+            return popen.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
-            pytest.fail(f"{name} still running after {timeout} s; log:\n{self.log(name)[-3000:]}")
+            popen.send_signal(signal.SIGUSR1)  # every node dumps its threads' stacks to its log (run_node)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                popen.wait(timeout=1.0)
+            pytest.fail(f"{name} still running after {timeout} s; log and stacks:\n{self.log(name)[-6000:]}")
 
     def wait_all(self, timeout: float) -> dict[str, int]:
         end = time.monotonic() + timeout

@@ -1,7 +1,8 @@
 """Training over ROS equals `htlm train` bit for bit: with the same settings and seed, the trainer process of a
 launched team (world, five agents, trainer over real DDS; the world paces steps by the trainer's progress and the
 agents act with the trainer's weights on the cadence) ends with exactly the Q-networks of the in-process
-htlm_agent.experiments.train.train(), 96 episodes in batches of 32."""
+htlm_agent.experiments.train.train(), 96 episodes in batches of 32, at trainer lag 0 (Algorithm 1 as written) and at the
+learner's default lag (the agents act with networks k steps older while the trainer's updates overlap their work)."""
 
 from __future__ import annotations
 
@@ -21,16 +22,18 @@ LEARNER = {"envs": 32, "learning_starts": 300, "batch_size": 32, "validate_every
 EPISODES, SEED = 96, 0
 
 
-def test_training_over_ros_equals_htlm_train(ros_team: Any, tmp_path: Path) -> None:
+@pytest.mark.parametrize("lag", sorted({0, Settings().trainer_lag}))
+def test_training_over_ros_equals_htlm_train(ros_team: Any, tmp_path: Path, lag: int) -> None:
     from htlm_agent.experiments.train import train
 
     sc = builtin()
-    settings = Settings.from_dict({**LEARNER, "episodes": EPISODES, "seed": SEED, "eval_episodes": 0})
+    learner = {**LEARNER, "trainer_lag": lag}
+    settings = Settings.from_dict({**learner, "episodes": EPISODES, "seed": SEED, "eval_episodes": 0})
     train(sc, settings, tmp_path / "inproc", progress=False, tensorboard=False, evaluate_at_end=False)
     ref = load_checkpoint(tmp_path / "inproc" / "checkpoint")
 
     team = ros_team(
-        scenario=sc, mode="train", policy="auto", episodes=EPISODES, batch=LEARNER["envs"], seed=SEED, learner=LEARNER
+        scenario=sc, mode="train", policy="auto", episodes=EPISODES, batch=LEARNER["envs"], seed=SEED, learner=learner
     )
     team.start()
     assert team.wait("world", 150) == 0

@@ -8,7 +8,22 @@ import sys
 
 from . import qos
 from .params import constraint, field_docs
-from .schema import SCHEMAS, Bool, BoolList, Field, Float, FloatList, Int, IntList, Object, OneOf, Rows, Schema, Text
+from .schema import (
+    SCHEMAS,
+    Array,
+    Bool,
+    BoolList,
+    Field,
+    Float,
+    FloatList,
+    Int,
+    IntList,
+    Object,
+    OneOf,
+    Rows,
+    Schema,
+    Text,
+)
 from .topics import TOPICS
 
 
@@ -35,6 +50,11 @@ def field_text(f: Field) -> str:
         return f"bool list[{f.length}]"
     if isinstance(f, Rows):
         return f"per episode of the batch (1..{f.max_rows} entries): {field_text(f.item)}"
+    if isinstance(f, Array):
+        lo, hi = (f"{b:g}" if isinstance(b, float) else str(b) for b in (f.lo, f.hi))
+        shape = ", ".join([f"1..{f.max_rows} rows", *map(str, f.dims)])
+        dtype = f.dtype.replace("|", "\\|")
+        return f'binary "{dtype}" [{shape}]: {lo}..{hi}'
     if isinstance(f, Object):
         return "object"
     return type(f).__name__

@@ -30,6 +30,17 @@ def global_step(episode: int, batch: int, t: int, horizon: int) -> int:
     return batch_index(episode, batch) * horizon + t - 1
 
 
+def acting_weights(g: int, first: int, lag: int, every: int = 1) -> tuple[int, int]:
+    """Which networks act at global step g (index b·h + t − 1 of step t of batch b) of a run whose first step is
+    `first`, under a trainer lag and a weights cadence: (T, R), T = max(first, g − lag) and R the cadence's last
+    version at or below T, first + ⌊(T − first) / every⌋ · every. A network's version is the number of steps whose
+    updates it has had (`trained`); the agents act at g with version R, so the trainer's updates of steps T..g − 1
+    overlap the agents' work of those steps. With lag 0 and every 1 it is the version g: the updates of every step
+    before g, Algorithm 1 as written."""
+    target = max(first, g - lag)
+    return target, first + (target - first) // every * every
+
+
 def world_stream(seed: int, b: int, mode: str) -> np.random.Generator:
     """The world generator of batch b: `htlm train`'s training stream in train mode, else the evaluation one."""
     return seeds.train_world(seed, b) if mode == "train" else seeds.world(seed, b)

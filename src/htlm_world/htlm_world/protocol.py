@@ -66,7 +66,7 @@ class LockstepSettings:
     pace: bool = False
     """Wait for the trainer (train mode): step g is applied only once the trainer has finished the gradient updates
     of every step before g - trainer_lag (its /htlm/trainer/progress records)."""
-    trainer_lag: int = 0
+    trainer_lag: int = 1
     """k of the rate limiter: how many steps the trainer's updates may lag behind the world (0: the agents act with
     the networks of every update before the step, exactly as `htlm train`)."""
     trainer_deadline: float = 30.0

@@ -3,6 +3,9 @@
 - simulator agent-steps/s (`htlm_world.simulator.BatchSim`) at B = 1 and B = 1024;
 - team agent-steps/s (simulator + every agent's belief filter and reward, `team.Team`) at B = 1 and B = 1024;
 - learner gradient updates/s of the default settings (every agent's network, one update each);
+- the wire's cost of the transitions an agent sends the trainer (`htlm/transition`) at B = 128 and B = 1024: encode,
+  and decode with validation, in µs per transition (per episode row of a record), of the record in binary (v3) and
+  of the same transitions as the JSON lists of v2, the ratio of the two;
 - the wall time of a default training run (`htlm train` defaults, heterogeneous team, R_II on, medium T_RP) and
   whether it reached the quality targets.
 
@@ -136,6 +139,63 @@ def learner_rate(seconds: float, sc: Scenario | None = None) -> float:
     return r
 
 
+def json_transition() -> Any:
+    """`htlm/transition` v2, every array as JSON lists: what v3's binary arrays replaced, the yardstick of
+    `wire_costs`."""
+    from htlm_msgs_py import schema as S
+
+    knowledge = S.Rows(S.FloatList(-1e6, 1e6, length="knowledge"))
+    lists = {"k": knowledge, "a": S.Rows(S.Int(0, "action")), "r": S.Rows(S.Float(-1e6, 1e6)), "k2": knowledge}
+    fields = {**S.TRANSITION.fields, **lists, "mask2": S.Rows(S.BoolList("actions"))}
+    return S.Schema(S.TRANSITION.name, 2, fields, S.TRANSITION.max_bytes)
+
+
+def wire_costs(batch: int, seconds: float, sc: Scenario | None = None) -> dict[str, float]:
+    """µs per transition of encoding one agent's transition record of a step of B episodes (the sender's whole
+    job: from the arrays to the text) and of decoding it with every check (the trainer's), in binary and as JSON
+    lists; the transitions are a random team's fifth step, so the beliefs are as sparse as in a run."""
+    from htlm_agent.baselines.heuristics import RandomPolicy
+    from htlm_agent.runtime.team import Team
+    from htlm_msgs_py import schema as S
+
+    sc = sc or builtin()
+    team = Team(sc, batch, 0)
+    pol = RandomPolicy(sc, 0)
+    team.reset()
+    for _ in range(4):
+        team.step(pol.act(team.context()))
+    k = team.knowledge()
+    a = pol.act(team.context())
+    k2, r, _ = team.step(a)
+    arrays = {"k": k[:, 0], "a": a[:, 0], "r": r[:, 0], "k2": k2[:, 0], "mask2": team.mask()[:, 0]}
+    head = {"agent": 0, "session": "0123456789abcdef", "seq": 4, "episode": 0, "step": 5}
+    lim = S.limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, batch)
+    old = json_transition()
+
+    def binary() -> str:
+        return S.encode(S.TRANSITION, {**head, **arrays, "done": False})
+
+    def lists() -> str:
+        return S.encode(old, {**head, **{key: v.tolist() for key, v in arrays.items()}, "done": False})
+
+    new_text, old_text = binary(), lists()
+    got = S.decode(new_text, S.TRANSITION, lim)
+    assert all(np.array_equal(got[key], v.astype(got[key].dtype)) for key, v in arrays.items())
+    out: dict[str, float] = {}
+    for name, fn in (
+        ("binary_encode", binary),
+        ("binary_decode", lambda: S.decode(new_text, S.TRANSITION, lim)),
+        ("json_encode", lists),
+        ("json_decode", lambda: S.decode(old_text, old, lim)),
+    ):
+        rate, _ = _rate(fn, seconds / 4)
+        out[f"{name}_us"] = round(1e6 / rate / batch, 3)
+    out["encode_ratio"] = round(out["json_encode_us"] / out["binary_encode_us"], 1)
+    out["decode_ratio"] = round(out["json_decode_us"] / out["binary_decode_us"], 1)
+    out["binary_chars"], out["json_chars"] = len(new_text), len(old_text)
+    return out
+
+
 def training_run(episodes: int | None, out: str | None, sc: Scenario | None = None) -> dict[str, Any]:
     """A default `htlm train` run (no TensorBoard, no progress) and its final evaluation against the targets (the
     paper's teams only)."""
@@ -224,6 +284,14 @@ def run(args: argparse.Namespace) -> int:
     say(
         f"learner: {out['learner_updates_per_s']} updates/s ({n_agents} agents, minibatch {Settings().batch_size} each)"
     )
+    for b in (128, 1024):
+        w = out[f"transition_wire_B{b}"] = wire_costs(b, args.seconds, sc)
+        say(
+            f"transition record B={b}, µs per transition: encode {w['binary_encode_us']} in binary, "
+            f"{w['json_encode_us']} as JSON lists ({w['encode_ratio']}x); decode and validate "
+            f"{w['binary_decode_us']}, {w['json_decode_us']} as JSON ({w['decode_ratio']}x); "
+            f"{w['binary_chars']:,} characters against {w['json_chars']:,}"
+        )
     if not args.no_train:
         say("default training run ...")
         out["train"] = training_run(args.episodes, args.out, sc)

@@ -29,7 +29,7 @@ import yaml
 from htlm_agent.experiments.evaluate import evaluate, evaluate_run, write_reports
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
 from htlm_agent.learning.dqn import Learner
-from htlm_agent.learning.loop import Selection, episode_epsilons
+from htlm_agent.learning.loop import LaggedNets, Selection, episode_epsilons
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
 from htlm_agent.progress import Progress
@@ -127,11 +127,15 @@ def dropouts(share: float, batch: int, n_agents: int, rng: np.random.Generator) 
     return mask
 
 
-def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, float]:
+def train_batch(learner: Learner, team: Team, batch_index: int, lagged: LaggedNets | None = None) -> dict[str, float]:
     """Algorithm 1, lines 3-10, for B episodes at once: run one batch of episodes ε-greedily, storing every agent's
-    transitions in its own memory and training every agent `updates_per_step` times per step. Returns the batch's
-    row of progress.csv (the metrics of `htlm_world.metrics` over its episodes)."""
+    transitions in its own memory and training every agent `updates_per_step` times per step; under a trainer lag
+    the agents act with the networks of `lagged` (kept across the run's batches; default: new ones, this batch being
+    the run's first). Returns the batch's row of progress.csv (the metrics of `htlm_world.metrics` over its
+    episodes)."""
     sc, s, seed = learner.scenario, learner.settings, learner.seed
+    if lagged is None:
+        lagged = LaggedNets(learner, batch_index * sc.horizon)
     team.sim.rng = seeds.train_world(seed, batch_index)
     team.sim.channel_rngs = [seeds.train_channel(seed, i, batch_index) for i in range(sc.n_agents)]
     team.event_rng = seeds.train_events(seed, batch_index)
@@ -144,7 +148,8 @@ def train_batch(learner: Learner, team: Team, batch_index: int) -> dict[str, flo
     rsum = 0.0
     losses: list[float] = []
     for t in range(sc.horizon):
-        a = team.force_inactive(learner.act(k, m, eps_env, rngs))  # a dropped agent's stored action is its idling
+        net = lagged.at(batch_index * sc.horizon + t)
+        a = team.force_inactive(learner.act(k, m, eps_env, rngs, net))  # a dropped agent's stored action: its idling
         k2, r, info = team.step(a)
         m2 = team.mask()
         learner.store_batch(k, a, r, k2, m2, t == sc.horizon - 1)
@@ -269,6 +274,7 @@ class _Run:
     bar: Progress
     ckpt_dir: Path
     t_start: float
+    lagged: LaggedNets
     history: list[dict[str, float]] = field(default_factory=list)
     train_time: float = 0.0
     last_ckpt: int = 0
@@ -284,7 +290,7 @@ class _Run:
         """Train one batch, validate when due, log, and write a periodic checkpoint when due."""
         learner, s = self.learner, self.learner.settings
         t0 = time.perf_counter()
-        row = train_batch(learner, self.team, learner.episodes_done // s.envs)
+        row = train_batch(learner, self.team, learner.episodes_done // s.envs, self.lagged)
         self.train_time += time.perf_counter() - t0
         done = learner.episodes_done
         row["episodes"] = done
@@ -396,6 +402,7 @@ def train(
         bar=Progress(s.episodes, initial=done, unit="ep", enabled=progress),
         ckpt_dir=ckpt_dir,
         t_start=t_start,
+        lagged=LaggedNets(learner, done // s.envs * scenario.horizon),
         last_ckpt=done,
         last_val=done,
     )

@@ -112,15 +112,18 @@ class Learner:
         mask: BoolArray,
         epsilon: float | FloatArray,
         rngs: Sequence[np.random.Generator],
+        net: StackedQ | None = None,
     ) -> IntArray:
         """ε-greedy actions (B, N) over Â from knowledge (B, N, K) and masks (B, N, |Ḡ|); ε a number or one per
-        episode (B,); agent i explores with rngs[i] (`policies.epsilon_greedy`, as the agents' processes do)."""
+        episode (B,); agent i explores with rngs[i] (`policies.team_epsilon_greedy`, as the agents' processes do).
+        `net`: the networks to act with (default: the online ones; `loop.LaggedNets` gives older ones under a trainer
+        lag)."""
         with flush_denormals():
-            greedy = self._greedy(knowledge, mask)
+            greedy = self._greedy(knowledge, mask, self.net if net is None else net)
         return team_epsilon_greedy(greedy, mask, epsilon, rngs)
 
-    def _greedy(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
-        """`qpolicy.greedy_actions` of the online networks (the same numbers) in buffers made once per batch size."""
+    def _greedy(self, knowledge: FloatArray, mask: BoolArray, net: StackedQ) -> IntArray:
+        """`qpolicy.greedy_actions` of `net` (the same numbers) in buffers made once per batch size."""
         b = knowledge.shape[0]
         bufs = self._act_buffers.get(b)
         if bufs is None:
@@ -135,7 +138,7 @@ class Learner:
         np.copyto(x.numpy(), knowledge.transpose(1, 0, 2), casting="same_kind")
         np.logical_not(mask.transpose(1, 0, 2), out=blocked.numpy())
         with torch.no_grad():
-            q = self.net.forward_into(x, outs).masked_fill_(blocked, -math.inf)
+            q = net.forward_into(x, outs).masked_fill_(blocked, -math.inf)
             torch.argmax(q, dim=-1, out=a)  # the first of equal maxima, as qnet.masked_argmax
         out: IntArray = a.numpy().T
         return out

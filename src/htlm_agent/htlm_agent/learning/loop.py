@@ -1,5 +1,6 @@
-"""Pieces of the training loop that every trainer shares (`htlm train` in process and the trainer process over ROS):
-the ε of a batch's episodes and the selection of the best networks by validation."""
+"""Pieces of the training loop that every trainer shares (`htlm train` in process and the processes over ROS): the ε
+of a batch's episodes, which networks act at a step under a trainer lag, and the selection of the best networks by
+validation."""
 
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ import torch
 
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.dqn import Learner
+from htlm_agent.learning.qnet import StackedQ
 from htlm_agent.learning.settings import Settings
+from htlm_world.episode import acting_weights
 from htlm_world.types import FloatArray
 
 
@@ -23,6 +26,36 @@ def episode_epsilons(settings: Settings, episodes_done: int, batch: int) -> tupl
     if settings.eps_spread and batch > 1:
         return eps, np.minimum(1.0, eps * 2.0 * np.arange(batch) / (batch - 1))
     return eps, eps
+
+
+class LaggedNets:
+    """The networks that act under a trainer lag in process (`htlm train`), as the agents' processes act over ROS:
+    at global step g, the learner's networks as they were after the updates of the steps before R (`acting_weights`,
+    every version kept until it is no longer needed)."""
+
+    def __init__(self, learner: Learner, first_step: int) -> None:
+        """For a run (or a resumed part of one) whose first step is `first_step`."""
+        self.learner = learner
+        self.first = first_step
+        self.lag = learner.settings.trainer_lag
+        self.versions: dict[int, torch.Tensor] = {}
+        self.net: StackedQ | None = None
+
+    def at(self, g: int) -> StackedQ | None:
+        """The networks to act with at global step g, None for the learner's current ones (lag 0). Called once per
+        step, in order, after the updates of the steps before g."""
+        if self.lag == 0:
+            return None
+        online = self.learner.net
+        self.versions[g] = online.flat.detach().clone()
+        _, version = acting_weights(g, self.first, self.lag)
+        for v in [v for v in self.versions if v < version]:
+            del self.versions[v]
+        if self.net is None:
+            self.net = StackedQ(online.sizes, [[torch.zeros(sh) for sh in online.shapes]] * online.n_agents)
+        with torch.no_grad():
+            self.net.flat.copy_(self.versions[version])
+        return self.net
 
 
 class Selection:

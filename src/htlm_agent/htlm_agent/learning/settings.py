@@ -55,29 +55,33 @@ class Settings:
     """Fraction of `episodes` over which ε decays linearly from eps_start to eps_end."""
     eps_spread: bool = False
     """Spread ε over the B parallel episodes, linearly from 0 to 2ε (mean ε), so some run the greedy team."""
-    episodes: int = 32_768
+    episodes: int = 12_288
     """Training episodes in total."""
     dropout: float = 0.0
     """Training for resilience: the share of training episodes in which one teammate, drawn uniformly, sits out
     the whole episode (idles at its site, as a robot that drops out); 0 trains every episode with the full team."""
-    envs: int = 128
+    envs: int = 256
     """B, episodes simulated in parallel; one batch of B episodes runs the whole horizon together."""
-    updates_per_step: int = 2
+    updates_per_step: int = 8
     """Gradient updates of every agent per batched environment step (B transitions per agent)."""
+    trainer_lag: int = 1
+    """k of the trainer lag: the agents act at step t + 1 with the networks updated through step t − k (0: through
+    step t, Algorithm 1 as written). Over ROS the trainer's updates of the last k steps then overlap the agents' work
+    instead of holding it up; `htlm train` acts with the same networks, so both runtimes stay equal bit for bit."""
     seed: int = 0
     """Master seed of the run."""
     threads: int = 1
     """torch intra-op threads; results are reproducible for a fixed value."""
     eval_episodes: int = 500
     """Episodes of the greedy evaluation at the end of training."""
-    validate_every: int = 4096
+    validate_every: int = 1024
     """Episodes between greedy validation runs during training (0: none), logged as val_* columns."""
     validate_episodes: int = 500
     """Episodes of every validation run (their own random streams, never those of the final evaluation)."""
     select_best: bool = True
     """Make the networks with the best validation completion step, among validations after ε has decayed and at the
     end, the run's policy (the latest networks are kept for resuming)."""
-    checkpoint_every: int = 8_192
+    checkpoint_every: int = 4_096
     """Episodes between checkpoints (always one at the end)."""
     keep_replay: bool = True
     """Save the replay memories in checkpoints (about 60 MB with the defaults), so that a resumed run continues exactly;
@@ -106,6 +110,7 @@ class Settings:
             "validate_every",
             "validate_episodes",
             "checkpoint_every",
+            "trainer_lag",
             "seed",
         ):
             if getattr(self, name) < 0:

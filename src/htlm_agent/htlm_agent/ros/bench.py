@@ -1,5 +1,5 @@
 """`htlm bench ros`: episode-steps per second of the batched lockstep over ROS 2 (world + 5 agent processes +
-trainer = 7 processes on real DDS) at B = 1, 16, 64 and 128, each beside the in-process runtime at the same B with
+trainer = 7 processes on real DDS) at B = 1, 16, 64, 128 and 256, each beside the in-process runtime at the same B with
 the same per-agent policies, and the wall time of a training run over ROS beside `htlm train` with the same budget,
 all measured in one run. Also `python -m htlm_agent.ros.bench [--json]`.
 """
@@ -15,10 +15,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-TARGET_EPISODE_STEPS_PER_S = 5000.0
+TARGET_EPISODE_STEPS_PER_S = 10_000.0
 """Target of the batched lockstep at B = 64 with 7 processes on a 2-core machine (episode-steps per second)."""
 
-TARGET_TRAIN_RATIO = 2.0
+TARGET_TRAIN_RATIO = 3.0
 """Target: a training run over ROS takes at most this many times the wall time of `htlm train` with its budget."""
 
 
@@ -28,8 +28,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument(
         "--ros-batches",
-        default="1,16,64,128",
-        help="ros: batch sizes B to time, comma-separated (default 1,16,64,128)",
+        default="1,16,64,128,256",
+        help="ros: batch sizes B to time, comma-separated (default 1,16,64,128,256)",
     )
     p.add_argument(
         "--ros-batches-timed", type=int, default=3, help="ros: batches timed per B after the first (default 3)"
@@ -43,9 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--ros-train-episodes",
         type=int,
-        default=1024,
-        help="ros: episodes of the timed training runs, over ROS and in process (default 1024; 0: none; the "
-        "default budget of htlm train is 32768)",
+        default=None,
+        help="ros: episodes of the timed training runs, over ROS and in process (default: htlm train's budget, "
+        "12288; 0: none)",
     )
     p.add_argument("--domain-id", type=int, default=99, help="ros: ROS_DOMAIN_ID of the timed team (default 99)")
     p.add_argument("--keep", default="", metavar="DIR", help="ros: keep the run directories here")
@@ -138,11 +138,14 @@ def train_walls(episodes: int, domain: int, run_dir: Path) -> dict[str, float]:
 def ros_bench(args: argparse.Namespace) -> dict[str, Any]:
     """Time the batched lockstep over ROS at every B (and the in-process runtime at the same B right after), then a
     training run over ROS beside `htlm train`; every ratio is of two numbers measured in this run."""
-    batches = [int(x) for x in str(getattr(args, "ros_batches", "1,16,64,128")).split(",") if x.strip()]
+    from htlm_agent.learning.settings import Settings
+
+    batches = [int(x) for x in str(getattr(args, "ros_batches", "1,16,64,128,256")).split(",") if x.strip()]
     timed = max(1, int(getattr(args, "ros_batches_timed", 3)))
     policy = getattr(args, "ros_policy", "greedy")
     domain = int(getattr(args, "domain_id", 99))
-    train_episodes = int(getattr(args, "ros_train_episodes", 1024))
+    train_episodes = getattr(args, "ros_train_episodes", None)
+    train_episodes = Settings().episodes if train_episodes is None else int(train_episodes)
     keep = getattr(args, "keep", "")
     tmp = None
     if keep:

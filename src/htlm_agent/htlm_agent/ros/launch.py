@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from htlm_agent.learning.settings import Settings
 from htlm_msgs_py.qos import FASTDDS_LOOPBACK_PROFILE, FASTDDS_PROFILE
 from htlm_world.scenario import Scenario
 
@@ -151,6 +152,10 @@ def ros_env(cfg: LaunchConfig) -> dict[str, str]:
     # (a restarted node hangs on start). Over UDP a dead process takes nothing with it. An explicit setting wins. (With
     # the LOCALHOST range rmw_fastrtps adds shared memory anyway: localhost discovery is arranged above.)
     env.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+    # one thread per process for torch's (OpenMP's) kernels: a team is seven or more processes, and a second thread
+    # per process only spins waiting for a core (the trainer's gradient updates took 4x as long on two cores). An
+    # explicit setting wins; the trainer then uses the learner's `threads`, as `htlm train` does.
+    env.setdefault("OMP_NUM_THREADS", "1")
     # participants announce themselves every 0.25 s, not 3 s: a process joining a running graph (a restarted node, a
     # viewer) matches the others within 0.4 s instead of up to 3 s (htlm_msgs_py/fastdds.xml). An explicit file wins.
     env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))
@@ -167,6 +172,7 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     run = cfg.run_dir.resolve()
     sc = cfg.scenario
     specs: list[tuple[str, str, dict[str, Any]]] = []
+    learner = {**DEFAULT_LEARNER, "episodes": max(cfg.episodes, 1), **cfg.learner}
     world = {
         "team": sc.team,
         "seed": cfg.seed,
@@ -177,12 +183,13 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         "run_dir": str(run),
         "run_id": f"{run.name}"[:64].replace(" ", "_"),
         **({"operation": "external", "clock": "free", "period": cfg.period} if external(cfg) else {}),
+        # the agents act with the networks the learner's trainer_lag says, and the world paces its steps by it
+        **({"trainer_lag": learner.get("trainer_lag", Settings().trainer_lag)} if cfg.mode == "train" else {}),
         **cfg.world_params,
     }
     if cfg.scenario_file:
         world["scenario"] = str(Path(cfg.scenario_file).resolve())
     specs.append(("world", "htlm_world.ros.world_node", world))
-    learner = {**DEFAULT_LEARNER, "episodes": max(cfg.episodes, 1), **cfg.learner}
     settings_file = run / "parameters" / "learner.json"
     settings_file.parent.mkdir(parents=True, exist_ok=True)
     settings_file.write_text(json.dumps(learner, indent=1) + "\n")
@@ -303,6 +310,7 @@ class _ProgressTail(_Tail):
     """Follow the world's log and show its finished episodes as a progress line (rate, ETA, running completion)."""
 
     PATTERN = re.compile(r"episodes? (\d+)(?:\.\.(\d+))?: completion ([0-9.]+)(?: \(mean\))?(?:, (\d+) failed)?")
+    SECONDS = re.compile(r", ([0-9.]+) s$")
 
     def __init__(self, path: Path, total: int, first: int) -> None:
         from htlm_agent.progress import Progress
@@ -313,6 +321,25 @@ class _ProgressTail(_Tail):
         self.done = 0
         self.comp_sum = 0.0
         self.failed = 0
+        self.told = False
+
+    def _tell(self, n: int, line: str) -> None:
+        """Once, after the first batch: how long the whole run will take, from that batch's time."""
+        from htlm_agent.progress import format_duration
+
+        self.told = True
+        m = self.SECONDS.search(line.rstrip())
+        if m is None:
+            return
+        batch_s, total = float(m.group(1)), self.bar.total
+        left = (total - self.done) / n * batch_s
+        print(
+            f"htlm launch train: {total:,} episodes in batches of {n}; the first batch took {batch_s:.1f} s after "
+            f"{format_duration(max(self.bar.elapsed - batch_s, 0.0))} of start-up: about {format_duration(left)} "
+            "more of training",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def poll(self) -> None:
         for line in self.lines():
@@ -324,6 +351,8 @@ class _ProgressTail(_Tail):
             self.done = hi + 1 - self.first
             self.comp_sum += float(m.group(3)) * n
             self.failed += int(m.group(4) or ("(failed)" in line))
+            if not self.told:
+                self._tell(n, line)
             seen = max(self.done, 1)
             self.bar.update(
                 self.done, completion=f"{self.comp_sum / seen:.2f}", failed=f"{self.failed / seen:.1%}", last=m.group(3)

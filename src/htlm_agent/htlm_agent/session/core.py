@@ -29,7 +29,7 @@ from htlm_msgs_py.payload import PayloadError, unseal
 from htlm_msgs_py.run_control import RunControl
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import Signer
-from htlm_world.episode import global_step
+from htlm_world.episode import acting_weights, global_step
 from htlm_world.model import Model
 from htlm_world.robots import site_distance
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
@@ -331,8 +331,7 @@ class AgentSession:
         newest at or below T is older than the cadence's last version R <= T (they are on their way)."""
         assert self.scenario is not None
         g = global_step(episode, self.batch, t, self.scenario.horizon)
-        target = max(self.first_step, g - self.trainer_lag)
-        need = self.first_step + (target - self.first_step) // self.weights_every * self.weights_every
+        target, need = acting_weights(g, self.first_step, self.trainer_lag, self.weights_every)
         have = [v for v in self.versions if v <= target]
         if not have or max(have) < need:
             if self.mind is not None and self.mind.deferred is None:
@@ -657,11 +656,11 @@ class AgentSession:
                     "seq": seq,
                     "episode": tr.episode,
                     "step": tr.step,
-                    "k": tr.k.tolist(),
-                    "a": tr.a.tolist(),
-                    "r": tr.r.tolist(),
-                    "k2": tr.k2.tolist(),
-                    "mask2": tr.mask2.tolist(),
+                    "k": tr.k,
+                    "a": tr.a,
+                    "r": tr.r,
+                    "k2": tr.k2,
+                    "mask2": tr.mask2,
                     "done": tr.done,
                 },
                 self.signer,

@@ -156,6 +156,7 @@ class TrainerCore:
         self.run_range = (0, 0)
         self.batch = 1
         self.first_step = 0
+        self.run_lag = 0  # the announced run's trainer_lag
         self.trained = 0
         """Every round with a global step index below it is done."""
         self.rounds: dict[int, _Round] = {}
@@ -240,6 +241,7 @@ class TrainerCore:
         self.batch = rec["batch"]
         self.stopping = rec["state"] == "stopped"
         self.stop_at = now
+        self.run_lag = rec["trainer_lag"]
         try:
             self.start(sc, rec["seed"], out)
         except (StoreError, ValueError, OSError) as e:
@@ -267,11 +269,14 @@ class TrainerCore:
             StoreError: a store of another layout, or a store or checkpoint while `resume` is off.
             ValueError: bad learner settings, or a checkpoint that cannot be resumed.
         """
+        import torch
+
         from htlm_agent.learning.checkpoint import CheckpointError
         from htlm_agent.learning.dqn import Learner
         from htlm_agent.learning.loop import Selection
 
         settings = self.learner_settings(seed)
+        torch.set_num_threads(settings.threads)  # as `htlm train`
         self.scenario = sc
         self.first_step = self.global_step(self.run_range[0], 1)
         self.trained = self.first_step
@@ -306,6 +311,14 @@ class TrainerCore:
             )
         else:
             self.learner = Learner(sc, settings, seed)
+        if self.run_lag != settings.trainer_lag:
+            out.log.append(
+                (
+                    "warning",
+                    f"the run's trainer_lag {self.run_lag} differs from the learner's {settings.trainer_lag}: the "
+                    "agents act with other networks than `htlm train` would (set both, or the learner's alone)",
+                )
+            )
         self.selection = Selection(self.learner, info)
         if info:
             self.selection.restore(ckpt)
@@ -472,11 +485,10 @@ class TrainerCore:
             out.counters["partial_rounds"] += 1
             for i in sorted(rnd.records):
                 self._store_one(rnd.records[i])
-        for _ in range(self.learner.settings.updates_per_step):
-            loss = self.learner.train_step()
-            if loss is not None:
-                self.last_loss = loss
-                self.updates += 1
+        losses = self.learner.train_steps(self.learner.settings.updates_per_step)  # as `htlm train`: drawn together
+        if losses:
+            self.last_loss = losses[-1]
+            self.updates += len(losses)
         out.counters["train_rounds"] += 1
 
     def _store_one(self, rec: dict[str, Any]) -> None:

@@ -65,8 +65,10 @@ class WorldSettings:
     (first_episode must be a multiple of B; the last batch is shorter when `episodes` is not)."""
     pace: str = setting("auto", choices=("auto", "on", "off"))
     """Wait for the trainer's updates before each step (auto: in train mode with the lockstep clock)."""
-    trainer_lag: int = setting(0, lo=0, hi=1000)
-    """k of the rate limiter: step g waits until the trainer has done the updates of every step before g - k."""
+    trainer_lag: int = setting(1, lo=0, hi=1000)
+    """k of the rate limiter: step g waits until the trainer has done the updates of every step before g - k; the
+    agents act with the networks k steps old. It must be the learner's trainer_lag (the default is the learner's
+    default, `htlm launch train` passes the learner's, and the trainer warns when they differ)."""
     trainer_deadline: float = setting(30.0, lo=SECONDS[0], hi=SECONDS[1], tunable=True)
     """Longest wait for the trainer's progress, seconds; then the world goes on without it until it is heard."""
     end_hold: float = setting(60.0, lo=0.0, hi=SECONDS[1], tunable=True)
