@@ -500,3 +500,14 @@ def test_action_masks_from_the_table_equal_the_rule(name: str) -> None:
     assert np.array_equal(model.action_mask(prev), want)  # with -2 among them: worked out by the rule
     assert np.array_equal(model.action_mask(np.maximum(prev, -1)), want)  # read from the table
     assert np.array_equal(model.action_mask(np.int64(-1)), want[prev == -1][0])  # one a_o
+
+
+def test_pairwise_sums_row_by_row_equal_numpys_sums() -> None:
+    """The marginals of a middle slot (three kinds and more) are summed row by row, without stacking the rows (a copy
+    of every belief); the sums must be numpy's, as `pairwise_sum` of the stacked rows is."""
+    rng = np.random.default_rng(0)
+    for n in [*range(1, 40), 127, 128, 129, 255, 256, 300]:
+        x = rng.random((n, 3, 4)) * 10.0 ** rng.integers(-8, 8, (n, 1, 1))
+        want = np.ascontiguousarray(np.moveaxis(x, 0, -1)).sum(axis=-1)
+        assert np.array_equal(bf.pairwise_sum(x), want), n
+        assert np.array_equal(bf.pairwise_sum_rows(list(x)), want), n

@@ -390,6 +390,35 @@ def pairwise_sum(x: FloatArray, lo: int = 0, n: int | None = None, out: FloatArr
     return np.add(pairwise_sum(x, lo, half), pairwise_sum(x, lo + half, n - half), out=res)
 
 
+def pairwise_sum_rows(rows: list[FloatArray]) -> FloatArray:
+    """`pairwise_sum` of the stacked rows, without stacking them: the same additions in the same order, row by
+    row (for rows that are views no reshape can stack without a copy)."""
+
+    def block(lo: int, n: int) -> FloatArray:
+        if n < 8:
+            res = rows[lo].copy() if n < 2 else rows[lo] + rows[lo + 1]
+            for i in range(lo + 2, lo + n):
+                res += rows[i]
+            return res
+        if n <= 128:
+            r = [rows[lo + j] + rows[lo + 8 + j] if n >= 16 else rows[lo + j].copy() for j in range(8)]
+            i = 16 if n >= 16 else 8
+            while i < n - n % 8:
+                for j in range(8):
+                    r[j] += rows[lo + i + j]
+                i += 8
+            q = [r[2 * j] + r[2 * j + 1] for j in range(4)]
+            res = (q[0] + q[1]) + (q[2] + q[3])
+            for j in range(i, n):
+                res += rows[lo + j]
+            return res
+        half = n // 2
+        half -= half % 8
+        return block(lo, half) + block(lo + half, n - half)
+
+    return block(0, len(rows))
+
+
 def update_sites(
     tables: FilterTables,
     x: FloatArray,
@@ -438,7 +467,11 @@ def marginals_sites(x: FloatArray, levels: int, kinds: int) -> list[FloatArray]:
     out = []
     for k in range(K - 1):  # slot k last among the level axes, the others flattened in front
         order = (*range(k), *range(k + 1, K), k, *rest)
-        out.append(pairwise_sum(grid.transpose(order).reshape((L ** (K - 1), L) + x.shape[1:])))
+        moved = grid.transpose(order)
+        if k == 0:  # the other slots' axes are adjacent: one view of rows
+            out.append(pairwise_sum(moved.reshape((L ** (K - 1), L) + x.shape[1:])))
+        else:  # flattening them would copy every belief: their entries one by one instead
+            out.append(pairwise_sum_rows([moved[i] for i in np.ndindex((L,) * (K - 1))]))
     last = grid.reshape((L ** (K - 1), L) + x.shape[1:])  # the last slot's entries: one after the other
     total = last[0].copy()
     for i in range(1, last.shape[0]):
