@@ -9,14 +9,13 @@ fingerprint.
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from htlm_world.scenario import Scenario
-from htlm_world.types import FloatArray, IntArray, Knowledge, Marginals
+from htlm_world.types import IntArray, Knowledge, Marginals
 
 AnyFloats = NDArray[np.floating[Any]]
 """Knowledge states as stored anywhere: float64 in the runtimes, float32 in the replay memories."""
@@ -33,17 +32,11 @@ def build(marg: Marginals, prev: IntArray, n_actions: int) -> Knowledge:
         for j in range(marg.shape[-2]):
             for level in range(marg.shape[-1]):
                 dst[..., j, level] = marg[..., j, level]
-    if prev.size and int(prev.min()) >= -1 and int(prev.max()) < n_actions:
-        out[..., size:] = _one_hot(n_actions)[prev]  # row -1, the last, is all zeros
-    else:
-        out[..., size:] = prev[..., None] == np.arange(n_actions)
+    out[..., size:] = 0.0  # the one-hot a_o: a 1 where 0 <= a_o < |Ḡ|
+    flat = np.broadcast_to(prev, lead).reshape(-1)
+    rows = np.flatnonzero((flat >= 0) & (flat < n_actions))
+    out.reshape(-1, size + n_actions)[rows, size + flat[rows]] = 1.0
     return out
-
-
-@functools.cache
-def _one_hot(n_actions: int) -> FloatArray:
-    """The one-hot rows of a_o = 0..|Ḡ|-1, then a row of zeros (a_o = -1)."""
-    return np.vstack([np.eye(n_actions), np.zeros((1, n_actions))])
 
 
 def marginals(k: AnyFloats, scenario: Scenario) -> AnyFloats:
