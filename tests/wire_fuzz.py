@@ -56,6 +56,7 @@ VALID: dict[str, dict[str, Any]] = {
         "episodes": 1,
         "batch": 2,
         "trainer_lag": 1,
+        "epoch": 0.0,
         "state": "running",
         "layout": "0123abcd",
         "scenario": {"name": "paper"},

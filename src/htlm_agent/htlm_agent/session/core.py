@@ -29,6 +29,7 @@ from htlm_msgs_py.payload import PayloadError, unseal
 from htlm_msgs_py.run_control import RunControl
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import Signer
+from htlm_world.clock import StepClock
 from htlm_world.episode import acting_weights, global_step
 from htlm_world.model import Model
 from htlm_world.robots import site_distance
@@ -129,10 +130,26 @@ class AgentSession:
     actions wait until they arrive, or `weights_timeout`, then go with the newest (counted as stale_weights).
     """
 
-    def __init__(self, settings: SessionSettings, signer: Signer | None = None, readers: Readers | None = None) -> None:
+    def __init__(
+        self,
+        settings: SessionSettings,
+        signer: Signer | None = None,
+        readers: Readers | None = None,
+        wall_offset: float = 0.0,
+    ) -> None:
         """The session of agent `settings.agent` (its run comes with the first announcement); `signer` signs every
-        record; `readers(kind)` tells how many readers a kind of record has (None: always enough)."""
+        record; `readers(kind)` tells how many readers a kind of record has (None: always enough); `wall_offset`
+        is wall-clock seconds minus `now` (the step clock of an external operation is on the wall clock)."""
         self.settings = settings
+        self.wall_offset = wall_offset
+        self.own_clock: StepClock | None = None
+        """External operation, once the run's epoch is announced: the step clock this agent keeps itself."""
+        self.applied = -1
+        """The run-wide index of the newest step whose instant this agent has passed on its own clock."""
+        self.kept: tuple[str, str, int] | None = None
+        """(run, nonce, seq) of the announcement taken from disk."""
+        self.joined_at: tuple[int, int] | None = None
+        """(episode, step) at which this process joined the step clock."""
         self.signer = signer if signer is not None else Signer(None)
         self.readers: Readers = readers if readers is not None else (lambda _kind: 1 << 30)
         self.name = settings.agent
@@ -195,10 +212,17 @@ class AgentSession:
         self.arrived_logged = "unknown"
 
     # ----- the run ------------------------------------------------------------------------------------------------
-    def on_scenario(self, rec: dict[str, Any], now: float) -> SessionEffects:
-        """The world's announcement of a run (a decoded scenario record)."""
+    def on_scenario(self, rec: dict[str, Any], now: float, kept: bool = False) -> SessionEffects:
+        """The world's announcement of a run (a decoded scenario record); `kept`: the one this agent kept on disk
+        (external operation), taken at a restart so that it needs no world to step on."""
         out = SessionEffects()
         self.now = now
+        key = (rec["run"], rec["nonce"], rec["seq"])
+        if kept:
+            self.kept = key
+        elif key == self.kept:  # the announcement we took from disk, now also from the world
+            out.heard_world = True
+            return out
         verdict = self.control.take(rec)
         if verdict in ("other_run", "replay"):  # nobody but our run's world stops or switches us
             out.rejects.append(("scenario", verdict, self.control.refused(rec)))
@@ -208,7 +232,18 @@ class AgentSession:
             if not self.stopping:
                 self._stop_run(now, out)
             return out
+        if (
+            verdict in ("update", "restart")
+            and self.own_clock is None
+            and rec["epoch"] > 0.0
+            and self.scenario is not None
+        ):
+            self._start_clock(rec, now, out)
+            return out
         if verdict == "update":
+            return out
+        if verdict == "restart" and self.own_clock is not None:  # the observer is back; our clock never stopped
+            out.log.append(("info", f"run {self.run}: the world (observer) restarted (announcement {rec['seq']})"))
             return out
         if verdict == "restart":  # the same run from a restarted world: take its next begin whatever our state
             # The announcement (a transient-local sample, sent to a newly matched reader on the writer's heartbeat)
@@ -274,7 +309,18 @@ class AgentSession:
         )
         if rec["state"] == "stopped":
             self._stop_run(now, out)
+        elif self.operation == "external" and rec["epoch"] > 0.0:
+            self._start_clock(rec, now, out)
         return out
+
+    def _start_clock(self, rec: dict[str, Any], now: float, out: SessionEffects) -> None:
+        """The run's epoch is known: from now on this agent steps on its own clock (htlm_world.clock)."""
+        assert self.scenario is not None
+        self.own_clock = StepClock(rec["epoch"], self.period, self.scenario.horizon, self.first_episode, self.episodes)
+        out.log.append(
+            ("info", f"run {self.run}: stepping on our own clock (epoch {rec['epoch']:.6f}, period {self.period:g} s)")
+        )
+        self._run_clock(now, out)
 
     def _make_policy(self, kind: str, out: SessionEffects) -> None:
         sc = self.scenario
@@ -404,6 +450,8 @@ class AgentSession:
         if self.scenario is None:
             return out
         out.heard_world = True
+        if self.own_clock is not None:  # we keep the clock ourselves: the world's step records are for observers
+            return out
         e, t, phase = rec["episode"], rec["step"], rec["phase"]
         if phase == "begin":
             if t != 0:
@@ -414,12 +462,7 @@ class AgentSession:
                 return out
             if self.policy is None or not self._discovered(now):
                 return out  # not ready yet: the world asks again
-            if self.mind is None:
-                gate = self._gate if self.policy_kind == "trainer" and self.mode == "train" else None
-                self.mind = AgentMind(
-                    self.scenario, self.index, self.seed, self.policy, self.model, self.batch, self.mode, gate
-                )
-            m = self.mind
+            m = self._the_mind()
             force = m.episode is not None and (self.rejoin or now - self.last_accept > self.settings.resync_timeout)
             # the world applied steps of our batch that we never observed (an observation lost while a restarted
             # agent's subscriptions were still being matched) and now begins the next batch: we cannot finish ours,
@@ -452,6 +495,16 @@ class AgentSession:
         self._carry("step", eff, out)
         return out
 
+    def _the_mind(self) -> AgentMind:
+        """The mind, made with the policy at the first batch."""
+        if self.mind is None:
+            assert self.scenario is not None and self.policy is not None
+            gate = self._gate if self.policy_kind == "trainer" and self.mode == "train" else None
+            self.mind = AgentMind(
+                self.scenario, self.index, self.seed, self.policy, self.model, self.batch, self.mode, gate
+            )
+        return self.mind
+
     def on_observation(self, rec: dict[str, Any], now: float) -> SessionEffects:
         """The world's observations of a step for this agent (external operation: the robot's observation)."""
         out = SessionEffects()
@@ -466,6 +519,7 @@ class AgentSession:
                 out.rejects.append(("observation", "length", f"{len(rec['levels'])} levels for {self.mind.size}"))
                 return out
             self._observe_external(self.external.on_robot(rec["episode"], rec["step"], rec["levels"]), now, out)
+            self._run_clock(now, out)
             return out
         eff = self.mind.observe(rec["episode"], rec["step"], rec["levels"], rec["acted"], now, tasks=rec["tasks"])
         if eff.drop is None:
@@ -481,6 +535,7 @@ class AgentSession:
             return out
         eff = self.mind.hear(rec["agent"], rec["episode"], rec["step"], rec["actions"], rec["levels"])
         self._carry("broadcast", eff, out)
+        self._run_clock(now, out)
         return out
 
     def on_ack(self, rec: dict[str, Any], now: float) -> SessionEffects:
@@ -561,6 +616,7 @@ class AgentSession:
         the broadcast of a teammate that died after acting."""
         out = SessionEffects()
         self.now = now
+        self._run_clock(now, out)
         if self.external is not None:
             self._observe_external(self.external.due(now), now, out)
         self._resend_action(now, out)
@@ -581,12 +637,78 @@ class AgentSession:
             eff = m.tick(now, self._broadcast_wait())
             if eff.transition is not None:
                 self._carry("tick", eff, out)
+        self._run_clock(now, out)
         return out
+
+    def _run_clock(self, now: float, out: SessionEffects) -> None:
+        """Our own step clock (external operation): every instant that passed applies our action of its step (the
+        robot's observation and the teammates' broadcasts then come in as usual), a step still open at the next
+        instant is closed with what arrived, and the next episode begins as soon as the last one is done. A process
+        that joins mid-run (a restart) joins at the next instant; the steps it was away count as missed."""
+        c = self.own_clock
+        if c is None or self.policy is None or self.stopping or self.fatal is not None:
+            return
+        assert self.external is not None
+        m = self._the_mind()
+        target = c.last(now + self.wall_offset)
+        if self.joined_at is None:  # our first look at the clock: the action of the first begin counts if in time
+            p = m.pending
+            mine = c.index(m.episode, p.t) if m.episode is not None and p is not None and p.observed_at is None else -1
+            self.applied = mine - 1 if mine >= 0 and target <= mine else max(target, c.index(self.first_episode, 1) - 1)
+            self.joined_at = c.step(self.applied + 1)
+            if self.applied >= 0:
+                e, t = self.joined_at
+                out.log.append(("info", f"joined the team's clock at episode {e} step {t}"))
+        while self.applied < target:
+            i = self.applied + 1
+            if not c.in_run(i):
+                break
+            e, t = c.step(i)
+            self._act_for(e, t, now, out)
+            self.applied = i
+            # the step is applied with our action: the robot's observation, or none after the wait
+            self._observe_external(self.external.on_step(e, t, list(range(m.n)), now, self._wait()), now, out)
+        nxt = self.applied + 1
+        if not c.in_run(nxt):
+            if m.finished and not self.stopping:
+                self._stop_run(now, out)
+            return
+        e, t = c.step(nxt)
+        if m.episode != e and m.finished:  # the last episode is done (or we just joined): act for the next step now
+            self._act_for(e, t, now, out)
+
+    def _act_for(self, e: int, t: int, now: float, out: SessionEffects) -> None:
+        """Make sure the mind has its actions of step t of episode e before the step's instant (closing what is
+        still open of earlier steps)."""
+        m = self._the_mind()
+        if m.episode != e:
+            eff = m.begin(e, self._epsilon(e, 1), force=True, size=1)
+            if t > 1:  # joining mid-episode: the actions of step 1 are long past
+                eff.action = None
+            self._carry("clock", eff, out)
+            if t == 1:
+                return
+        p = m.pending
+        if p is not None and p.t == t and p.observed_at is None:
+            return  # the usual case: acted in time
+        assert self.external is not None
+        if p is not None and p.t == t - 1:  # the previous step is late: close it with what arrived
+            out.counters["late_steps"] += 1
+            self._observe_external(self.external.due(float("inf")), now, out)
+            if m.pending is not None and m.pending.t == t - 1 and m.pending.observed_at is not None:
+                self._carry("clock", m.tick(now, -1.0), out)
+            p = m.pending
+            if p is not None and p.t == t and p.observed_at is None:
+                return
+        for eff in m.skip_to(t):
+            self._carry("clock", eff, out)
 
     def _resend_action(self, now: float, out: SessionEffects) -> None:
         """Send our action of the step in progress again while the world has not applied the step (a record lost
         in a reader's queue, e.g. under a flood of other records, costs a resend instead of the world's deadline)."""
         m, last = self.mind, self.last_action
+        if self.own_clock is not None:
+            return  # nobody waits for our action: it counts when it arrives before the step's instant
         if m is None or last is None or m.pending is None or m.pending.observed_at is not None:
             return
         e, t, text, at = last
@@ -726,6 +848,7 @@ class AgentSession:
             "transitions_acked": str(self.acked),
             "outbox": str(len(self.outbox)),
             "operation": self.operation,
+            "clock": "own" if self.own_clock is not None else "world",
         }
         arrived, distance = self.arrival()
         vals.update({"arrived": arrived, "distance_to_site": f"{distance:g}"})
