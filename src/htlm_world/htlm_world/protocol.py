@@ -195,6 +195,8 @@ class WorldProtocol:
         """External operation: the actions heard per (episode, step), kept until the observer records the step."""
         self.missed_steps = 0
         """External operation: steps that passed while this world process was not running."""
+        self.early: list[tuple[str, dict[str, Any]]] = []
+        """External operation: severity and observation records of steps not yet recorded, as (kind, record)."""
 
     # ----- the run ------------------------------------------------------------------------------------------------
     def resume(self, seq: int, next_episode: int, epoch: float = 0.0) -> None:
@@ -384,6 +386,9 @@ class WorldProtocol:
             out.drops.append(("severity", "simulated"))
             return out
         e, t = rec["episode"], rec["step"]
+        if self._soon(e, t, ep) and len(rec["levels"]) == 1:
+            self._keep_early("severity", rec)  # the operation applied the step before we recorded it
+            return out
         if e != self.episode or len(rec["levels"]) != 1:
             out.drops.append(("severity", "past" if e < self.episode else "future" if e > self.episode else "length"))
             return out
@@ -402,9 +407,34 @@ class WorldProtocol:
         """A decoded observation record a robot published (external operation only): kept for the episode log."""
         out = WorldEffects()
         ep = self.ep
-        if isinstance(ep, ExternalEpisode) and rec["episode"] == self.episode and 1 <= rec["step"] <= ep.t:
+        if isinstance(ep, ExternalEpisode) and self._soon(rec["episode"], rec["step"], ep):
+            self._keep_early("observation", rec)
+        elif isinstance(ep, ExternalEpisode) and rec["episode"] == self.episode and 1 <= rec["step"] <= ep.t:
             ep.report_observation(rec["agent"], rec["step"], rec["levels"][0])
         return out
+
+    def _soon(self, e: int, t: int, ep: ExternalEpisode) -> bool:
+        """Under the agents' clock: whether step t of episode e is the next one the observer will record (its reports may come first)."""
+        if not (self.decentral and self.epoch > 0.0) or (e, t) <= (self.episode, ep.t):
+            return False
+        h = self.scenario.horizon
+        nxt = (e - self.episode) * h + t - ep.t
+        return nxt == 1
+
+    def _keep_early(self, kind: str, rec: dict[str, Any]) -> None:
+        """A report of a step the observer has not recorded yet (the agents' clock runs ahead of its record by
+        OBSERVE_AFTER): taken when it records the step."""
+        self.early.append((kind, rec))
+        del self.early[: max(0, len(self.early) - 64 * self.scenario.n_agents)]
+
+    def _take_early(self, now: float, out: WorldEffects) -> None:
+        """The early reports of the steps recorded by now."""
+        ready = [(k, r) for k, r in self.early if (r["episode"], r["step"]) <= (self.episode, self.t)]
+        self.early = [(k, r) for k, r in self.early if (r["episode"], r["step"]) > (self.episode, self.t)]
+        for kind, rec in ready:
+            got = self.on_severity(rec, now) if kind == "severity" else self.on_observation(rec, now)
+            out.publish += got.publish
+            out.drops += got.drops
 
     def _gate_closed(self, now: float, out: WorldEffects) -> bool:
         """Whether the next step must wait for the trainer (pace): the steps before g - trainer_lag are not all
@@ -608,6 +638,8 @@ class WorldProtocol:
                 )
         self.present = set(chosen)
         res = self.ep.step(chosen)
+        if clock is not None:  # the reports of this step that came before we recorded it
+            self._take_early(now, out)
         self.answers = {}  # from here on, the agents' answers are their actions of step t + 1 (ready after step h)
         external = isinstance(self.ep, ExternalEpisode)
         if not external:  # in an external operation the robots observe and publish the observations themselves
