@@ -230,6 +230,7 @@ class AgentSession:
         out.heard_world = True
         if verdict == "stop":
             if not self.stopping:
+                self._close_step(now, out)
                 self._stop_run(now, out)
             return out
         if (
@@ -676,6 +677,21 @@ class AgentSession:
         e, t = c.step(nxt)
         if m.episode != e and m.finished:  # the last episode is done (or we just joined): act for the next step now
             self._act_for(e, t, now, out)
+
+    def _close_step(self, now: float, out: SessionEffects) -> None:
+        """Under our own clock, when the run stops: finish the step in progress with what arrived (the world may
+        announce the end before our update of the last step is done), so that its episode is logged."""
+        m = self.mind
+        if self.own_clock is None or m is None or m.pending is None or m.pending.t > m.t + 1:
+            return
+        if (
+            m.pending.observed_at is None
+            and self.external is not None
+            and (m.episode, m.pending.t) in self.external.steps
+        ):
+            self._observe_external(self.external.due(float("inf")), now, out)
+        if m.pending is not None and m.pending.observed_at is not None:
+            self._carry("clock", m.tick(now, -1.0), out)
 
     def _act_for(self, e: int, t: int, now: float, out: SessionEffects) -> None:
         """Make sure the mind has its actions of step t of episode e before the step's instant (closing what is
