@@ -414,7 +414,8 @@ class WorldProtocol:
         return out
 
     def _soon(self, e: int, t: int, ep: ExternalEpisode) -> bool:
-        """Under the agents' clock: whether step t of episode e is the next one the observer will record (its reports may come first)."""
+        """Under the agents' clock: whether step t of episode e is the next one the observer will record (its
+        reports may come first)."""
         if not (self.decentral and self.epoch > 0.0) or (e, t) <= (self.episode, ep.t):
             return False
         h = self.scenario.horizon
