@@ -145,4 +145,4 @@ def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> No
     again.resume(5, 1, world.epoch)
     eff = again.start(clock.at(1, 4) + 0.5)
     assert (again.episode, again.t) == (1, 5)
-    assert any("observing from step 5" in text for _lv, text in eff.log)
+    assert any("from episode 1 step 5" in text for _lv, text in eff.log)

@@ -242,13 +242,14 @@ class WorldProtocol:
                 out.log.append(("warning", f"episodes {first}..{e - 1} passed while the world was down; not logged"))
                 self.next_unlogged = e
             self._next_episode(e, now, out)
+            out.log.append(("info", f"observing the agents' clock from episode {e} step {t}"))
             if self.ep is not None and t > 1:
                 assert isinstance(self.ep, ExternalEpisode)
                 self.ep.skip(t - 1)
                 self.missed_steps += t - 1
                 self.t = t
                 self.deadline = self._mono(clock.at(e, t)) + OBSERVE_AFTER * self.settings.period
-                out.log.append(("warning", f"episode {e}: observing from step {t} on (the steps before passed)"))
+                out.log.append(("warning", f"episode {e}: steps 1..{t - 1} passed unobserved; logged as idle"))
             self._progress(now, out)
             return out
         self._next_episode(first, now, out)

@@ -96,6 +96,8 @@ class OperationNode(RunFollower):
         target = clock.last(time.time())
         if self.applied < 0 and target >= 0:  # (re)started mid-run: join at the step in progress
             self.applied = target - 1
+            e, t = clock.step(target)
+            self.get_logger().info(f"joined the team's clock at episode {e} step {t}")
         while self.applied < target and clock.in_run(self.applied + 1):
             self.applied += 1
             e, t = clock.step(self.applied)
@@ -105,7 +107,7 @@ class OperationNode(RunFollower):
                 if t > 1:
                     self.op.t = t - 1
                     self.get_logger().warning(
-                        f"joined at episode {e} step {t}: its levels start again from the scenario's initial ones"
+                        f"episode {e}: the levels start again from the scenario's initial ones at step {t}"
                     )
             heard = self.actions.get((e, t), {})
             n = sc.n_agents
