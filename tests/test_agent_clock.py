@@ -146,3 +146,20 @@ def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> No
     eff = again.start(clock.at(1, 4) + 0.5)
     assert (again.episode, again.t) == (1, 5)
     assert any("from episode 1 step 5" in text for _lv, text in eff.log)
+
+
+def test_a_teammate_whose_clock_is_off_by_more_than_a_quarter_period_is_reported() -> None:
+    team = _Team(episodes=1)
+    for k in range(SC.n_agents):
+        team.start(k)
+    team.run_until(EPOCH + 3.0)
+    s = team.sessions[0]
+    assert s.clock_warning() is None, "one clock for the whole team: no offset"
+    assert all(abs(x) < 1e-6 for x in s.clock_offsets().values())
+    # agent5's clock runs 0.4 periods ahead: its broadcasts look sent 0.4 s later than they arrive
+    bc = {"agent": 4, "episode": 0, "step": 5, "actions": [0], "levels": [-1], "sent": team.now + 0.4 * PERIOD}
+    s.on_broadcast(bc, team.now)
+    assert abs(s.clock_offsets()[4] + 0.4 * PERIOD) < 1e-6
+    warning = s.clock_warning()
+    assert warning is not None and "agent5 +0.400 s" in warning, warning
+    assert s.values()["clock_offset/agent5"] == "+0.400"

@@ -481,16 +481,18 @@ OBSERVATION = Schema(
 )
 BROADCAST = Schema(
     "htlm/broadcast",
-    2,
+    3,
     {
         "agent": _AGENT,
         "episode": _EPISODE,
         "step": Int(1, "step"),
         "actions": Rows(Int(0, "action")),
         "levels": Rows(Int(-1, "level")),
+        "sent": Float(0.0, 1e11),
     },
     doc="Per episode of the batch, the sender's assignment and its observation after the sender's (simulated) "
-    "channel, -1 when idle.",
+    "channel, -1 when idle; `sent`, the sender's wall clock when it sent the record (Unix seconds), from which "
+    "its teammates measure how far its clock is from theirs.",
 )
 READY = Schema(
     "htlm/ready",

@@ -206,7 +206,11 @@ class AgentNode(Node):
         se = self.session
         h.values.update({**se.values(), "signed": str(self.signer.enabled).lower()})
         if self.fatal is None:
-            h.ok(se.status())
+            off = se.clock_warning()
+            if off is None:
+                h.ok(se.status())
+            else:
+                h.warn(f"{se.status()}; {off}")
             if se.run is not None and not se.stopping:
                 self.world.check()
         h.publish()

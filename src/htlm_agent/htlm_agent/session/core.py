@@ -15,7 +15,7 @@ goal poses and episode log; and the counters and log lines of those decisions. E
 from __future__ import annotations
 
 import secrets
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,6 +34,12 @@ from htlm_world.episode import acting_weights, global_step
 from htlm_world.model import Model
 from htlm_world.robots import site_distance
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
+
+CLOCK_SAMPLES = 20
+"""Broadcasts per teammate from which its clock offset is measured (the least of them)."""
+
+CLOCK_TOLERANCE = 0.25
+"""The clock offset between two agents tolerated under the deployed team's own clock, in periods."""
 
 WEIGHTS_KEPT = 16
 """Most weight versions the session keeps (the newest; the gate picks one per step)."""
@@ -146,6 +152,8 @@ class AgentSession:
         """External operation, once the run's epoch is announced: the step clock this agent keeps itself."""
         self.applied = -1
         """The run-wide index of the newest step whose instant this agent has passed on its own clock."""
+        self.clock_samples: dict[int, deque[float]] = {}
+        """Per teammate, its latest broadcasts' arrival minus send time on the two wall clocks (`clock_offsets`)."""
         self.kept: tuple[str, str, int] | None = None
         """(run, nonce, seq) of the announcement taken from disk."""
         self.joined_at: tuple[int, int] | None = None
@@ -532,12 +540,40 @@ class AgentSession:
         """A teammate's broadcast (our own, looped back, is ignored)."""
         out = SessionEffects()
         self.now = now
-        if self.mind is None or rec["agent"] == self.index:
+        if rec["agent"] == self.index:
+            return out
+        self._clock_sample(rec["agent"], now + self.wall_offset - rec["sent"])
+        if self.mind is None:
             return out
         eff = self.mind.hear(rec["agent"], rec["episode"], rec["step"], rec["actions"], rec["levels"])
         self._carry("broadcast", eff, out)
         self._run_clock(now, out)
         return out
+
+    def _clock_sample(self, k: int, seconds: float) -> None:
+        """Arrival minus send time of a broadcast of teammate k on the two wall clocks: the delivery's latency plus
+        how far our clock is ahead of k's. The least of the last CLOCK_SAMPLES is the offset (latency on a local
+        network is milliseconds, queueing only adds)."""
+        q = self.clock_samples.setdefault(k, deque(maxlen=CLOCK_SAMPLES))
+        q.append(seconds)
+
+    def clock_offsets(self) -> dict[int, float]:
+        """Per teammate heard, how far our wall clock is ahead of its (negative: behind), seconds; /diagnostics
+        shows the opposite, `clock_offset/<teammate>`: how far the teammate's clock is ahead of ours."""
+        return {k: min(q) for k, q in sorted(self.clock_samples.items()) if q}
+
+    def clock_warning(self) -> str | None:
+        """Under our own step clock: which teammates' clocks differ from ours by more than a quarter of the period
+        (the tolerance, docs/ros.md, Connecting your robots), or None."""
+        if self.own_clock is None or self.scenario is None:
+            return None
+        limit = CLOCK_TOLERANCE * self.period
+        far = {k: x for k, x in self.clock_offsets().items() if abs(x) > limit}
+        if not far:
+            return None
+        names = [a.name for a in self.scenario.agents]
+        said = ", ".join(f"{names[k]} {-x:+.3f} s" for k, x in far.items())
+        return f"teammates' clocks off ours by more than {limit:g} s (a quarter of the period): {said}"
 
     def on_ack(self, rec: dict[str, Any], now: float) -> SessionEffects:
         """The trainer's acknowledgement of our transitions up to `upto`: they leave the outbox."""
@@ -763,7 +799,14 @@ class AgentSession:
         me, signer = self.index, self.signer
         if eff.broadcast is not None:
             t, a, level = eff.broadcast
-            fields = {"agent": me, "episode": mind.episode, "step": t, "actions": a.tolist(), "levels": level.tolist()}
+            fields = {
+                "agent": me,
+                "episode": mind.episode,
+                "step": t,
+                "actions": a.tolist(),
+                "levels": level.tolist(),
+                "sent": round(max(0.0, self.now + self.wall_offset), 6),
+            }
             out.publish.append(("broadcast", encode(S.BROADCAST, fields, signer)))
         if eff.action is not None:  # before the transition: the world and the team wait for it
             t, a = eff.action
@@ -866,6 +909,11 @@ class AgentSession:
             "operation": self.operation,
             "clock": "own" if self.own_clock is not None else "world",
         }
+        offsets = self.clock_offsets()
+        if offsets and self.scenario is not None:
+            names = [a.name for a in self.scenario.agents]
+            vals.update({f"clock_offset/{names[k]}": f"{-x:+.3f}" for k, x in offsets.items()})
+            vals["clock_offset_max"] = f"{max(abs(x) for x in offsets.values()):.3f}"
         arrived, distance = self.arrival()
         vals.update({"arrived": arrived, "distance_to_site": f"{distance:g}"})
         if self.external is not None:
