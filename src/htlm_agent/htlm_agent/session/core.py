@@ -134,6 +134,10 @@ class AgentSession:
     summary and the goal pose. In training the trainer's weights (`on_weights`) are cached by the step they were
     taken after, and the mind acts at step g only with those of the fixed cadence (`trainer_lag`, `every`): its
     actions wait until they arrive, or `weights_timeout`, then go with the newest (counted as stale_weights).
+
+    In an external operation (deployment), once the announcement carries the epoch, the session keeps the step clock
+    itself (`_run_clock`, htlm_world.clock): the world's step records are no longer read, every instant applies our
+    action of its step, and a session started mid-run joins at the next instant.
     """
 
     def __init__(
@@ -718,7 +722,7 @@ class AgentSession:
         """Under our own clock, when the run stops: finish the step in progress with what arrived (the world may
         announce the end before our update of the last step is done), so that its episode is logged."""
         m = self.mind
-        if self.own_clock is None or m is None or m.pending is None or m.pending.t > m.t + 1:
+        if self.own_clock is None or m is None or m.pending is None:
             return
         if (
             m.pending.observed_at is None
