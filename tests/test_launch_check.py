@@ -181,14 +181,17 @@ def test_the_progress_of_a_launched_training_says_how_long_it_will_take(
     tail = _ProgressTail(log, total=1024, first=0)
     tail.poll()
     assert "about" not in capsys.readouterr().err  # no batch yet: nothing to estimate from
+    with log.open("a") as f:  # the first batch waits for everyone to join: no estimate from it
+        f.write("[INFO] [2.0] [htlm_world]: episodes 0..255: completion 22.26 (mean), 24 failed, absent [0], 9.50 s\n")
+    tail.poll()
+    assert "more of training" not in capsys.readouterr().err
     with log.open("a") as f:
-        f.write("[INFO] [2.0] [htlm_world]: episodes 0..255: completion 22.26 (mean), 24 failed, absent [0], 2.50 s\n")
+        f.write("[INFO] [3.0] [htlm_world]: episodes 256..511: completion 20.00 (mean), 2 failed, absent [0], 2.50 s\n")
     tail.poll()
     err = capsys.readouterr().err
-    assert "1,024 episodes in batches of 256; the first batch took 2.5 s" in err
-    assert "about 0:08 more of training" in err  # 3 batches of 2.5 s
+    assert "1,024 episodes in batches of 256" in err and "a batch takes 2.5 s: about 0:05 more of training" in err
     with log.open("a") as f:
-        f.write("[INFO] [3.0] [htlm_world]: episodes 256..511: completion 20.00 (mean), 2 failed, absent [0], 2.00 s\n")
+        f.write("[INFO] [4.0] [htlm_world]: episodes 512..767: completion 19.00 (mean), 2 failed, absent [0], 2.00 s\n")
     tail.poll()
     tail.close()
     assert capsys.readouterr().err.count("more of training") == 0  # said once

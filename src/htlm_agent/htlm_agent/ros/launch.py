@@ -321,12 +321,17 @@ class _ProgressTail(_Tail):
         self.done = 0
         self.comp_sum = 0.0
         self.failed = 0
+        self.batches = 0
         self.told = False
 
     def _tell(self, n: int, line: str) -> None:
-        """Once, after the first batch: how long the whole run will take, from that batch's time."""
+        """Once, after the second batch (the first one also waits for every process to join and for the trainer's
+        first updates): how long the rest of the run will take, from that batch's time."""
         from htlm_agent.progress import format_duration
 
+        self.batches += 1
+        if self.batches < 2:
+            return
         self.told = True
         m = self.SECONDS.search(line.rstrip())
         if m is None:
@@ -334,9 +339,8 @@ class _ProgressTail(_Tail):
         batch_s, total = float(m.group(1)), self.bar.total
         left = (total - self.done) / n * batch_s
         print(
-            f"htlm launch train: {total:,} episodes in batches of {n}; the first batch took {batch_s:.1f} s after "
-            f"{format_duration(max(self.bar.elapsed - batch_s, 0.0))} of start-up: about {format_duration(left)} "
-            "more of training",
+            f"htlm launch train: {total:,} episodes in batches of {n}, {format_duration(self.bar.elapsed)} so far; "
+            f"a batch takes {batch_s:.1f} s: about {format_duration(left)} more of training",
             file=sys.stderr,
             flush=True,
         )
