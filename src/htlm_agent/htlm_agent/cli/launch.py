@@ -41,7 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--episodes",
         type=int,
         default=None,
-        help="episodes to run (default: train 20, evaluate 10, deploy 0 = until Ctrl-C)",
+        help=f"episodes to run (default: train the learner's budget, {Settings().episodes} unless --set "
+        "episodes=N; evaluate 500; deploy 0 = until Ctrl-C)",
     )
     p.add_argument("--first-episode", type=int, default=0, help="index of the first episode (seeds derive from it)")
     p.add_argument(
