@@ -28,6 +28,7 @@ def _kv(text: str) -> tuple[str, Any]:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm launch`."""
     from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
+    from htlm_agent.learning.settings import Settings
     from htlm_agent.ros.launch import EXIT_CODES
 
     p.add_argument("mode", choices=("train", "evaluate", "deploy"), help="what the team does")
