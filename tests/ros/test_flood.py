@@ -150,6 +150,8 @@ def test_a_flood_the_world_reads_as_it_comes_slows_the_lockstep_at_most_2x_and_l
 
 
 def test_a_flood_as_fast_as_a_process_can_publish_stops_nothing_and_is_counted(ros_team: Any) -> None:
-    f = run_flood(ros_team, ["--seconds", "12"], flooded=2)
+    # 20 batches flooded: a batch of 8 takes about 0.3 s, less than the flooder takes to start; with 2 the run could
+    # end before the flood reached the world (CI, 2026-11-26: flooded from batch 9 of 10)
+    f = run_flood(ros_team, ["--seconds", "12"], flooded=20)
     assert f.sent["sent"] > 100_000, f.sent  # at least 8,000 records/s
     assert 10_000 < sum(f.rejected.values()) <= f.sent["sent"], (f.rejected, f.sent)

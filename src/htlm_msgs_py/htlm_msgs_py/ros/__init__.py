@@ -424,7 +424,8 @@ def run_node(
 
     Construct the node before `try` (bad parameters exit with code 2 and the reason on stderr), route SIGINT and
     SIGTERM into `node.stop_signal` so `run` can stop cleanly, let SIGUSR1 dump every thread's stack to the log,
-    then `cleanup(node)`, `destroy_node()` and `try_shutdown()` whatever happened.
+    then `cleanup(node)`, the executor's release of the node, `destroy_node()` and `try_shutdown()` whatever
+    happened.
 
     Returns the process exit code: what `run` returned, 130 on KeyboardInterrupt / external shutdown.
     """
@@ -461,6 +462,10 @@ def run_node(
         if health is not None and health.counters:
             counts = ", ".join(f"{k} {v}" for k, v in sorted(health.counters.items()))
             node.get_logger().info(f"counters at exit: {counts}")
-        node.destroy_node()
-        rclpy.try_shutdown()
+        try:  # the executor lets go of the node's entities before they are destroyed, not while Python tears it down
+            executor.remove_node(node)  # (there a node's QoS event handler hung the exit: tests/ros saw it 4 times)
+            executor.shutdown()
+        finally:
+            node.destroy_node()
+            rclpy.try_shutdown()
     return code
