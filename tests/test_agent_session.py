@@ -404,7 +404,7 @@ def test_records_outside_the_run_or_out_of_shape_are_dropped_and_counted() -> No
     assert not eff.drops and s.mind is not None and s.mind.missed_steps == 1 and s.mind.current == 2
     assert s.on_observation(_observation(0, 4, 1, [0]), 0.5).drops == [("observation", "past")]
     assert s.on_observation(_observation(0, 4, 2, [0, 1]), 0.5).drops == [("observation", "duplicate")]
-    bc = {"agent": 1, "episode": 4, "step": 3, "actions": [0, 0], "levels": [0, 0]}
+    bc = {"agent": 1, "episode": 4, "step": 3, "actions": [0, 0], "levels": [0, 0], "sent": 0.6}
     assert s.on_broadcast(bc, 0.6).drops == [("broadcast", "length")]
     assert s.on_broadcast({**bc, "agent": 0}, 0.6) == SessionEffects()  # our own, looped back
     assert s.on_broadcast({**bc, "episode": 2, "actions": [0], "levels": [0]}, 0.6).drops == [("broadcast", "past")]

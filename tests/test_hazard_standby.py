@@ -254,6 +254,7 @@ def test_the_record_carries_hazard_and_standby() -> None:
         "episodes": 1,
         "batch": 1,
         "trainer_lag": 0,
+        "epoch": 0.0,
         "state": "running",
         "layout": sc.layout_hash(),
         "scenario": sc.to_dict(),

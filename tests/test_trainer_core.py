@@ -59,6 +59,7 @@ def _scenario(
         "episodes": episodes,
         "batch": batch,
         "trainer_lag": 0,
+        "epoch": 0.0,
         "state": state,
         "layout": SC.layout_hash(),
         "scenario": SC.to_dict(),

@@ -47,6 +47,7 @@ def scenario_record(run: str = "watch-test", batch: int = 2, signer: Signer | No
             "episodes": 6,
             "batch": batch,
             "trainer_lag": 0,
+            "epoch": 0.0,
             "state": "running",
             "layout": sc.layout_hash(),
             "scenario": sc.to_dict(),

@@ -56,6 +56,7 @@ VALID: dict[str, dict[str, Any]] = {
         "episodes": 1,
         "batch": 2,
         "trainer_lag": 1,
+        "epoch": 0.0,
         "state": "running",
         "layout": "0123abcd",
         "scenario": {"name": "paper"},
@@ -63,7 +64,7 @@ VALID: dict[str, dict[str, Any]] = {
     "htlm/step": {"episode": 2, "size": 2, "step": 3, "phase": "step", "acted": [0, 1, 2]},
     "htlm/action": {"agent": 1, "episode": 2, "step": 3, "actions": [2, 5]},
     "htlm/observation": {"agent": 1, "episode": 2, "step": 3, "tasks": [2, -1], "levels": [3, -1], "acted": [0, 1, 2]},
-    "htlm/broadcast": {"agent": 1, "episode": 2, "step": 3, "actions": [2, 5], "levels": [3, -1]},
+    "htlm/broadcast": {"agent": 1, "episode": 2, "step": 3, "actions": [2, 5], "levels": [3, -1], "sent": 1.5},
     "htlm/ready": {"agent": 1, "episode": 1, "step": 30},
     "htlm/transition": {
         "agent": 1,

@@ -255,6 +255,7 @@ def rogue(args: argparse.Namespace) -> None:
                         "step": t,
                         "actions": [rng.randrange(4) for _ in range(b)],
                         "levels": [rng.randrange(5) for _ in range(nl)],
+                        "sent": time.time(),
                     },
                 ),
                 (

@@ -417,7 +417,7 @@ _BATCH_SIZE = Int(1, "batch")
 
 SCENARIO = Schema(
     "htlm/scenario",
-    4,
+    5,
     {
         "run": Text(64, r"[A-Za-z0-9_.:-]+"),
         "nonce": _HEX16,
@@ -426,6 +426,7 @@ SCENARIO = Schema(
         "mode": OneOf(("train", "evaluate", "deploy")),
         "clock": OneOf(("lockstep", "free")),
         "period": Float(0.0, 3600.0),
+        "epoch": Float(0.0, 1e11),
         "operation": OneOf(("simulated", "external")),
         "first_episode": _EPISODE,
         "episodes": Int(0, EPISODE_MAX),
@@ -440,6 +441,8 @@ SCENARIO = Schema(
     "that only grows over the run (also across restarts of the world), the scenario (Scenario.to_dict: its kinds "
     "of task by name with their dynamics, its sites with their tasks, its agents with their capabilities), its layout "
     "hash, master seed, mode, clock and its period, "
+    "the epoch (external operation: the wall-clock instant, Unix seconds, of the run's first step, from which every "
+    "process keeps the step clock itself; 0 until the world fixed it), "
     "operation (simulated by the world, or external: observations come from the robots), episode range and batch "
     "size B (episodes run at once); `state` turns to stopped when the world ends the run.",
 )
@@ -480,16 +483,18 @@ OBSERVATION = Schema(
 )
 BROADCAST = Schema(
     "htlm/broadcast",
-    2,
+    3,
     {
         "agent": _AGENT,
         "episode": _EPISODE,
         "step": Int(1, "step"),
         "actions": Rows(Int(0, "action")),
         "levels": Rows(Int(-1, "level")),
+        "sent": Float(0.0, 1e11),
     },
     doc="Per episode of the batch, the sender's assignment and its observation after the sender's (simulated) "
-    "channel, -1 when idle.",
+    "channel, -1 when idle; `sent`, the sender's wall clock when it sent the record (Unix seconds), from which "
+    "its teammates measure how far its clock is from theirs.",
 )
 READY = Schema(
     "htlm/ready",

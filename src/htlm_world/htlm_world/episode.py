@@ -188,6 +188,8 @@ class ExternalEpisode(WorldEpisode):
         super().__init__(scenario, model, 0, episode, started, size=1)
         self.reported: dict[int, IntArray] = {0: self.levels[0].copy()}
         self.observed: dict[tuple[int, int], int] = {}
+        self.missed = 0
+        """Steps that passed unobserved (`skip`)."""
 
     def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
         """Record the joint assignment of the step (absent agents idle); nothing is simulated."""
@@ -200,6 +202,14 @@ class ExternalEpisode(WorldEpisode):
         return StepOutcome(
             actions=actions, acted=acted, levels=np.full((1, self.scenario.n_tasks), -1), observations=unknown
         )
+
+    def skip(self, steps: int) -> None:
+        """Steps that passed unobserved (a world restarted mid-episode under the agents' clock): recorded as every
+        agent idle at its site, counted in `missed`; the levels of those steps stay unknown, so the metrics do."""
+        for _ in range(steps):
+            self.t += 1
+            self.action_log.append(np.asarray(self.model.idle_action(self.prev), dtype=np.int64))
+        self.missed += steps
 
     def report_levels(self, t: int, levels: IntArray) -> bool:
         """The outside source's true levels after step t (1..steps so far); False when t is not a step of it."""

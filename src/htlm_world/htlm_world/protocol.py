@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from htlm_world.clock import StepClock
 from htlm_world.episode import ExternalEpisode, WorldEpisode, batch_index, global_step
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
@@ -31,6 +32,14 @@ NUDGE = 0.5
 
 ABSENT_LOG_PERIOD = 5.0
 """Least seconds between two warnings about agents that missed a step."""
+
+FIRST_STEP_LEAD = 0.5
+"""External operation: the epoch (step 1 of the run) is this many periods after the first begin is over, so that
+the announcement carrying it reaches the agents first."""
+
+OBSERVE_AFTER = 0.1
+"""External operation: the observer records the joint assignment of a step this many periods after its instant
+(the agents sent their actions before it)."""
 
 
 @dataclass(frozen=True)
@@ -176,24 +185,73 @@ class WorldProtocol:
         self.episodes_done = 0
         self.absent_total = 0
         self._absent_warned = -math.inf
+        self.decentral = settings.operation == "external"
+        """External operation (deployment): the agents keep the step clock themselves and the world only observes."""
+        self.epoch = 0.0
+        """The wall-clock instant of the run's first step (external operation; 0 until fixed)."""
+        self.wall_offset = 0.0
+        """Wall-clock seconds minus `now` (the node sets it: time.time() - time.monotonic())."""
+        self.heard: dict[tuple[int, int], dict[int, Any]] = {}
+        """External operation: the actions heard per (episode, step), kept until the observer records the step."""
+        self.missed_steps = 0
+        """External operation: steps that passed while this world process was not running."""
+        self.early: list[tuple[str, dict[str, Any]]] = []
+        """External operation: severity and observation records of steps not yet recorded, as (kind, record)."""
 
     # ----- the run ------------------------------------------------------------------------------------------------
-    def resume(self, seq: int, next_episode: int) -> None:
+    def resume(self, seq: int, next_episode: int, epoch: float = 0.0) -> None:
         """Continue a run an earlier world process of the same run announced up to sequence number `seq` and logged
-        up to (excluding) `next_episode` (its durable progress)."""
+        up to (excluding) `next_episode` (its durable progress), under the step clock of `epoch` (external
+        operation; 0: not fixed yet)."""
         self.seq = seq + 1
         self.resume_at = self.next_unlogged = next_episode
+        if self.decentral:
+            self.epoch = epoch
 
     def progress(self) -> dict[str, Any]:
         """What a restarted world needs to continue the run: its id, the last sequence number announced, the next
-        episode not yet logged."""
-        return {"run": self.settings.run_id, "seq": self.seq - 1, "next_episode": self.next_unlogged}
+        episode not yet logged, the epoch of the step clock."""
+        return {
+            "run": self.settings.run_id,
+            "seq": self.seq - 1,
+            "next_episode": self.next_unlogged,
+            "epoch": self.epoch,
+        }
+
+    def clock(self) -> StepClock | None:
+        """The run's step clock (external operation, once the epoch is fixed)."""
+        if not (self.decentral and self.epoch > 0.0):
+            return None
+        s = self.settings
+        return StepClock(self.epoch, s.period, self.scenario.horizon, s.first_episode, s.episodes)
+
+    def _mono(self, wall: float) -> float:
+        return wall - self.wall_offset
 
     def start(self, now: float) -> WorldEffects:
         """Announce the run and the begin of its first episode (a restarted world's next one)."""
         out = WorldEffects()
         out.publish.append(("scenario", self.scenario_record("running")))
         first = self.settings.first_episode if self.resume_at is None else self.resume_at
+        clock = self.clock()
+        if clock is not None:  # the agents keep the clock: observe from the step in progress on
+            i = max(clock.last(now + self.wall_offset) + 1, clock.index(first, 1))
+            e, t = clock.step(i)
+            self.first = False
+            if e > first and clock.in_run(i):
+                out.log.append(("warning", f"episodes {first}..{e - 1} passed while the world was down; not logged"))
+                self.next_unlogged = e
+            self._next_episode(e, now, out)
+            out.log.append(("info", f"observing the agents' clock from episode {e} step {t}"))
+            if self.ep is not None and t > 1:
+                assert isinstance(self.ep, ExternalEpisode)
+                self.ep.skip(t - 1)
+                self.missed_steps += t - 1
+                self.t = t
+                self.deadline = self._mono(clock.at(e, t)) + OBSERVE_AFTER * self.settings.period
+                out.log.append(("warning", f"episode {e}: steps 1..{t - 1} passed unobserved; logged as idle"))
+            self._progress(now, out)
+            return out
         self._next_episode(first, now, out)
         self._progress(now, out)
         return out
@@ -244,20 +302,41 @@ class WorldProtocol:
     def on_action(self, rec: dict[str, Any], now: float) -> WorldEffects:
         """A decoded action record {agent, episode, step, action}."""
         out = WorldEffects()
+        if self.decentral and self.epoch > 0.0:  # the agents' clock: keep it for the step's instant
+            key = (rec["episode"], rec["step"])
+            if key <= (self.episode, self.t - 1) or (self.phase != "act" and key <= (self.episode, self.t)):
+                out.drops.append(("action", "past"))
+                return out
+            self.heard.setdefault(key, {})[rec["agent"]] = np.asarray(rec["actions"], dtype=np.int64)
+            while len(self.heard) > 64:
+                del self.heard[min(self.heard)]
+            self._progress(now, out)
+            return out
         if not self._accept("action", rec, "act", out):
             return out
         k, a = rec["agent"], rec["actions"]
         if k in self.answers:
             out.drops.append(("action", "duplicate"))
             return out
+        arr = self._valid(k, a, out)
+        if arr is None:
+            return out
+        self.answers[k] = arr
+        self.present.add(k)
+        self._progress(now, out)
+        return out
+
+    def _valid(self, k: int, a: Any, out: WorldEffects) -> Any:
+        """Agent k's actions of the current step as an array, or None (rejected: a wrong length, or an idle
+        location away from the site of a_o)."""
         assert self.ep is not None
         if len(a) != self.size:
             out.rejects.append(("action", "length", f"agent {k}: {len(a)} actions for a batch of {self.size}"))
-            return out
+            return None
         arr = np.asarray(a, dtype=np.int64)
         prev = self.ep.prev[:, k]
         ok = self.model.action_mask(prev)[np.arange(self.size), arr]
-        if not ok.all():  # an idle location away from the site of a_o
+        if not ok.all():
             i = int(np.flatnonzero(~ok)[0])
             out.rejects.append(
                 (
@@ -267,15 +346,14 @@ class WorldProtocol:
                     f"of a_o {int(prev[i])}",
                 )
             )
-            return out
-        self.answers[k] = arr
-        self.present.add(k)
-        self._progress(now, out)
-        return out
+            return None
+        return arr
 
     def on_ready(self, rec: dict[str, Any], now: float) -> WorldEffects:
         """A decoded ready record {agent, episode, step}."""
         out = WorldEffects()
+        if self.decentral and self.epoch > 0.0:
+            return out  # the agents' clock does not wait for anyone
         if not self._accept("ready", rec, "end", out):
             return out
         k = rec["agent"]
@@ -309,6 +387,9 @@ class WorldProtocol:
             out.drops.append(("severity", "simulated"))
             return out
         e, t = rec["episode"], rec["step"]
+        if self._soon(e, t, ep) and len(rec["levels"]) == 1:
+            self._keep_early("severity", rec)  # the operation applied the step before we recorded it
+            return out
         if e != self.episode or len(rec["levels"]) != 1:
             out.drops.append(("severity", "past" if e < self.episode else "future" if e > self.episode else "length"))
             return out
@@ -327,9 +408,35 @@ class WorldProtocol:
         """A decoded observation record a robot published (external operation only): kept for the episode log."""
         out = WorldEffects()
         ep = self.ep
-        if isinstance(ep, ExternalEpisode) and rec["episode"] == self.episode and 1 <= rec["step"] <= ep.t:
+        if isinstance(ep, ExternalEpisode) and self._soon(rec["episode"], rec["step"], ep):
+            self._keep_early("observation", rec)
+        elif isinstance(ep, ExternalEpisode) and rec["episode"] == self.episode and 1 <= rec["step"] <= ep.t:
             ep.report_observation(rec["agent"], rec["step"], rec["levels"][0])
         return out
+
+    def _soon(self, e: int, t: int, ep: ExternalEpisode) -> bool:
+        """Under the agents' clock: whether step t of episode e is the next one the observer will record (its
+        reports may come first)."""
+        if not (self.decentral and self.epoch > 0.0) or (e, t) <= (self.episode, ep.t):
+            return False
+        h = self.scenario.horizon
+        nxt = (e - self.episode) * h + t - ep.t
+        return nxt == 1
+
+    def _keep_early(self, kind: str, rec: dict[str, Any]) -> None:
+        """A report of a step the observer has not recorded yet (the agents' clock runs ahead of its record by
+        OBSERVE_AFTER): taken when it records the step."""
+        self.early.append((kind, rec))
+        del self.early[: max(0, len(self.early) - 64 * self.scenario.n_agents)]
+
+    def _take_early(self, now: float, out: WorldEffects) -> None:
+        """The early reports of the steps recorded by now."""
+        ready = [(k, r) for k, r in self.early if (r["episode"], r["step"]) <= (self.episode, self.t)]
+        self.early = [(k, r) for k, r in self.early if (r["episode"], r["step"]) > (self.episode, self.t)]
+        for kind, rec in ready:
+            got = self.on_severity(rec, now) if kind == "severity" else self.on_observation(rec, now)
+            out.publish += got.publish
+            out.drops += got.drops
 
     def _gate_closed(self, now: float, out: WorldEffects) -> bool:
         """Whether the next step must wait for the trainer (pace): the steps before g - trainer_lag are not all
@@ -468,6 +575,13 @@ class WorldProtocol:
             )
         self.episode, self.t, self.phase = e, 1, "act"
         self.answers = {}
+        clock = self.clock()
+        if clock is not None:  # nobody waits for anybody: step 1 is recorded at its instant
+            self.joining = False
+            self.present = set(range(self.scenario.n_agents))
+            self.deadline = self._mono(clock.at(e, 1)) + OBSERVE_AFTER * s.period
+            out.publish.append(self._step_record(0, "begin", []))
+            return
         self.joining = True
         self.gate_since = None
         self.deadline = now + self._begin_wait()
@@ -490,12 +604,27 @@ class WorldProtocol:
         self.first = False
         self.clock_at = self.deadline = now  # step 1 goes at once, also on the free clock
         self.waiting = set()
+        if self.decentral and self.epoch == 0.0:  # from here on every agent keeps the clock itself
+            lead = FIRST_STEP_LEAD * self.settings.period
+            self.epoch = round(now + self.wall_offset + lead, 6)
+            out.publish.append(("scenario", self.scenario_record("running")))
+            out.log.append(
+                ("info", f"the step clock starts at epoch {self.epoch:.6f} (period {self.settings.period:g} s)")
+            )
+            self.heard[(self.episode, 1)] = dict(self.answers)
+            self.answers = {}
+            self.clock_at = self.deadline = now + lead + OBSERVE_AFTER * self.settings.period
 
     def _apply_step(self, now: float, out: WorldEffects) -> None:
         """Apply T to the answers of step t (missing live agents idle), publish the results, wait for the next."""
         assert self.ep is not None
         s, sc = self.settings, self.scenario
         e, t, h = self.episode, self.t, sc.horizon
+        clock = self.clock()
+        if clock is not None:  # every agent is expected at every step: a silent one is absent each time
+            heard = self.heard.pop((e, t), {})
+            self.answers = {k: v for k, a in heard.items() if (v := self._valid(k, a, out)) is not None}
+            self.present = set(range(sc.n_agents))
         chosen = dict(self.answers)
         missing = self.present - chosen.keys()
         if missing:
@@ -511,6 +640,8 @@ class WorldProtocol:
                 )
         self.present = set(chosen)
         res = self.ep.step(chosen)
+        if clock is not None:  # the reports of this step that came before we recorded it
+            self._take_early(now, out)
         self.answers = {}  # from here on, the agents' answers are their actions of step t + 1 (ready after step h)
         external = isinstance(self.ep, ExternalEpisode)
         if not external:  # in an external operation the robots observe and publish the observations themselves
@@ -549,7 +680,15 @@ class WorldProtocol:
             for j, k in sorted(counts.items()):
                 where = f"episode {e}" if self.size == 1 else f"{k} of episodes {e}..{e + self.size - 1}"
                 out.log.append(("info", f"{where}, step {t}: event {sc.events[j].label!r}"))
-        if t < h:
+        if clock is not None:  # the observer: the next step at its instant, or the end of the episode
+            if t < h:
+                self.t, self.phase = t + 1, "act"
+                self.deadline = self._mono(clock.at(e, t + 1)) + OBSERVE_AFTER * s.period
+            else:
+                self.t, self.phase = h, "end"
+                self.waiting = set()
+                self.deadline = self._mono(clock.at(e, h)) + 0.5 * s.period  # the levels of step h come in
+        elif t < h:
             self.t, self.phase = t + 1, "act"
             if s.clock == "free":
                 self.deadline = self.clock_at + s.period
@@ -616,6 +755,7 @@ class WorldProtocol:
             "mode": s.mode,
             "clock": s.clock,
             "period": s.period,
+            "epoch": self.epoch,
             "operation": s.operation,
             "first_episode": s.first_episode,
             "episodes": s.episodes,

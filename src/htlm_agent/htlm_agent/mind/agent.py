@@ -247,6 +247,29 @@ class AgentMind:
             self._act(t, out)
         return out
 
+    def skip_to(self, t: int) -> list[Effects]:
+        """The steps before t passed without us (a process that joined the agents' clock mid-episode, or fell behind
+        it): close the step in progress as it stands (an action never applied counts as idle), every further one as
+        missed (idle at the site of the previous assignment, no evidence; teammates keep their last known
+        assignment), and act for step t. One Effects per closed step, the last with the actions of step t."""
+        outs: list[Effects] = []
+        p = self.pending
+        if p is not None and p.t < t:
+            if p.observed_at is None:  # never applied: we idled
+                self.missed_steps += 1
+                p.acted = False
+                p.action = self.idle_action()
+            outs.append(Effects(transition=self._finish()))
+        while self.t < t - 1:
+            self.missed_steps += 1
+            self._open(self.t + 1, self.knowledge(), self.idle_action(), acted=False)
+            outs.append(Effects(transition=self._finish()))
+        last = Effects()
+        if self.pending is None:
+            self._act(t, last)
+        outs.append(last)
+        return outs
+
     def _open(self, t: int, k: FloatArray, a: IntArray, acted: bool | None) -> None:
         self.pending = _Pending(t=t, k=k, action=a, acted=acted)
         for j, (tt, aj, lj) in self.early.items():

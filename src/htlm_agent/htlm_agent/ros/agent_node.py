@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -43,6 +44,7 @@ from htlm_msgs_py.ros import (
     string,
     subscribe_records,
 )
+from htlm_msgs_py.schema import record_text
 from htlm_msgs_py.signing import SigningError, signer_from_env
 
 
@@ -66,7 +68,7 @@ class AgentNode(Node):
             raise SettingsError(str(e)) from None
         self.name = s.agent
         self.health = Health(self, f"htlm: {self.name}", self.signer)
-        self.session = AgentSession(s.session(), self.signer, self._readers)
+        self.session = AgentSession(s.session(), self.signer, self._readers, time.time() - time.monotonic())
         self.stop_signal = 0
         self.fatal: str | None = None
         self.log_file: Any = None
@@ -103,7 +105,16 @@ class AgentNode(Node):
         # timers
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.create_timer(s.resend_period, lambda: self._apply(self.session.resend(time.monotonic())))
-        self.create_timer(min(0.1, s.broadcast_timeout / 4), lambda: self._apply(self.session.tick(time.monotonic())))
+        self.create_timer(min(0.1, s.broadcast_timeout / 4), self._tick)
+        self.run_file = Path(s.run_dir) / f"{self.name}.run.json" if s.run_dir else None
+        """External operation: the run announcement this agent steps by, kept so that a restart needs no world."""
+        if self.run_file is not None and self.run_file.exists():
+            self.get_logger().info(f"taking the run announcement kept in {self.run_file}")
+            self._on_scenario(self.run_file.read_text(encoding="utf-8"), kept=True)
+
+    def _tick(self) -> None:
+        self.session.wall_offset = time.time() - time.monotonic()  # the step clock follows the wall clock
+        self._apply(self.session.tick(time.monotonic()))
 
     def _readers(self, kind: str) -> int:
         """How many readers our records of `kind` have (the session's discovery and belief summaries ask)."""
@@ -114,10 +125,18 @@ class AgentNode(Node):
         return self.fatal is not None or self.session.finished(time.monotonic())
 
     # ----- messages in ------------------------------------------------------------------------------------------
-    def _on_scenario(self, msg: bytes) -> None:
+    def _on_scenario(self, msg: bytes | str, kept: bool = False) -> None:
         rec = self.health.decode("scenario", msg, S.SCENARIO)
-        if rec is not None:
-            self._apply(self.session.on_scenario(rec, time.monotonic()))
+        if rec is None:
+            return
+        self._apply(self.session.on_scenario(rec, time.monotonic(), kept))
+        se = self.session
+        if self.run_file is not None and se.own_clock is not None and rec["run"] == se.run and rec["epoch"] > 0.0:
+            text = msg if isinstance(msg, str) else record_text(msg)
+            tmp = self.run_file.with_suffix(".tmp")
+            self.run_file.parent.mkdir(parents=True, exist_ok=True)
+            tmp.write_text(text, encoding="utf-8")
+            os.replace(tmp, self.run_file)
 
     def _on_step(self, msg: bytes) -> None:
         rec = self.health.decode("step", msg, S.STEP, self.session.lim)
@@ -187,7 +206,11 @@ class AgentNode(Node):
         se = self.session
         h.values.update({**se.values(), "signed": str(self.signer.enabled).lower()})
         if self.fatal is None:
-            h.ok(se.status())
+            off = se.clock_warning()
+            if off is None:
+                h.ok(se.status())
+            else:
+                h.warn(f"{se.status()}; {off}")
             if se.run is not None and not se.stopping:
                 self.world.check()
         h.publish()

@@ -83,8 +83,8 @@ class AgentSettings:
     arrival_radius: float = setting(2.0, lo=0.0, hi=1e6)
     """Metres from the site within which the robot has arrived."""
     observation_wait: float = setting(-1.0, lo=-1.0, hi=SECONDS[1])
-    """External operation: seconds after the world's step record to wait for the robot's observation before
-    updating without one; -1: a quarter of the world's clock period."""
+    """External operation: seconds after the instant of a step to wait for the robot's observation before
+    updating without one; -1: a quarter of the clock period."""
 
     def session(self) -> SessionSettings:
         """The agent session's settings from these parameters."""

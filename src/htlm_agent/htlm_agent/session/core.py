@@ -15,7 +15,7 @@ goal poses and episode log; and the counters and log lines of those decisions. E
 from __future__ import annotations
 
 import secrets
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -29,10 +29,17 @@ from htlm_msgs_py.payload import PayloadError, unseal
 from htlm_msgs_py.run_control import RunControl
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import Signer
+from htlm_world.clock import StepClock
 from htlm_world.episode import acting_weights, global_step
 from htlm_world.model import Model
 from htlm_world.robots import site_distance
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
+
+CLOCK_SAMPLES = 20
+"""Broadcasts per teammate from which its clock offset is measured (the least of them)."""
+
+CLOCK_TOLERANCE = 0.25
+"""The clock offset between two agents tolerated under the deployed team's own clock, in periods."""
 
 WEIGHTS_KEPT = 16
 """Most weight versions the session keeps (the newest; the gate picks one per step)."""
@@ -127,12 +134,34 @@ class AgentSession:
     summary and the goal pose. In training the trainer's weights (`on_weights`) are cached by the step they were
     taken after, and the mind acts at step g only with those of the fixed cadence (`trainer_lag`, `every`): its
     actions wait until they arrive, or `weights_timeout`, then go with the newest (counted as stale_weights).
+
+    In an external operation (deployment), once the announcement carries the epoch, the session keeps the step clock
+    itself (`_run_clock`, htlm_world.clock): the world's step records are no longer read, every instant applies our
+    action of its step, and a session started mid-run joins at the next instant.
     """
 
-    def __init__(self, settings: SessionSettings, signer: Signer | None = None, readers: Readers | None = None) -> None:
+    def __init__(
+        self,
+        settings: SessionSettings,
+        signer: Signer | None = None,
+        readers: Readers | None = None,
+        wall_offset: float = 0.0,
+    ) -> None:
         """The session of agent `settings.agent` (its run comes with the first announcement); `signer` signs every
-        record; `readers(kind)` tells how many readers a kind of record has (None: always enough)."""
+        record; `readers(kind)` tells how many readers a kind of record has (None: always enough); `wall_offset`
+        is wall-clock seconds minus `now` (the step clock of an external operation is on the wall clock)."""
         self.settings = settings
+        self.wall_offset = wall_offset
+        self.own_clock: StepClock | None = None
+        """External operation, once the run's epoch is announced: the step clock this agent keeps itself."""
+        self.applied = -1
+        """The run-wide index of the newest step whose instant this agent has passed on its own clock."""
+        self.clock_samples: dict[int, deque[float]] = {}
+        """Per teammate, its latest broadcasts' arrival minus send time on the two wall clocks (`clock_offsets`)."""
+        self.kept: tuple[str, str, int] | None = None
+        """(run, nonce, seq) of the announcement taken from disk."""
+        self.joined_at: tuple[int, int] | None = None
+        """(episode, step) at which this process joined the step clock."""
         self.signer = signer if signer is not None else Signer(None)
         self.readers: Readers = readers if readers is not None else (lambda _kind: 1 << 30)
         self.name = settings.agent
@@ -195,10 +224,17 @@ class AgentSession:
         self.arrived_logged = "unknown"
 
     # ----- the run ------------------------------------------------------------------------------------------------
-    def on_scenario(self, rec: dict[str, Any], now: float) -> SessionEffects:
-        """The world's announcement of a run (a decoded scenario record)."""
+    def on_scenario(self, rec: dict[str, Any], now: float, kept: bool = False) -> SessionEffects:
+        """The world's announcement of a run (a decoded scenario record); `kept`: the one this agent kept on disk
+        (external operation), taken at a restart so that it needs no world to step on."""
         out = SessionEffects()
         self.now = now
+        key = (rec["run"], rec["nonce"], rec["seq"])
+        if kept:
+            self.kept = key
+        elif key == self.kept:  # the announcement we took from disk, now also from the world
+            out.heard_world = True
+            return out
         verdict = self.control.take(rec)
         if verdict in ("other_run", "replay"):  # nobody but our run's world stops or switches us
             out.rejects.append(("scenario", verdict, self.control.refused(rec)))
@@ -206,9 +242,21 @@ class AgentSession:
         out.heard_world = True
         if verdict == "stop":
             if not self.stopping:
+                self._close_step(now, out)
                 self._stop_run(now, out)
             return out
+        if (
+            verdict in ("update", "restart")
+            and self.own_clock is None
+            and rec["epoch"] > 0.0
+            and self.scenario is not None
+        ):
+            self._start_clock(rec, now, out)
+            return out
         if verdict == "update":
+            return out
+        if verdict == "restart" and self.own_clock is not None:  # the observer is back; our clock never stopped
+            out.log.append(("info", f"run {self.run}: the world (observer) restarted (announcement {rec['seq']})"))
             return out
         if verdict == "restart":  # the same run from a restarted world: take its next begin whatever our state
             # The announcement (a transient-local sample, sent to a newly matched reader on the writer's heartbeat)
@@ -274,7 +322,18 @@ class AgentSession:
         )
         if rec["state"] == "stopped":
             self._stop_run(now, out)
+        elif self.operation == "external" and rec["epoch"] > 0.0:
+            self._start_clock(rec, now, out)
         return out
+
+    def _start_clock(self, rec: dict[str, Any], now: float, out: SessionEffects) -> None:
+        """The run's epoch is known: from now on this agent steps on its own clock (htlm_world.clock)."""
+        assert self.scenario is not None
+        self.own_clock = StepClock(rec["epoch"], self.period, self.scenario.horizon, self.first_episode, self.episodes)
+        out.log.append(
+            ("info", f"run {self.run}: stepping on our own clock (epoch {rec['epoch']:.6f}, period {self.period:g} s)")
+        )
+        self._run_clock(now, out)
 
     def _make_policy(self, kind: str, out: SessionEffects) -> None:
         sc = self.scenario
@@ -404,6 +463,8 @@ class AgentSession:
         if self.scenario is None:
             return out
         out.heard_world = True
+        if self.own_clock is not None:  # we keep the clock ourselves: the world's step records are for observers
+            return out
         e, t, phase = rec["episode"], rec["step"], rec["phase"]
         if phase == "begin":
             if t != 0:
@@ -414,12 +475,7 @@ class AgentSession:
                 return out
             if self.policy is None or not self._discovered(now):
                 return out  # not ready yet: the world asks again
-            if self.mind is None:
-                gate = self._gate if self.policy_kind == "trainer" and self.mode == "train" else None
-                self.mind = AgentMind(
-                    self.scenario, self.index, self.seed, self.policy, self.model, self.batch, self.mode, gate
-                )
-            m = self.mind
+            m = self._the_mind()
             force = m.episode is not None and (self.rejoin or now - self.last_accept > self.settings.resync_timeout)
             # the world applied steps of our batch that we never observed (an observation lost while a restarted
             # agent's subscriptions were still being matched) and now begins the next batch: we cannot finish ours,
@@ -452,6 +508,16 @@ class AgentSession:
         self._carry("step", eff, out)
         return out
 
+    def _the_mind(self) -> AgentMind:
+        """The mind, made with the policy at the first batch."""
+        if self.mind is None:
+            assert self.scenario is not None and self.policy is not None
+            gate = self._gate if self.policy_kind == "trainer" and self.mode == "train" else None
+            self.mind = AgentMind(
+                self.scenario, self.index, self.seed, self.policy, self.model, self.batch, self.mode, gate
+            )
+        return self.mind
+
     def on_observation(self, rec: dict[str, Any], now: float) -> SessionEffects:
         """The world's observations of a step for this agent (external operation: the robot's observation)."""
         out = SessionEffects()
@@ -466,6 +532,7 @@ class AgentSession:
                 out.rejects.append(("observation", "length", f"{len(rec['levels'])} levels for {self.mind.size}"))
                 return out
             self._observe_external(self.external.on_robot(rec["episode"], rec["step"], rec["levels"]), now, out)
+            self._run_clock(now, out)
             return out
         eff = self.mind.observe(rec["episode"], rec["step"], rec["levels"], rec["acted"], now, tasks=rec["tasks"])
         if eff.drop is None:
@@ -477,11 +544,40 @@ class AgentSession:
         """A teammate's broadcast (our own, looped back, is ignored)."""
         out = SessionEffects()
         self.now = now
-        if self.mind is None or rec["agent"] == self.index:
+        if rec["agent"] == self.index:
+            return out
+        self._clock_sample(rec["agent"], now + self.wall_offset - rec["sent"])
+        if self.mind is None:
             return out
         eff = self.mind.hear(rec["agent"], rec["episode"], rec["step"], rec["actions"], rec["levels"])
         self._carry("broadcast", eff, out)
+        self._run_clock(now, out)
         return out
+
+    def _clock_sample(self, k: int, seconds: float) -> None:
+        """Arrival minus send time of a broadcast of teammate k on the two wall clocks: the delivery's latency plus
+        how far our clock is ahead of k's. The least of the last CLOCK_SAMPLES is the offset (latency on a local
+        network is milliseconds, queueing only adds)."""
+        q = self.clock_samples.setdefault(k, deque(maxlen=CLOCK_SAMPLES))
+        q.append(seconds)
+
+    def clock_offsets(self) -> dict[int, float]:
+        """Per teammate heard, how far our wall clock is ahead of its (negative: behind), seconds; /diagnostics
+        shows the opposite, `clock_offset/<teammate>`: how far the teammate's clock is ahead of ours."""
+        return {k: min(q) for k, q in sorted(self.clock_samples.items()) if q}
+
+    def clock_warning(self) -> str | None:
+        """Under our own step clock: which teammates' clocks differ from ours by more than a quarter of the period
+        (the tolerance, docs/ros.md, Connecting your robots), or None."""
+        if self.own_clock is None or self.scenario is None:
+            return None
+        limit = CLOCK_TOLERANCE * self.period
+        far = {k: x for k, x in self.clock_offsets().items() if abs(x) > limit}
+        if not far:
+            return None
+        names = [a.name for a in self.scenario.agents]
+        said = ", ".join(f"{names[k]} {-x:+.3f} s" for k, x in far.items())
+        return f"teammates' clocks off ours by more than {limit:g} s (a quarter of the period): {said}"
 
     def on_ack(self, rec: dict[str, Any], now: float) -> SessionEffects:
         """The trainer's acknowledgement of our transitions up to `upto`: they leave the outbox."""
@@ -561,6 +657,7 @@ class AgentSession:
         the broadcast of a teammate that died after acting."""
         out = SessionEffects()
         self.now = now
+        self._run_clock(now, out)
         if self.external is not None:
             self._observe_external(self.external.due(now), now, out)
         self._resend_action(now, out)
@@ -581,12 +678,93 @@ class AgentSession:
             eff = m.tick(now, self._broadcast_wait())
             if eff.transition is not None:
                 self._carry("tick", eff, out)
+        self._run_clock(now, out)
         return out
+
+    def _run_clock(self, now: float, out: SessionEffects) -> None:
+        """Our own step clock (external operation): every instant that passed applies our action of its step (the
+        robot's observation and the teammates' broadcasts then come in as usual), a step still open at the next
+        instant is closed with what arrived, and the next episode begins as soon as the last one is done. A process
+        that joins mid-run (a restart) joins at the next instant; the steps it was away count as missed."""
+        c = self.own_clock
+        if c is None or self.policy is None or self.stopping or self.fatal is not None:
+            return
+        assert self.external is not None
+        m = self._the_mind()
+        target = c.last(now + self.wall_offset)
+        if self.joined_at is None:  # our first look at the clock: the action of the first begin counts if in time
+            p = m.pending
+            mine = c.index(m.episode, p.t) if m.episode is not None and p is not None and p.observed_at is None else -1
+            self.applied = mine - 1 if mine >= 0 and target <= mine else max(target, c.index(self.first_episode, 1) - 1)
+            self.joined_at = c.step(self.applied + 1)
+            if self.applied >= 0:
+                e, t = self.joined_at
+                out.log.append(("info", f"joined the team's clock at episode {e} step {t}"))
+        while self.applied < target:
+            i = self.applied + 1
+            if not c.in_run(i):
+                break
+            e, t = c.step(i)
+            self._act_for(e, t, now, out)
+            self.applied = i
+            # the step is applied with our action: the robot's observation, or none after the wait
+            self._observe_external(self.external.on_step(e, t, list(range(m.n)), now, self._wait()), now, out)
+        nxt = self.applied + 1
+        if not c.in_run(nxt):
+            if m.finished and not self.stopping:
+                self._stop_run(now, out)
+            return
+        e, t = c.step(nxt)
+        if m.episode != e and m.finished:  # the last episode is done (or we just joined): act for the next step now
+            self._act_for(e, t, now, out)
+
+    def _close_step(self, now: float, out: SessionEffects) -> None:
+        """Under our own clock, when the run stops: finish the step in progress with what arrived (the world may
+        announce the end before our update of the last step is done), so that its episode is logged."""
+        m = self.mind
+        if self.own_clock is None or m is None or m.pending is None:
+            return
+        if (
+            m.pending.observed_at is None
+            and self.external is not None
+            and (m.episode, m.pending.t) in self.external.steps
+        ):
+            self._observe_external(self.external.due(float("inf")), now, out)
+        if m.pending is not None and m.pending.observed_at is not None:
+            self._carry("clock", m.tick(now, -1.0), out)
+
+    def _act_for(self, e: int, t: int, now: float, out: SessionEffects) -> None:
+        """Make sure the mind has its actions of step t of episode e before the step's instant (closing what is
+        still open of earlier steps)."""
+        m = self._the_mind()
+        if m.episode != e:
+            eff = m.begin(e, self._epsilon(e, 1), force=True, size=1)
+            if t > 1:  # joining mid-episode: the actions of step 1 are long past
+                eff.action = None
+            self._carry("clock", eff, out)
+            if t == 1:
+                return
+        p = m.pending
+        if p is not None and p.t == t and p.observed_at is None:
+            return  # the usual case: acted in time
+        assert self.external is not None
+        if p is not None and p.t == t - 1:  # the previous step is late: close it with what arrived
+            out.counters["late_steps"] += 1
+            self._observe_external(self.external.due(float("inf")), now, out)
+            if m.pending is not None and m.pending.t == t - 1 and m.pending.observed_at is not None:
+                self._carry("clock", m.tick(now, -1.0), out)
+            p = m.pending
+            if p is not None and p.t == t and p.observed_at is None:
+                return
+        for eff in m.skip_to(t):
+            self._carry("clock", eff, out)
 
     def _resend_action(self, now: float, out: SessionEffects) -> None:
         """Send our action of the step in progress again while the world has not applied the step (a record lost
         in a reader's queue, e.g. under a flood of other records, costs a resend instead of the world's deadline)."""
         m, last = self.mind, self.last_action
+        if self.own_clock is not None:
+            return  # nobody waits for our action: it counts when it arrives before the step's instant
         if m is None or last is None or m.pending is None or m.pending.observed_at is not None:
             return
         e, t, text, at = last
@@ -625,7 +803,14 @@ class AgentSession:
         me, signer = self.index, self.signer
         if eff.broadcast is not None:
             t, a, level = eff.broadcast
-            fields = {"agent": me, "episode": mind.episode, "step": t, "actions": a.tolist(), "levels": level.tolist()}
+            fields = {
+                "agent": me,
+                "episode": mind.episode,
+                "step": t,
+                "actions": a.tolist(),
+                "levels": level.tolist(),
+                "sent": round(max(0.0, self.now + self.wall_offset), 6),
+            }
             out.publish.append(("broadcast", encode(S.BROADCAST, fields, signer)))
         if eff.action is not None:  # before the transition: the world and the team wait for it
             t, a = eff.action
@@ -726,7 +911,13 @@ class AgentSession:
             "transitions_acked": str(self.acked),
             "outbox": str(len(self.outbox)),
             "operation": self.operation,
+            "clock": "own" if self.own_clock is not None else "world",
         }
+        offsets = self.clock_offsets()
+        if offsets and self.scenario is not None:
+            names = [a.name for a in self.scenario.agents]
+            vals.update({f"clock_offset/{names[k]}": f"{-x:+.3f}" for k, x in offsets.items()})
+            vals["clock_offset_max"] = f"{max(abs(x) for x in offsets.values()):.3f}"
         arrived, distance = self.arrival()
         vals.update({"arrived": arrived, "distance_to_site": f"{distance:g}"})
         if self.external is not None:

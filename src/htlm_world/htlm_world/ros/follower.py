@@ -39,6 +39,8 @@ class RunFollower(Node):
         self.model: Model | None = None
         self.lim: dict[str, int] | None = None
         self.stopped = False
+        self.epoch = 0.0
+        """The run's step clock epoch (external operation; 0 until announced)."""
         self.control = RunControl()
         subscribe_records(self, topics.SCENARIO, STATE_READER, self._on_scenario)
         self.create_timer(self.settings.diagnostics_period, self._publish_health)
@@ -54,6 +56,8 @@ class RunFollower(Node):
             return
         if verdict != "join":
             self.stopped = verdict == "stop" or (self.stopped and verdict == "update")
+            if self.epoch == 0.0 and self.run is not None:
+                self.epoch = rec["epoch"]
             return
         try:
             sc = from_record(rec)
@@ -62,6 +66,7 @@ class RunFollower(Node):
             return
         self.run, self.seed, self.scenario, self.model = rec["run"], rec["seed"], sc, Model.build(sc)
         self.lim = S.limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, rec["batch"])
+        self.epoch = rec["epoch"]
         self.on_run(rec)
         self.stopped = rec["state"] == "stopped"
 

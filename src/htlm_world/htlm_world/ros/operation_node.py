@@ -1,9 +1,10 @@
 """operation_node: the stand-in operation of the simulated robots, the outside truth an external-operation world
 does not simulate (docs/ros.md, Connecting your robots).
 
-It keeps the true task levels of the current episode and, whenever the world announces that step t was applied
-(its /htlm/step record, with the agents whose actions it applied), applies the model's T to the capabilities of the
-robots that are at the site of their assignment (their nav_msgs/Odometry on /htlm/<agent>/odom, within
+It keeps the true task levels of the current episode and steps on the run's clock (htlm_world.clock: the epoch and
+period of the run announcement, no record of the world needed): at the instant of step t it applies the model's T
+to the capabilities of the robots that are at the site of the assignment their agent sent for step t (an agent not
+heard idles at its site) (their nav_msgs/Odometry on /htlm/<agent>/odom, within
 `arrival_radius`): a robot on its way works on nothing. It publishes the levels on /htlm/severity, where the
 simulated robots read the true level of the task they observe and the world takes the levels for its logs and
 metrics. Run: `python -m htlm_world.ros.operation_node` (or `htlm launch deploy --robots sim`).
@@ -32,6 +33,7 @@ from htlm_msgs_py.ros import (
     subscribe_records,
 )
 from htlm_msgs_py.schema import encode
+from htlm_world.clock import StepClock
 from htlm_world.robots import StandInOperation, action_distance
 from htlm_world.ros.follower import RunFollower
 from htlm_world.ros.robot_settings import OperationSettings, validate_operation_settings
@@ -50,12 +52,13 @@ class OperationNode(RunFollower):
         """Parameters, the severity publisher, the world's records; the robots' poses once the run is known."""
         super().__init__("htlm_operation", OperationSettings, _validate, "htlm: operation")
         self.op: StandInOperation | None = None
+        self.period, self.first_episode, self.episodes = 0.5, 0, 0
         self.positions: dict[int, tuple[float, float]] = {}
         self.actions: dict[tuple[int, int], dict[int, int]] = {}  # (episode, step) -> agent -> action
-        self.pending: list[tuple[int, int, list[int], float]] = []  # steps applied by the world, not yet here
+        self.applied = -1
+        """The run-wide index of the last step applied (htlm_world.clock)."""
         self.prev: Any = None
         self.pub = self.create_publisher(String, topics.SEVERITY, EVENTS)
-        subscribe_records(self, topics.STEP, EVENTS, self._on_step)
         subscribe_records(self, topics.ACTION, EVENTS, self._on_action)
         self.create_timer(0.02, self._flush)
 
@@ -69,6 +72,7 @@ class OperationNode(RunFollower):
             self.create_subscription(
                 Odometry, topics.odometry(a.name), functools.partial(self._on_odom, k), POSE_READER
             )
+        self.period, self.first_episode, self.episodes = rec["period"], rec["first_episode"], rec["episodes"]
         self.get_logger().info(f"run {self.run}: the stand-in operation of {len(self.scenario.agents)} robots")
 
     def _on_odom(self, k: int, msg: Odometry) -> None:
@@ -83,41 +87,37 @@ class OperationNode(RunFollower):
             del self.actions[min(self.actions)]
         self._flush()
 
-    def _on_step(self, msg: bytes) -> None:
-        rec = self.health.decode("step", msg, S.STEP, self.lim)
-        if rec is None or self.scenario is None or self.model is None:
-            return
-        e, t = rec["episode"], rec["step"]
-        if rec["phase"] == "begin":
-            if self.op is None or self.op.episode != e:
-                self.op = StandInOperation(self.scenario, self.model, self.seed, e)
-                self.prev = np.full(self.scenario.n_agents, self.scenario.start_assignment, dtype=np.int64)
-                self.pending = []
-        elif rec["phase"] == "step" and self.op is not None and e == self.op.episode:
-            self.pending.append((e, t, list(rec["acted"]), time.monotonic() + self.settings.action_wait))
-            self._flush()
-
     def _flush(self) -> None:
-        """Apply the world's applied steps in order, once the actions of the agents it applied are in (or late)."""
-        now = time.monotonic()
-        while self.pending and self.op is not None and self.model is not None and self.scenario is not None:
-            e, t, acted, deadline = self.pending[0]
+        """Apply every step whose instant has passed on the run's clock, with the actions heard for it."""
+        if self.scenario is None or self.model is None or self.epoch <= 0.0 or self.stopped:
+            return
+        sc, model = self.scenario, self.model
+        clock = StepClock(self.epoch, self.period, sc.horizon, self.first_episode, self.episodes)
+        target = clock.last(time.time())
+        if self.applied < 0 and target >= 0:  # (re)started mid-run: join at the step in progress
+            self.applied = target - 1
+            e, t = clock.step(target)
+            self.get_logger().info(f"joined the team's clock at episode {e} step {t}")
+        while self.applied < target and clock.in_run(self.applied + 1):
+            self.applied += 1
+            e, t = clock.step(self.applied)
+            if self.op is None or self.op.episode != e:
+                self.op = StandInOperation(sc, model, self.seed, e)
+                self.prev = np.full(sc.n_agents, sc.start_assignment, dtype=np.int64)
+                if t > 1:
+                    self.op.t = t - 1
+                    self.get_logger().warning(
+                        f"episode {e}: the levels start again from the scenario's initial ones at step {t}"
+                    )
             heard = self.actions.get((e, t), {})
-            if not set(acted) <= heard.keys() and now < deadline:
-                return
-            self.pending.pop(0)
-            n = self.scenario.n_agents
+            n = sc.n_agents
             joint = np.array(
-                [
-                    heard[k] if k in acted and k in heard else int(self.model.idle_action(self.prev[k]))
-                    for k in range(n)
-                ],
-                dtype=np.int64,
+                [heard[k] if k in heard else int(model.idle_action(self.prev[k])) for k in range(n)], dtype=np.int64
             )
             arrived = np.array(
                 [
                     k in self.positions
-                    and action_distance(self.model, int(joint[k]), *self.positions[k]) <= self.settings.arrival_radius
+                    and action_distance(model, int(joint[k]), *self.positions[k]) <= self.settings.arrival_radius
                     for k in range(n)
                 ]
             )

@@ -48,8 +48,6 @@ class OperationSettings:
 
     arrival_radius: float = setting(2.0, lo=0.0, hi=1e6)
     """Metres from a site within which a robot works on its task there."""
-    action_wait: float = setting(0.1, lo=0.0, hi=SECONDS[1])
-    """Longest wait after the world's step record for the actions of the agents it applied, seconds."""
     diagnostics_period: float = setting(1.0, lo=SECONDS[0], hi=SECONDS[1])
     """Seconds between /diagnostics messages."""
     exit_on_stop: bool = setting(True)

@@ -133,7 +133,8 @@ class WorldNode(Node):
         if old.get("run") != self.run_id:
             return  # another run used this directory: a new run starts
         nxt = self._logged_until(old["next_episode"])
-        self.protocol.resume(old["seq"], nxt)
+        epoch = old.get("epoch", 0.0)
+        self.protocol.resume(old["seq"], nxt, float(epoch) if isinstance(epoch, (int, float)) else 0.0)
         self.get_logger().warning(
             f"run {self.run_id}: the world restarted; continuing at episode {nxt} (announcement {old['seq'] + 1})"
         )
@@ -249,6 +250,7 @@ class WorldNode(Node):
             f"signing {'on' if self.signer.enabled else 'off'}"
         )
         say_unsigned(self, self.signer)
+        proto.wall_offset = time.time() - time.monotonic()  # the agents' step clock is on the wall clock
         self._apply(proto.start(time.monotonic()))
         while not proto.done and not self.stop_signal:
             wait = proto.next_wakeup() - time.monotonic()

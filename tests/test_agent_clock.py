@@ -1,0 +1,165 @@
+"""The agents' own step clock in an external operation (deployment), in one process without ROS: every agent steps
+on the epoch of the run announcement with no record of any other node, a dead teammate costs the others no step,
+and a session started mid-run joins at the next instant (docs/ros.md, Connecting your robots)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from htlm_agent.ros.settings import AgentSettings
+from htlm_agent.session.core import AgentSession
+from htlm_msgs_py import schema as S
+from htlm_msgs_py.schema import limits
+from htlm_world.clock import StepClock
+from htlm_world.protocol import LockstepSettings, WorldProtocol
+from htlm_world.scenario import builtin
+
+SC = builtin()
+PERIOD = 1.0
+EPOCH = 1000.0
+DT = 0.05
+LIM = limits(SC.n_agents, SC.n_tasks, SC.n_actions, SC.levels, SC.horizon, 1)
+
+
+def _run_record(episodes: int, epoch: float = EPOCH) -> dict[str, Any]:
+    settings = LockstepSettings(
+        run_id="d1", mode="deploy", episodes=episodes, operation="external", clock="free", period=PERIOD
+    )
+    rec = WorldProtocol(SC, settings).scenario_record("running")
+    return {**rec, "epoch": epoch}
+
+
+class _Team:
+    """Sessions of a deployed team on one wall clock (`wall_offset` 0: `now` is the wall clock); the broadcasts of
+    the live sessions reach every other live session at once; no world, no robot (no observation)."""
+
+    def __init__(self, episodes: int) -> None:
+        self.rec = _run_record(episodes)
+        self.sessions: dict[int, AgentSession] = {}
+        self.actions: dict[int, list[tuple[int, int]]] = {}
+        self.now = EPOCH - 2.0
+
+    def start(self, k: int) -> AgentSession:
+        s = AgentSession(AgentSettings(agent=SC.agents[k].name, policy="greedy").session())
+        self.sessions[k] = s
+        self.actions.setdefault(k, [])
+        self._deliver(k, s.on_scenario(S.decode(S.encode(S.SCENARIO, self.rec), S.SCENARIO), self.now))
+        return s
+
+    def _deliver(self, k: int, eff: Any) -> None:
+        assert eff.fatal is None, eff.fatal
+        for kind, text in eff.publish:
+            if kind == "action":
+                rec = S.decode(text, S.ACTION, LIM)
+                self.actions[k].append((rec["episode"], rec["step"]))
+            if kind == "broadcast":
+                rec = S.decode(text, S.BROADCAST, LIM)
+                for j, other in list(self.sessions.items()):
+                    if j != k:
+                        self._deliver(j, other.on_broadcast(rec, self.now))
+
+    def run_until(self, wall: float) -> None:
+        while self.now < wall:
+            self.now = round(self.now + DT, 6)
+            for k, s in list(self.sessions.items()):
+                self._deliver(k, s.tick(self.now))
+
+
+def _acted(s: AgentSession, log: list[dict[str, Any]]) -> list[list[bool]]:
+    return [x["acted"] for x in log]
+
+
+def test_each_agent_steps_on_its_own_clock_and_a_dead_teammate_costs_no_step() -> None:
+    team = _Team(episodes=2)
+    logs: dict[int, list[dict[str, Any]]] = {k: [] for k in range(SC.n_agents)}
+    for k in range(SC.n_agents):
+        team.start(k)
+    clock = StepClock(EPOCH, PERIOD, SC.horizon, 0, 2)
+    orig = team._deliver
+
+    def deliver(k: int, eff: Any) -> None:
+        logs[k] += eff.episode_log
+        orig(k, eff)
+
+    team._deliver = deliver  # type: ignore[method-assign]
+    team.run_until(clock.at(0, 4) + 0.5)
+    del team.sessions[2]  # agent 3 dies in step 4 of episode 0
+    team.run_until(clock.at(1, SC.horizon) + PERIOD)
+    for k in (0, 1, 3, 4):
+        assert [x["episode"] for x in logs[k]] == [0, 1], k
+        assert _acted(team.sessions[k], logs[k]) == [[True] * SC.horizon] * 2, f"agent {k} missed a step"
+        # an action for every step, sent before the step's instant
+        assert sorted(set(team.actions[k])) == [(e, t) for e in (0, 1) for t in range(1, SC.horizon + 1)], k
+        assert team.sessions[k].stopping, "the run ends on the agent's own clock"
+
+
+def test_a_session_started_mid_run_joins_at_the_next_instant() -> None:
+    team = _Team(episodes=2)
+    logs: list[dict[str, Any]] = []
+    for k in range(SC.n_agents):
+        if k != 1:
+            team.start(k)
+    clock = StepClock(EPOCH, PERIOD, SC.horizon, 0, 2)
+    team.run_until(clock.at(0, 5) + 0.3)  # the instant of step 5 has passed: the newcomer joins at step 6
+    late = team.start(1)
+    orig = team._deliver
+
+    def deliver(k: int, eff: Any) -> None:
+        if k == 1:
+            logs.extend(eff.episode_log)
+        orig(k, eff)
+
+    team._deliver = deliver  # type: ignore[method-assign]
+    team.run_until(clock.at(1, SC.horizon) + PERIOD)
+    assert late.joined_at == (0, 6)
+    assert [x["episode"] for x in logs] == [0, 1]
+    assert logs[0]["acted"] == [False] * 5 + [True] * (SC.horizon - 5), "joins at step 6, not before"
+    assert logs[1]["acted"] == [True] * SC.horizon
+    assert min(team.actions[1]) == (0, 6)
+
+
+def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> None:
+    settings = LockstepSettings(
+        run_id="d1", mode="deploy", episodes=1, operation="external", clock="free", period=PERIOD, join_timeout=5.0
+    )
+    world = WorldProtocol(SC, dataclasses.replace(settings))
+    eff = world.start(0.0)
+    assert [k for k, _ in eff.publish] == ["scenario", "step"]
+    sent = []
+    for k in range(SC.n_agents):
+        sent += world.on_action({"agent": k, "episode": 0, "step": 1, "actions": [SC.start_assignment]}, 0.1).publish
+    assert world.epoch > 0.0, "the first begin is over: the epoch is fixed and announced"
+    rec = next(f for k, f in sent if k == "scenario")
+    assert rec["epoch"] == world.epoch
+    clock = world.clock()
+    assert clock is not None
+    # no agent ever sends anything again: the world still records every step at its instant, all absent
+    eff = world.tick(clock.at(0, SC.horizon) + PERIOD)
+    steps = [f["step"] for k, f in eff.publish if k == "step" and f["phase"] == "step"]
+    assert steps == list(range(1, SC.horizon + 1))
+    (line,) = eff.episode_log
+    assert line["metrics"]["absent"] == [SC.horizon - 1] * SC.n_agents
+    # a world restarted mid-run observes from the step in progress on
+    again = WorldProtocol(SC, dataclasses.replace(settings, episodes=3))
+    again.resume(5, 1, world.epoch)
+    eff = again.start(clock.at(1, 4) + 0.5)
+    assert (again.episode, again.t) == (1, 5)
+    assert any("from episode 1 step 5" in text for _lv, text in eff.log)
+
+
+def test_a_teammate_whose_clock_is_off_by_more_than_a_quarter_period_is_reported() -> None:
+    team = _Team(episodes=1)
+    for k in range(SC.n_agents):
+        team.start(k)
+    team.run_until(EPOCH + 3.0)
+    s = team.sessions[0]
+    assert s.clock_warning() is None, "one clock for the whole team: no offset"
+    assert all(abs(x) < 1e-6 for x in s.clock_offsets().values())
+    # agent5's clock runs 0.4 periods ahead: its broadcasts look sent 0.4 s later than they arrive
+    bc = {"agent": 4, "episode": 0, "step": 5, "actions": [0], "levels": [-1], "sent": team.now + 0.4 * PERIOD}
+    s.on_broadcast(bc, team.now)
+    assert abs(s.clock_offsets()[4] + 0.4 * PERIOD) < 1e-6
+    warning = s.clock_warning()
+    assert warning is not None and "agent5 +0.400 s" in warning, warning
+    assert s.values()["clock_offset/agent5"] == "+0.400"
