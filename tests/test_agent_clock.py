@@ -7,6 +7,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import numpy as np
+
 from htlm_agent.ros.settings import AgentSettings
 from htlm_agent.session.core import AgentSession
 from htlm_msgs_py import schema as S
@@ -146,6 +148,22 @@ def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> No
     eff = again.start(clock.at(1, 4) + 0.5)
     assert (again.episode, again.t) == (1, 5)
     assert any("from episode 1 step 5" in text for _lv, text in eff.log)
+    # ... and takes the agents' actions as they come: its own a_o is stale (the steps it missed were logged as
+    # idle), the agent's is the truth, so it does not judge Â(a_o)
+    prev = again.ep.prev[:, 0] if again.ep is not None else None
+    assert prev is not None
+    outside = int(np.flatnonzero(~again.model.action_mask(prev)[0])[0])
+    # ... and rebuilds the steps it missed from what the agents say they did before (their `before`)
+    before = [outside, -1, outside, outside]
+    rec = {"agent": 0, "episode": 1, "step": 5, "actions": [outside], "before": before}
+    eff = again.on_action(S.decode(S.encode(S.ACTION, rec), S.ACTION, LIM), clock.at(1, 5) - 0.2)
+    assert any("3 missed steps of agent 0 rebuilt" in text for _lv, text in eff.log), eff.log
+    assert again.ep is not None
+    assert [row[0] for row in again.ep.trajectory()["actions"]] == [outside, SC.start_assignment, outside, outside]
+    eff.publish += again.tick(clock.at(1, 5) + PERIOD).publish
+    assert not eff.rejects, eff.rejects
+    (rec,) = [f for k, f in eff.publish if k == "step" and f["step"] == 5]
+    assert 0 in rec["acted"], rec
 
 
 def test_a_teammate_whose_clock_is_off_by_more_than_a_quarter_period_is_reported() -> None:

@@ -67,6 +67,8 @@ def _with(schema: S.Schema, **changes: object) -> str:
         ({"agent": "1"}, "type", "agent"),
         ({"actions": [6, 0]}, "range", "actions"),  # |G| = 6
         ({"actions": [0, -1]}, "range", "actions"),
+        ({"before": [0, 6]}, "range", "before"),
+        ({"before": [-1] * 31}, "length", "before"),  # h = 30: at most the steps of an episode
         ({"actions": []}, "length", "actions"),  # one action per episode of the batch, at least one
         ({"actions": 2}, "type", "actions"),
         ({"actions": [[2]]}, "type", "actions"),
@@ -85,9 +87,9 @@ def test_action_rejections_name_the_field_and_value(changes: dict[str, object], 
 
 def test_record_text_is_compact_json_in_field_order() -> None:
     # the exact bytes on the wire (and so the signatures): schema, version, then the fields in order, no spaces
-    fields = {"agent": 1, "episode": 2, "step": 3, "actions": [4, 0]}
+    fields = {"agent": 1, "episode": 2, "step": 3, "actions": [4, 0], "before": []}
     text = S.encode(S.ACTION, fields)
-    assert text == '{"schema":"htlm/action","v":2,"agent":1,"episode":2,"step":3,"actions":[4,0]}'
+    assert text == '{"schema":"htlm/action","v":3,"agent":1,"episode":2,"step":3,"actions":[4,0],"before":[]}'
     fields = {"marginals": [0.1, 1e-07, 1.0, 0.25] + [0.0] * 16, "distance": 250000.0}
     text = S.encode(S.BELIEF, {**VALID["htlm/belief"], **fields})
     assert " " not in text and '"marginals":[0.1,1e-7,1.0,0.25,' in text  # msgspec: shortest round-trip floats
@@ -177,12 +179,12 @@ def test_nan_and_infinity_are_rejected(literal: str) -> None:
 
 def test_wrong_schema_version_and_shape() -> None:
     assert _reason(_with(S.ACTION).replace("htlm/action", "htlm/broadcast"), S.ACTION)[0] == "schema"
-    assert _reason(_with(S.ACTION).replace('"v":2', '"v":1'), S.ACTION)[0] == "version"  # v1: one action
+    assert _reason(_with(S.ACTION).replace('"v":3', '"v":2'), S.ACTION)[0] == "version"  # v2: no before
     assert _reason("[1, 2]", S.ACTION)[0] == "not_object"
     assert _reason("{not json", S.ACTION)[0] == "json"
     assert _reason("[" * 100_000, S.ACTION)[0] in ("json", "size")
     assert _reason("x" * (S.ACTION.max_bytes + 1), S.ACTION)[0] == "size"
-    missing = json.dumps({"schema": "htlm/action", "v": 2, "agent": 1})
+    missing = json.dumps({"schema": "htlm/action", "v": 3, "agent": 1})
     assert _reason(missing, S.ACTION)[0] == "missing_field"
 
 

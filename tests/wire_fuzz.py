@@ -62,7 +62,7 @@ VALID: dict[str, dict[str, Any]] = {
         "scenario": {"name": "paper"},
     },
     "htlm/step": {"episode": 2, "size": 2, "step": 3, "phase": "step", "acted": [0, 1, 2]},
-    "htlm/action": {"agent": 1, "episode": 2, "step": 3, "actions": [2, 5]},
+    "htlm/action": {"agent": 1, "episode": 2, "step": 3, "actions": [2, 5], "before": [4, -1]},
     "htlm/observation": {"agent": 1, "episode": 2, "step": 3, "tasks": [2, -1], "levels": [3, -1], "acted": [0, 1, 2]},
     "htlm/broadcast": {"agent": 1, "episode": 2, "step": 3, "actions": [2, 5], "levels": [3, -1], "sent": 1.5},
     "htlm/ready": {"agent": 1, "episode": 1, "step": 30},

@@ -261,7 +261,13 @@ def rogue(args: argparse.Namespace) -> None:
                 (
                     "action",
                     S.ACTION,
-                    {"agent": k, "episode": e, "step": t, "actions": [rng.randrange(4) for _ in range(na)]},
+                    {
+                        "agent": k,
+                        "episode": e,
+                        "step": t,
+                        "actions": [rng.randrange(4) for _ in range(na)],
+                        "before": [],
+                    },
                 ),
                 (
                     AGENTS[k],

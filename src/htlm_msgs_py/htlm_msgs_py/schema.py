@@ -462,10 +462,18 @@ STEP = Schema(
 )
 ACTION = Schema(
     "htlm/action",
-    2,
-    {"agent": _AGENT, "episode": _EPISODE, "step": Int(1, "step"), "actions": Rows(Int(0, "action"))},
+    3,
+    {
+        "agent": _AGENT,
+        "episode": _EPISODE,
+        "step": Int(1, "step"),
+        "actions": Rows(Int(0, "action")),
+        "before": IntList(-1, "action", max_len="step"),
+    },
     doc="The agent's assignments for step t in every episode of the batch, indices into G-bar; sent after its "
-    "update of step t - 1 (so they also tell the world the agent is ready).",
+    "update of step t - 1 (so they also tell the world the agent is ready). `before`: in a deployed team (the "
+    "agents' own clock, batch 1), the agent's assignments of steps 1..t-1 of the episode, -1 where it did not act "
+    "(an observer that was down rebuilds the steps it missed from them); empty under the lockstep clock.",
 )
 OBSERVATION = Schema(
     "htlm/observation",

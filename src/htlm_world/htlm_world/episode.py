@@ -190,6 +190,8 @@ class ExternalEpisode(WorldEpisode):
         self.observed: dict[tuple[int, int], int] = {}
         self.missed = 0
         """Steps that passed unobserved (`skip`)."""
+        self.rebuilt: set[tuple[int, int]] = set()
+        """(step, agent) of the unobserved steps rebuilt from the agent's own record (`rebuild`)."""
 
     def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
         """Record the joint assignment of the step (absent agents idle); nothing is simulated."""
@@ -210,6 +212,19 @@ class ExternalEpisode(WorldEpisode):
             self.t += 1
             self.action_log.append(np.asarray(self.model.idle_action(self.prev), dtype=np.int64))
         self.missed += steps
+
+    def rebuild(self, agent: int, before: list[int]) -> int:
+        """An agent's own assignments of steps 1..len(before) (the `before` of its action record, -1 where it did
+        not act): fill them in the steps that passed unobserved; returns how many were filled."""
+        n = 0
+        for s in range(1, min(self.missed, len(before)) + 1):
+            if before[s - 1] >= 0 and (s, agent) not in self.rebuilt:
+                self.action_log[s - 1][0, agent] = before[s - 1]
+                self.rebuilt.add((s, agent))
+                n += 1
+        if n and len(before) >= self.t and before[self.t - 1] >= 0:
+            self.prev[0, agent] = before[self.t - 1]
+        return n
 
     def report_levels(self, t: int, levels: IntArray) -> bool:
         """The outside source's true levels after step t (1..steps so far); False when t is not a step of it."""

@@ -195,6 +195,8 @@ class WorldProtocol:
         """External operation: the actions heard per (episode, step), kept until the observer records the step."""
         self.missed_steps = 0
         """External operation: steps that passed while this world process was not running."""
+        self.rebuilt_steps = 0
+        """Agent-steps of the missed steps rebuilt from the agents' records (`ExternalEpisode.rebuild`)."""
         self.early: list[tuple[str, dict[str, Any]]] = []
         """External operation: severity and observation records of steps not yet recorded, as (kind, record)."""
 
@@ -308,6 +310,17 @@ class WorldProtocol:
                 out.drops.append(("action", "past"))
                 return out
             self.heard.setdefault(key, {})[rec["agent"]] = np.asarray(rec["actions"], dtype=np.int64)
+            ep = self.ep
+            if isinstance(ep, ExternalEpisode) and ep.missed and rec["episode"] == self.episode:
+                n = ep.rebuild(rec["agent"], rec["before"])
+                if n:
+                    self.rebuilt_steps += n
+                    out.log.append(
+                        (
+                            "info",
+                            f"episode {self.episode}: {n} missed steps of agent {rec['agent']} rebuilt from its record",
+                        )
+                    )
             while len(self.heard) > 64:
                 del self.heard[min(self.heard)]
             self._progress(now, out)
@@ -328,12 +341,16 @@ class WorldProtocol:
 
     def _valid(self, k: int, a: Any, out: WorldEffects) -> Any:
         """Agent k's actions of the current step as an array, or None (rejected: a wrong length, or an idle
-        location away from the site of a_o)."""
+        location away from the site of a_o). The observer of a deployed team (the agents' clock) does not judge
+        Â(a_o): the agent's own a_o is the truth, and the observer's may be stale (a step it did not hear, or
+        steps it missed while down)."""
         assert self.ep is not None
         if len(a) != self.size:
             out.rejects.append(("action", "length", f"agent {k}: {len(a)} actions for a batch of {self.size}"))
             return None
         arr = np.asarray(a, dtype=np.int64)
+        if self.clock() is not None:
+            return arr
         prev = self.ep.prev[:, k]
         ok = self.model.action_mask(prev)[np.arange(self.size), arr]
         if not ok.all():

@@ -474,6 +474,13 @@ class AgentMind:
             "acted": list(self.log["acted"]),
         }
 
+    def history(self, t: int, i: int = 0) -> list[int]:
+        """Our assignments of steps 1..t-1 of episode i of the batch, -1 where we did not act (the steps before
+        we joined, or closed without our action applied): what an observer that missed them rebuilds them from."""
+        lived = [int(a[i]) if acted else -1 for a, acted in zip(self.log["actions"], self.log["acted"], strict=True)]
+        lived = lived[: max(t - 1, 0)]
+        return [-1] * (t - 1 - len(lived)) + lived
+
     def belief_summary(self, i: int = 0) -> tuple[list[float], list[int]]:
         """Per-task marginals (p*L, row-major) and confident levels (p) of the current belief in episode i."""
         i = min(max(i, 0), self.size - 1)

@@ -814,7 +814,9 @@ class AgentSession:
             out.publish.append(("broadcast", encode(S.BROADCAST, fields, signer)))
         if eff.action is not None:  # before the transition: the world and the team wait for it
             t, a = eff.action
-            text = encode(S.ACTION, {"agent": me, "episode": mind.episode, "step": t, "actions": a.tolist()}, signer)
+            before = mind.history(t) if self.own_clock is not None else []
+            fields = {"agent": me, "episode": mind.episode, "step": t, "actions": a.tolist(), "before": before}
+            text = encode(S.ACTION, fields, signer)
             out.publish.append(("action", text))
             self.last_action = (mind.episode, t, text, self.now)
         if eff.ready is not None:
