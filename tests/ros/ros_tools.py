@@ -419,6 +419,36 @@ def record(args: argparse.Namespace) -> None:
     write()
 
 
+def record_all(args: argparse.Namespace) -> None:
+    """Every record on the given full topic names (STATE records read as late joiners would), with its topic and
+    arrival time (Unix seconds), written to --out as a JSON list of [topic, time, text] whenever new ones came."""
+    from htlm_msgs_py.ros import STATE_READER
+
+    node = Node("test_recorder_all")
+    got: list[tuple[str, float, str]] = []
+    out = Path(args.out)
+
+    def write() -> None:
+        tmp = out.with_suffix(".tmp")
+        tmp.write_text(json.dumps(got))
+        tmp.replace(out)
+
+    for name in args.topics:
+        qos = STATE_READER if args.qos == "state" else EVENTS
+        node.create_subscription(String, name, lambda m, n=name: got.append((n, time.time(), m.data)), qos)
+    write()
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    written = 0
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        if len(got) > written:
+            written = len(got)
+            write()
+    write()
+
+
 def publish(args: argparse.Namespace) -> None:
     from rclpy.duration import Duration
 
@@ -538,6 +568,10 @@ def main() -> None:
     rc = sub.add_parser("record")
     rc.add_argument("--out", required=True)
     rc.add_argument("--topic", required=True, help="the topic's last part: scenario, episode_metrics, ...")
+    ra = sub.add_parser("record_all")
+    ra.add_argument("--out", required=True)
+    ra.add_argument("--qos", choices=("state", "events"), default="state")
+    ra.add_argument("topics", nargs="+", help="full topic names, e.g. /htlm/agent1/belief")
     pb = sub.add_parser("publish")
     pb.add_argument("--out", required=True)
     pb.add_argument("--topic", required=True, help="the topic's last part: scenario, episode_metrics, ...")
@@ -570,6 +604,7 @@ def main() -> None:
             "markers": markers,
             "flood": flood,
             "record": record,
+            "record_all": record_all,
             "publish": publish,
         }
         cmds[args.cmd](args)

@@ -77,6 +77,13 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int) -> Flood:
     team.start()
     team.wait_for(lambda: len(team.world_episodes()) >= (1 + QUIET) * B, 90, "the batches without the flood")
     go.touch()
+
+    def reached() -> bool:  # the world counted a rejected action record: the flood is on (the flooder takes a
+        # second or more to start, and an unflooded batch timed as flooded would hide the slowdown)
+        got = read_json(diag) if diag.exists() else {}
+        return any(k.startswith("rejected/action/") and int(v) > 0 for k, v in got.get("htlm: world", {}).items())
+
+    team.wait_for(reached, 60, "the flood to reach the world (rejected/action/* on its /diagnostics)")
     flood_from = len(team.world_episodes()) // B + 1  # the first batch that starts flooded
     flood_at = time.monotonic()
     at_go = len(team.world_episodes())
@@ -101,7 +108,7 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int) -> Flood:
     seconds = {w["metrics"]["episode"] // B: w["metrics"]["seconds"] for w in eps}  # one duration per batch
     quiet = [seconds[b] for b in range(1, 1 + QUIET)]
     flood = [seconds[b] for b in range(flood_from, batches - 1)]
-    assert len(flood) >= flooded - 1, (flood_from, seconds)
+    assert flood, f"no batch started and ended under the flood (flooded from batch {flood_from}): {seconds}"
     world = json.loads(diag.read_text())["htlm: world"]
     result = Flood(
         sent=sent,
