@@ -142,6 +142,14 @@ def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> No
     assert steps == list(range(1, SC.horizon + 1))
     (line,) = eff.episode_log
     assert line["metrics"]["absent"] == [SC.horizon - 1] * SC.n_agents
+    # an action that comes after the observer recorded its step (late, or resent after a loss) still tells what
+    # the agent did: the step's log takes it and the agent no longer counts absent there
+    assert world.ep is not None
+    late = {"agent": 2, "episode": 0, "step": 3, "actions": [1], "before": [SC.start_assignment, 0]}
+    eff = world.on_action(late, clock.at(0, SC.horizon) + PERIOD)
+    assert eff.drops == [("action", "past")] and eff.counters["absent_rebuilt"] == 2
+    assert [row[2] for row in world.ep.trajectory()["actions"][1:3]] == [0, 1]
+    assert world.ep.absent[2] == SC.horizon - 3
     # a world restarted mid-run observes from the step in progress on
     again = WorldProtocol(SC, dataclasses.replace(settings, episodes=3))
     again.resume(5, 1, world.epoch)

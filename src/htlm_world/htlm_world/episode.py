@@ -190,8 +190,9 @@ class ExternalEpisode(WorldEpisode):
         self.observed: dict[tuple[int, int], int] = {}
         self.missed = 0
         """Steps that passed unobserved (`skip`)."""
-        self.rebuilt: set[tuple[int, int]] = set()
-        """(step, agent) of the unobserved steps rebuilt from the agent's own record (`rebuild`)."""
+        self.unheard: dict[tuple[int, int], bool] = {}
+        """(step, agent) whose action the observer did not have when it recorded the step -> whether it counted the
+        agent absent there (False: a step that passed unobserved, `skip`); `rebuild` fills them later."""
 
     def step(self, chosen: dict[int, IntArray]) -> StepOutcome:
         """Record the joint assignment of the step (absent agents idle); nothing is simulated."""
@@ -200,6 +201,7 @@ class ExternalEpisode(WorldEpisode):
         self.prev = np.where(actions >= 0, actions, self.prev)
         self.t += 1
         self.action_log.append(actions)
+        self.unheard.update({(self.t, k): True for k in range(n) if k not in chosen})
         unknown = np.full((1, n), -1, dtype=np.int64)
         return StepOutcome(
             actions=actions, acted=acted, levels=np.full((1, self.scenario.n_tasks), -1), observations=unknown
@@ -211,20 +213,29 @@ class ExternalEpisode(WorldEpisode):
         for _ in range(steps):
             self.t += 1
             self.action_log.append(np.asarray(self.model.idle_action(self.prev), dtype=np.int64))
+            self.unheard.update({(self.t, k): False for k in range(self.scenario.n_agents)})
         self.missed += steps
 
-    def rebuild(self, agent: int, before: list[int]) -> int:
+    def rebuild(self, agent: int, before: list[int]) -> tuple[int, int]:
         """An agent's own assignments of steps 1..len(before) (the `before` of its action record, -1 where it did
-        not act): fill them in the steps that passed unobserved; returns how many were filled."""
-        n = 0
-        for s in range(1, min(self.missed, len(before)) + 1):
-            if before[s - 1] >= 0 and (s, agent) not in self.rebuilt:
-                self.action_log[s - 1][0, agent] = before[s - 1]
-                self.rebuilt.add((s, agent))
-                n += 1
-        if n and len(before) >= self.t and before[self.t - 1] >= 0:
+        not act): fill them in the steps recorded without its action (late or lost on the way, or passed while the
+        observer was down), which then no longer count it absent. Returns (steps filled that had counted it absent,
+        steps filled that passed unobserved)."""
+        late = missed = 0
+        for s in range(1, min(self.t, len(before)) + 1):
+            counted = self.unheard.get((s, agent))
+            if counted is None or before[s - 1] < 0:
+                continue
+            del self.unheard[(s, agent)]
+            self.action_log[s - 1][0, agent] = before[s - 1]
+            if counted:
+                self.absent[agent] -= 1
+                late += 1
+            else:
+                missed += 1
+        if late + missed and len(before) >= self.t and before[self.t - 1] >= 0:
             self.prev[0, agent] = before[self.t - 1]
-        return n
+        return late, missed
 
     def report_levels(self, t: int, levels: IntArray) -> bool:
         """The outside source's true levels after step t (1..steps so far); False when t is not a step of it."""

@@ -305,22 +305,30 @@ class WorldProtocol:
         """A decoded action record {agent, episode, step, action}."""
         out = WorldEffects()
         if self.decentral and self.epoch > 0.0:  # the agents' clock: keep it for the step's instant
+            ep = self.ep
+            before = rec["before"]
+            if (
+                isinstance(ep, ExternalEpisode)
+                and ep.unheard
+                and rec["episode"] == self.episode
+                and len(before) == rec["step"] - 1
+            ):  # what the agent did at the steps recorded without its action, this one included if it is late
+                late, missed = ep.rebuild(rec["agent"], [*before, int(rec["actions"][0])])
+                out.counters["absent_rebuilt"] += late
+                if missed:
+                    self.rebuilt_steps += missed
+                    out.log.append(
+                        (
+                            "info",
+                            f"episode {self.episode}: {missed} missed steps of agent {rec['agent']} rebuilt from "
+                            "its record",
+                        )
+                    )
             key = (rec["episode"], rec["step"])
             if key <= (self.episode, self.t - 1) or (self.phase != "act" and key <= (self.episode, self.t)):
                 out.drops.append(("action", "past"))
                 return out
             self.heard.setdefault(key, {})[rec["agent"]] = np.asarray(rec["actions"], dtype=np.int64)
-            ep = self.ep
-            if isinstance(ep, ExternalEpisode) and ep.missed and rec["episode"] == self.episode:
-                n = ep.rebuild(rec["agent"], rec["before"])
-                if n:
-                    self.rebuilt_steps += n
-                    out.log.append(
-                        (
-                            "info",
-                            f"episode {self.episode}: {n} missed steps of agent {rec['agent']} rebuilt from its record",
-                        )
-                    )
             while len(self.heard) > 64:
                 del self.heard[min(self.heard)]
             self._progress(now, out)

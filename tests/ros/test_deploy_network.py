@@ -1,4 +1,6 @@
-"""A deployed team split in two (issue 20, partition): every agent with its simulated robot on a host of its own
+"""A deployed team over a network that fails it (issue 20): split in two, and over bad links.
+
+**Split in two** (partition): every agent with its simulated robot on a host of its own
 (a network namespace joined by the user-space switch of tests/ros/links.py), the observing world, the trainer and
 the robots' stand-in operation on a host both sides reach (the physical world and the observer do not split). In
 every episode, from step PART_FROM on, the switch lets no frame pass between agents 1-2 and agents 3-5 for
@@ -11,8 +13,12 @@ Checked:
   the sides' beliefs falls back to what it is in the run that was never split;
 - completion and failures of both runs are printed side by side (measured, not bounded: 4 episodes are too few).
 
-`python tests/ros/bench_partition.py` runs the same comparison over more episodes and draws one partitioned episode
-with `htlm show` (docs/results/partition)."""
+**Bad links**: the same deployment at 2 Hz with every agent's link losing 5 % of the frames it sends and delaying them
+by 100 ms (the shared host's link is clean): absent agent-steps, by the world's count and by the agents' own logs,
+are at most 1 %.
+
+`python tests/ros/bench_partition.py` runs the split comparison over more episodes and draws one partitioned
+episode with `htlm show` (docs/results/partition)."""
 
 from __future__ import annotations
 
@@ -176,6 +182,29 @@ def deploy(emu: LinkEmulator, run: Path, seed: int, episodes: int, split: bool) 
         seconds=seconds,
         split=splits,
     )
+
+
+def test_a_deployed_team_over_lossy_slow_links_misses_at_most_1_percent_of_its_steps(
+    emu: LinkEmulator, tmp_path: Path
+) -> None:
+    seed, episodes = 3, 2
+    for a in AGENTS:
+        emu.set_link(a, loss=0.05, delay=0.1)
+    r = deploy(emu, tmp_path / "bad", seed, episodes, split=False)
+    assert [w["metrics"]["episode"] for w in r.world] == list(range(episodes))
+    steps = episodes * SC.horizon * len(AGENTS)
+    absent = sum(sum(w["metrics"]["absent"]) for w in r.world)
+    missed = {a: sum(not x for ep in eps for x in ep["acted"]) for a, eps in r.agents.items()}
+    counts = emu.counters()
+    print(
+        f"over 5 % loss and 100 ms delay on every agent's link, {episodes} episodes at {1 / PERIOD:g} Hz: "
+        f"{absent} of {steps} agent-steps absent by the world's count, missed by the agents' own logs {missed}; "
+        f"{r.metrics()}; frames lost by sender { ({h: c.lost for h, c in counts.items()}) } of "
+        f"{ ({h: c.sent for h, c in counts.items()}) }"
+    )
+    assert sum(c.lost for c in counts.values()) > 0, "the links lost nothing"
+    assert absent <= 0.01 * steps, f"{absent} of {steps} agent-steps absent (the world's count)"
+    assert sum(missed.values()) <= 0.01 * steps, f"agents missed {missed} of {steps} agent-steps"
 
 
 def test_a_team_split_in_two_keeps_acting_and_comes_back_together(emu: LinkEmulator, tmp_path: Path) -> None:
