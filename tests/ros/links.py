@@ -153,7 +153,7 @@ class LinkEmulator:
         self._last_due = dict.fromkeys(hosts, 0.0)
         self._mac: dict[bytes, str] = {}
         self._count = {h: HostCounters() for h in hosts}
-        self._wake_r, self._wake_w = os.pipe()
+        self._wake_r = self._wake_w = -1
         self._stop = False
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
@@ -162,12 +162,15 @@ class LinkEmulator:
 
     def up(self) -> None:
         """Make the namespaces and TAPs and start the switch; OSError (after undoing what was made) when it cannot."""
+        assert self._thread is None and not self._made, "up() twice"
         try:
             for h in self.hosts:
                 self._add(h)
         except BaseException:
             self.down()
             raise
+        self._stop = False
+        self._wake_r, self._wake_w = os.pipe()
         self._thread = threading.Thread(target=self._run, name=f"links-{self.tag}", daemon=True)
         self._thread.start()
 
@@ -193,11 +196,15 @@ class LinkEmulator:
 
     def down(self) -> None:
         """Stop the switch, close the TAPs (which removes them) and delete the namespaces. Safe to call again."""
-        self._stop = True
-        os.write(self._wake_w, b"x")
         if self._thread is not None:
+            self._stop = True
+            self._wake()
             self._thread.join(timeout=10)
+            assert not self._thread.is_alive(), "the switch thread did not stop within 10 s"
             self._thread = None
+            for fd in (self._wake_r, self._wake_w):
+                os.close(fd)
+            self._wake_r = self._wake_w = -1
         for fd in self._fd.values():
             os.close(fd)
         self._fd.clear()
@@ -255,7 +262,9 @@ class LinkEmulator:
         return {h: HostCounters(**vars(c)) for h, c in self._count.items()}
 
     def _wake(self) -> None:
-        os.write(self._wake_w, b"x")
+        """Make the switch thread look at its settings again (a new delay changes when it must wake up)."""
+        if self._wake_w >= 0:
+            os.write(self._wake_w, b"x")
 
     # the switch
 

@@ -9,12 +9,11 @@ import math
 import socket
 import struct
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import pytest
 
-from .conftest import next_domain
-from .links import LinkEmulator, in_netns, unavailable
+from .links import LinkEmulator, in_netns
 
 pytestmark = [pytest.mark.timeout(120)]
 
@@ -22,17 +21,8 @@ PORT = 47001
 
 
 @pytest.fixture
-def emu() -> Iterator[LinkEmulator]:
-    why = unavailable()
-    if why:
-        pytest.skip(why)
-    e = LinkEmulator(["a", "b", "c"], tag=next_domain(), seed=11)
-    try:
-        e.up()
-    except OSError as err:
-        pytest.skip(f"cannot make the link emulator here: {err}")
-    yield e
-    e.down()
+def emu(links: Callable[..., LinkEmulator]) -> LinkEmulator:
+    return links(["a", "b", "c"], seed=11)
 
 
 def _udp(e: LinkEmulator, host: str, bind: bool) -> socket.socket:
@@ -90,48 +80,39 @@ def test_delay_holds_every_datagram_back_at_least_the_delay_and_keeps_their_orde
     assert emu.counters()["a"].lost == 0
 
 
-def _lost(seed: int, n: int) -> tuple[set[int], dict[str, int]]:
+def _lost(e: LinkEmulator, n: int) -> tuple[set[int], dict[str, int]]:
     """Send n datagrams a -> b over a link with 5 % loss (in paced bursts, so no socket queue overflows): the
     sequence numbers lost and b's and a's counters."""
-    e = LinkEmulator(["a", "b"], tag=next_domain(), seed=seed)
-    e.up()
-    try:
-        tx, rx = _prime(e, "a", "b")
-        e.set_link("a", loss=0.05)
-        base = e.counters()["a"].sent
-        got: set[int] = set()
-        for start in range(0, n, 100):
-            for i in range(start, min(n, start + 100)):
-                tx.sendto(struct.pack("!I", i), (e.addr["b"], PORT))
-            done = min(n, start + 100)
-            _wait(lambda d=done: e.counters()["a"].sent - base >= d, 10.0, f"the switch to read datagram {done - 1}")
-            arrive = done - e.counters()["a"].lost  # what the switch has let through so far
-            while len(got) < arrive:
-                d = _recv(rx, 10.0)
-                assert d is not None, f"{arrive - len(got)} datagrams let through did not arrive within 10 s"
-                got.add(struct.unpack("!I", d)[0])
-        c = e.counters()
-        return set(range(n)) - got, {"lost": c["a"].lost, "sent": c["a"].sent - base, "overflow": c["b"].overflow}
-    finally:
-        e.down()
+    tx, rx = _prime(e, "a", "b")
+    e.set_link("a", loss=0.05)
+    base = e.counters()["a"].sent
+    got: set[int] = set()
+    for start in range(0, n, 100):
+        for i in range(start, min(n, start + 100)):
+            tx.sendto(struct.pack("!I", i), (e.addr["b"], PORT))
+        done = min(n, start + 100)
+        _wait(lambda d=done: e.counters()["a"].sent - base >= d, 10.0, f"the switch to read datagram {done - 1}")
+        arrive = done - e.counters()["a"].lost  # what the switch has let through so far
+        while len(got) < arrive:
+            d = _recv(rx, 10.0)
+            assert d is not None, f"{arrive - len(got)} datagrams let through did not arrive within 10 s"
+            got.add(struct.unpack("!I", d)[0])
+    c = e.counters()
+    return set(range(n)) - got, {"lost": c["a"].lost, "sent": c["a"].sent - base, "overflow": c["b"].overflow}
 
 
-def test_loss_drops_a_binomial_share_and_the_same_seed_drops_the_same_datagrams() -> None:
-    why = unavailable()
-    if why:
-        pytest.skip(why)
+def test_loss_drops_a_binomial_share_and_the_same_seed_drops_the_same_datagrams(
+    links: Callable[..., LinkEmulator],
+) -> None:
     n, p = 2000, 0.05
-    try:
-        lost, c = _lost(7, n)
-    except OSError as err:
-        pytest.skip(f"cannot make the link emulator here: {err}")
+    lost, c = _lost(links(["a", "b"], seed=7), n)
     sd = math.sqrt(n * p * (1 - p))
     assert c["sent"] == n and c["overflow"] == 0, c
     assert len(lost) == c["lost"], f"{len(lost)} datagrams missing, the switch dropped {c['lost']}"
     assert abs(len(lost) - n * p) < 5 * sd, f"{len(lost)} of {n} lost at p = {p} (5 sd: {5 * sd:.0f})"
-    again, _ = _lost(7, n)
+    again, _ = _lost(links(["a", "b"], seed=7), n)
     assert again == lost, "the same seed dropped other datagrams"
-    other, _ = _lost(8, n)
+    other, _ = _lost(links(["a", "b"], seed=8), n)
     assert other != lost, "another seed dropped the same datagrams"
 
 
