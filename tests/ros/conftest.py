@@ -25,6 +25,8 @@ from htlm_agent.ros.launch import LaunchConfig, Proc, start, stop
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.scenario import Scenario, builtin
 
+from .links import LinkEmulator, unavailable
+
 TOOLS = Path(__file__).resolve().parent / "ros_tools.py"
 # one domain per test, away from the launcher's default 42 and from other test sessions
 _DOMAINS = itertools.count(random.Random(os.getpid()).randrange(0, 50))
@@ -139,6 +141,30 @@ def ros_team(tmp_path: Path) -> Iterator[Callable[..., RosTeam]]:
     yield make
     for t in teams:
         t.cleanup()
+
+
+@pytest.fixture
+def links() -> Iterator[Callable[..., LinkEmulator]]:
+    """Factory: links(hosts, seed=0, mtu=65000) -> a started LinkEmulator (tests/ros/links.py: a namespace per host
+    joined by a user-space switch with loss, delay and partitions set at run time), its tag a fresh domain id; torn
+    down after the test, whatever happened. Skips the test, with the reason, where it cannot be made."""
+    made: list[LinkEmulator] = []
+
+    def make(hosts: list[str], seed: int = 0, mtu: int = 65000) -> LinkEmulator:
+        why = unavailable()
+        if why:
+            pytest.skip(why)
+        e = LinkEmulator(hosts, tag=next_domain(), seed=seed, mtu=mtu)
+        made.append(e)
+        try:
+            e.up()
+        except OSError as err:
+            pytest.skip(f"cannot make the link emulator here: {err}")
+        return e
+
+    yield make
+    for e in made:
+        e.down()
 
 
 def in_process(scenario: Scenario, seed: int, b: int, policy: str, batch: int = 1) -> Any:
