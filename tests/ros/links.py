@@ -149,6 +149,7 @@ class LinkEmulator:
         self._rng = {h: random.Random(f"{seed}:{i}") for i, h in enumerate(hosts)}
         self._link = dict.fromkeys(hosts, Link())
         self._group: dict[str, int] | None = None
+        self._shared: frozenset[str] = frozenset()
         self._queue: dict[str, deque[tuple[float, bytes]]] = {h: deque() for h in hosts}
         self._last_due = dict.fromkeys(hosts, 0.0)
         self._mac: dict[bytes, str] = {}
@@ -234,8 +235,10 @@ class LinkEmulator:
     def link(self, host: str) -> Link:
         return self._link[host]
 
-    def partition(self, groups: Iterable[Iterable[str]]) -> None:
-        """Split the hosts: a frame reaches only the hosts of its sender's group (a host in no group is alone)."""
+    def partition(self, groups: Iterable[Iterable[str]], shared: Iterable[str] = ()) -> None:
+        """Split the hosts: a frame reaches only the hosts of its sender's group (a host in no group is alone), and
+        the `shared` hosts, which reach and are reached by every group (what no split cuts: the physical world)."""
+        self._shared = frozenset(shared)
         group: dict[str, int] = {}
         for g, members in enumerate(groups):
             for h in members:
@@ -323,7 +326,7 @@ class LinkEmulator:
         targets = [x for x in self.hosts if x != h] if to is None else [to] if to != h else []
         group = self._group
         for x in targets:
-            if group is not None and group[x] != group[h]:
+            if group is not None and group[x] != group[h] and x not in self._shared and h not in self._shared:
                 self._count[h].blocked += 1
                 continue
             try:

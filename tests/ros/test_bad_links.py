@@ -55,16 +55,15 @@ def emu(links: Callable[..., LinkEmulator]) -> LinkEmulator:
 
 
 def writer_profile(path: Path, heartbeat: float) -> Path:
-    """The launch's Fast DDS profile (htlm_msgs_py's fastdds.xml) with one change: reliable writers send their
-    periodic heartbeat every `heartbeat` seconds (Fast DDS's default: 3 s). A reader asks for a lost sample again only
-    when a heartbeat (or a later sample) shows it the gap, so this period bounds the recovery of the last sample of a
-    burst, which in the lockstep is nearly every sample."""
+    """The launch's Fast DDS profile (htlm_msgs_py's fastdds.xml) with reliable writers' periodic heartbeat every
+    `heartbeat` seconds instead of its 0.1 s (Fast DDS's own default is 3 s). A reader asks for a lost sample again
+    only when a heartbeat (or a later sample) shows it the gap, so this period bounds the recovery of the last sample
+    of a burst, which in the lockstep is nearly every sample."""
     ns, nanos = divmod(round(heartbeat * 1e9), 10**9)
-    writer = (
-        '  <data_writer profile_name="htlm_writer" is_default_profile="true">\n    <times>\n      <heartbeatPeriod>'
-        f"<sec>{ns}</sec><nanosec>{nanos}</nanosec></heartbeatPeriod>\n    </times>\n  </data_writer>\n"
-    )
-    path.write_text(FASTDDS_PROFILE.read_text().replace("</profiles>", writer + "</profiles>"))
+    text = FASTDDS_PROFILE.read_text()
+    ours = "<heartbeatPeriod>\n        <sec>0</sec>\n        <nanosec>100000000</nanosec>\n      </heartbeatPeriod>"
+    assert ours in text, f"{FASTDDS_PROFILE} no longer sets the heartbeat period as this test expects"
+    path.write_text(text.replace(ours, f"<heartbeatPeriod><sec>{ns}</sec><nanosec>{nanos}</nanosec></heartbeatPeriod>"))
     return path
 
 

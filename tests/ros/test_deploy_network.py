@@ -27,7 +27,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,7 +40,7 @@ from htlm_world.clock import StepClock
 from htlm_world.scenario import builtin
 
 from .conftest import TOOLS, next_domain
-from .links import LinkEmulator, unavailable
+from .links import LinkEmulator
 from .test_netns import _wait_team
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(600)]
@@ -108,17 +108,9 @@ class Run:
 
 
 @pytest.fixture
-def emu() -> Iterator[LinkEmulator]:
-    why = unavailable()
-    if why:
-        pytest.skip(why)
-    e = LinkEmulator(HOSTS, tag=next_domain())
-    try:
-        e.up()
-    except OSError as err:
-        pytest.skip(f"cannot make the link emulator here: {err}")
-    yield e
-    e.down()
+def emu(links: Callable[..., LinkEmulator]) -> LinkEmulator:
+    """The hosts of the module's docstring on the user-space switch (conftest's `links`)."""
+    return links(HOSTS)
 
 
 def deploy(emu: LinkEmulator, run: Path, seed: int, episodes: int, split: bool) -> Run:
