@@ -51,7 +51,7 @@ def test_a_teammate_clock_off_by_more_than_a_quarter_period_is_reported_and_less
         cmd += ["--policy", "greedy", "--seed", "6", "--episodes", str(episodes), "--robots", "sim"]
         cmd += ["--period", str(PERIOD), "--domain-id", str(team.cfg.domain_id), "--run-dir", str(team.run_dir)]
         cmd += ["--only", a, "--quiet", "--agent-param", "broadcast_timeout=0.2"]
-        env = {**team.env(), "FAKETIME_DONT_FAKE_MONOTONIC": "1"}
+        env = team.env()
         log = open(team.tmp / f"skewed-{a}.log", "wb")  # noqa: SIM115
         skewed[a] = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
