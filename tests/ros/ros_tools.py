@@ -389,24 +389,16 @@ def _topic(name: str) -> tuple[str, S.Schema, Any]:
     raise SystemExit(f"no such topic: {name}")
 
 
-def record(args: argparse.Namespace) -> None:
-    from htlm_msgs_py.ros import STATE_READER
-
-    topic, _schema, qos = _topic(args.topic)
-    node = Node("test_recorder")
-    got: list[str] = []
-    out = Path(args.out)
+def _record_until_stopped(node: Node, got: list[Any], out: Path) -> None:
+    """Spin `node` until SIGTERM or SIGINT, writing `got` (which its subscriptions fill) to `out` as JSON once now
+    (the subscriptions exist: the file tells the test so) and again whenever it grew."""
 
     def write() -> None:
         tmp = out.with_suffix(".tmp")
         tmp.write_text(json.dumps(got))
         tmp.replace(out)
 
-    def on_record(msg: String) -> None:
-        got.append(msg.data)
-
-    node.create_subscription(String, topic, on_record, STATE_READER if qos is STATE else qos)
-    write()  # the subscription exists: the file tells the test so
+    write()
     stop = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
     signal.signal(signal.SIGINT, lambda *_: stop.append(1))
@@ -417,6 +409,16 @@ def record(args: argparse.Namespace) -> None:
             written = len(got)
             write()
     write()
+
+
+def record(args: argparse.Namespace) -> None:
+    from htlm_msgs_py.ros import STATE_READER
+
+    topic, _schema, qos = _topic(args.topic)
+    node = Node("test_recorder")
+    got: list[str] = []
+    node.create_subscription(String, topic, lambda m: got.append(m.data), STATE_READER if qos is STATE else qos)
+    _record_until_stopped(node, got, Path(args.out))
 
 
 def record_all(args: argparse.Namespace) -> None:
@@ -426,27 +428,10 @@ def record_all(args: argparse.Namespace) -> None:
 
     node = Node("test_recorder_all")
     got: list[tuple[str, float, str]] = []
-    out = Path(args.out)
-
-    def write() -> None:
-        tmp = out.with_suffix(".tmp")
-        tmp.write_text(json.dumps(got))
-        tmp.replace(out)
-
     for name in args.topics:
         qos = STATE_READER if args.qos == "state" else EVENTS
         node.create_subscription(String, name, lambda m, n=name: got.append((n, time.time(), m.data)), qos)
-    write()
-    stop = []
-    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
-    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
-    written = 0
-    while not stop:
-        rclpy.spin_once(node, timeout_sec=0.1)
-        if len(got) > written:
-            written = len(got)
-            write()
-    write()
+    _record_until_stopped(node, got, Path(args.out))
 
 
 def publish(args: argparse.Namespace) -> None:
