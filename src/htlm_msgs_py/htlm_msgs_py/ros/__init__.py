@@ -7,6 +7,7 @@ rest of the package (and the whole model core) imports without them.
 from __future__ import annotations
 
 import dataclasses
+import faulthandler
 import math
 import os
 import sys
@@ -413,6 +414,10 @@ def spin_until_finished(node: Any, executor: Executor) -> int:
     return 2 if node.fatal else 0
 
 
+TEARDOWN_SECONDS = 20.0
+"""Longest a node process may take to tear rclpy down after its work is done (`run_node`); usually well under 1 s."""
+
+
 def run_node(
     name: str,
     make_node: Callable[[], Any],
@@ -425,11 +430,10 @@ def run_node(
     Construct the node before `try` (bad parameters exit with code 2 and the reason on stderr), route SIGINT and
     SIGTERM into `node.stop_signal` so `run` can stop cleanly, let SIGUSR1 dump every thread's stack to the log,
     then `cleanup(node)`, the executor's release of the node, `destroy_node()` and `try_shutdown()` whatever
-    happened.
+    happened; a teardown that takes longer than TEARDOWN_SECONDS prints every thread's stack and exits with code 1.
 
     Returns the process exit code: what `run` returned, 130 on KeyboardInterrupt / external shutdown.
     """
-    import faulthandler
     import signal
 
     from rclpy.executors import ExternalShutdownException
@@ -462,10 +466,16 @@ def run_node(
         if health is not None and health.counters:
             counts = ", ".join(f"{k} {v}" for k, v in sorted(health.counters.items()))
             node.get_logger().info(f"counters at exit: {counts}")
+        # the node's work is done and logged: if tearing rclpy down hangs, the process still ends (faulthandler's
+        # own thread, which needs no GIL, prints every thread's stack to the log and exits with code 1). Seen on
+        # this machine: a process spinning at 98 % CPU for minutes in Node.destroy_node
+        # (`destroy_when_not_in_use`, inside rclpy and Fast DDS, with the GIL held), once in about 100 team runs.
+        faulthandler.dump_traceback_later(TEARDOWN_SECONDS, exit=True)
         try:  # the executor lets go of the node's entities before they are destroyed, not while Python tears it down
             executor.remove_node(node)  # (there a node's QoS event handler hung the exit: tests/ros saw it 4 times)
             executor.shutdown()
         finally:
             node.destroy_node()
             rclpy.try_shutdown()
+            faulthandler.cancel_dump_traceback_later()
     return code
