@@ -37,6 +37,13 @@ def next_domain() -> int:
     return 120 + next(_DOMAINS) % 110
 
 
+def _jsonl(f: Path) -> list[dict[str, Any]]:
+    """The complete lines of a JSON-lines log a process may be writing: a last line without its newline is still
+    being written and is left for the next read."""
+    text = f.read_text() if f.exists() else ""
+    return [json.loads(x) for x in text[: text.rfind("\n") + 1].splitlines()]
+
+
 class RosTeam:
     """The world, the agents and the trainer as processes (via htlm_agent.ros.launch), plus helper processes."""
 
@@ -93,12 +100,10 @@ class RosTeam:
         return self.procs[name].log.read_text(errors="replace")
 
     def world_episodes(self) -> list[dict[str, Any]]:
-        f = self.run_dir / "world.jsonl"
-        return [json.loads(x) for x in f.read_text().splitlines()] if f.exists() else []
+        return _jsonl(self.run_dir / "world.jsonl")
 
     def agent_episodes(self, name: str) -> list[dict[str, Any]]:
-        f = self.run_dir / f"{name}.jsonl"
-        return [json.loads(x) for x in f.read_text().splitlines()] if f.exists() else []
+        return _jsonl(self.run_dir / f"{name}.jsonl")
 
     def wait_for(self, what: Callable[[], bool], timeout: float, why: str) -> None:
         end = time.monotonic() + timeout

@@ -97,11 +97,17 @@ def _foreign_share(a: tuple[int, int, int], b: tuple[int, int, int]) -> float:
     return max(0, busy - ours) / total if total > 0 else 0.0
 
 
-def run_flood(ros_team: Any, flood_args: list[str], flooded: int) -> Flood:
-    """A greedy evaluate team of 1 + QUIET + 1 + `flooded` + 1 batches of B; the flood starts once the quiet batches
-    are done and ends (SIGTERM) when the flooded ones are; the batches in progress at either moment are not timed."""
-    seed, batches = 11, 1 + QUIET + 1 + flooded + 1  # the last batch, not timed, reads what the flood left queued
-    team = ros_team(policy="greedy", seed=seed, episodes=batches * B, batch=B, world_params={"diagnostics_period": 0.2})
+OPEN = 100_000
+"""Episodes of a flooded run until the test gives it its end (the world's `episodes`, tunable while running)."""
+
+
+def run_flood(ros_team: Any, flood_args: list[str], flooded: int, every: bool = False) -> Flood:
+    """A greedy evaluate team of batches of B: 1 + QUIET + 1 + `flooded` batches, then the flood ends (SIGTERM) and
+    the run goes on until the world has read what the flood left queued (every record the flooder sent counted when
+    `every`, else its count standing still for a second); then it ends after one more batch. The flood starts once the
+    quiet batches are done; the batches in progress when it reaches the world and when it ends are not timed."""
+    seed, batches = 11, 1 + QUIET + 1 + flooded + 1
+    team = ros_team(policy="greedy", seed=seed, episodes=OPEN, batch=B, world_params={"diagnostics_period": 0.2})
     here = team.tmp / team.cfg.run_dir.name  # one directory per team of the test (bench_flood.py runs several)
     here.mkdir(exist_ok=True)
     diag = here / "diag.json"
@@ -132,6 +138,28 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int) -> Flood:
     flooder.send_signal(signal.SIGTERM)
     flooder.wait(timeout=10)
     flood_seconds = time.monotonic() - flood_at
+    sent = read_json(out)
+
+    def counted() -> int:
+        got = read_json(diag) if diag.exists() else {}
+        return sum(int(v) for k, v in got.get("htlm: world", {}).items() if k.startswith("rejected/action/"))
+
+    if every:  # the run goes on until the world has read the last record sent (it may still be on its way)
+        team.wait_for(lambda: counted() >= sent["sent"], 60, f"the world to count the {sent['sent']} records sent")
+    else:
+        seen = [counted(), time.monotonic()]
+
+        def still() -> bool:
+            now = counted()
+            if now != seen[0]:
+                seen[:] = [now, time.monotonic()]
+            return time.monotonic() - seen[1] >= 1.0
+
+        team.wait_for(still, 60, "the world's count of rejected records to stand still (the flood's queue read)")
+    end = team.tmp / f"{team.cfg.run_dir.name}-end.json"
+    ends = len(team.world_episodes()) + B
+    setp = team.helper("setparam", "--out", str(end), "--name", "episodes", "--value", str(ends))
+    assert setp.wait(timeout=30) == 0 and read_json(end)["successful"], f"the world took no end: {read_json(end)}"
     assert team.wait("world", 60) == 0
     codes = team.wait_all(30)
     assert codes == dict.fromkeys(codes, 0), codes
@@ -140,9 +168,8 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int) -> Flood:
     team.helpers[0].wait(timeout=10)
 
     team.cleanup()  # nothing of this team left running when the next one starts (bench_flood.py runs several)
-    sent = read_json(out)
     eps = team.world_episodes()
-    assert sorted(w["metrics"]["episode"] for w in eps) == list(range(batches * B))
+    assert sorted(w["metrics"]["episode"] for w in eps) == list(range(len(eps))) and len(eps) >= batches * B
     seconds = {w["metrics"]["episode"] // B: w["metrics"]["seconds"] for w in eps}  # one duration per batch
     quiet = [seconds[b] for b in range(1, 1 + QUIET)]
     flood = [seconds[b] for b in range(flood_from, batches - 1)]
@@ -181,7 +208,7 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int) -> Flood:
 def test_a_flood_the_world_reads_as_it_comes_slows_the_lockstep_at_most_2x_and_loses_no_step(ros_team: Any) -> None:
     # the flood lasts as long as the flooded batches, which the lockstep's pace decides (four batches of 8 took 0.9 s
     # here, and a 2,000-record floor failed): 12 batches, some 2-3 s, and a floor that only says a flood happened
-    f = run_flood(ros_team, ["--rate", "2000"], flooded=12)
+    f = run_flood(ros_team, ["--rate", "2000"], flooded=12, every=True)
     # every record sent reached the world and was counted, under its reason (the flooder cycles the five)
     assert sum(f.rejected.values()) == f.sent["sent"] > 1000, (f.rejected, f.sent)
     assert max(f.rejected.values()) - min(f.rejected.values()) <= 1, f.rejected
