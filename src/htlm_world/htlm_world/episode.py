@@ -188,8 +188,6 @@ class ExternalEpisode(WorldEpisode):
         super().__init__(scenario, model, 0, episode, started, size=1)
         self.reported: dict[int, IntArray] = {0: self.levels[0].copy()}
         self.observed: dict[tuple[int, int], int] = {}
-        self.missed = 0
-        """Steps that passed unobserved (`skip`)."""
         self.unheard: dict[tuple[int, int], bool] = {}
         """(step, agent) whose action the observer did not have when it recorded the step -> whether it counted the
         agent absent there (False: a step that passed unobserved, `skip`); `rebuild` fills them later."""
@@ -209,12 +207,12 @@ class ExternalEpisode(WorldEpisode):
 
     def skip(self, steps: int) -> None:
         """Steps that passed unobserved (a world restarted mid-episode under the agents' clock): recorded as every
-        agent idle at its site, counted in `missed`; the levels of those steps stay unknown, so the metrics do."""
+        agent idle at its site, each (step, agent) in `unheard`; the levels of those steps stay unknown, so the
+        metrics do."""
         for _ in range(steps):
             self.t += 1
             self.action_log.append(np.asarray(self.model.idle_action(self.prev), dtype=np.int64))
             self.unheard.update({(self.t, k): False for k in range(self.scenario.n_agents)})
-        self.missed += steps
 
     def rebuild(self, agent: int, before: list[int]) -> tuple[int, int]:
         """An agent's own assignments of steps 1..len(before) (the `before` of its action record, -1 where it did

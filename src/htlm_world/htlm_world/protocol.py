@@ -193,10 +193,6 @@ class WorldProtocol:
         """Wall-clock seconds minus `now` (the node sets it: time.time() - time.monotonic())."""
         self.heard: dict[tuple[int, int], dict[int, Any]] = {}
         """External operation: the actions heard per (episode, step), kept until the observer records the step."""
-        self.missed_steps = 0
-        """External operation: steps that passed while this world process was not running."""
-        self.rebuilt_steps = 0
-        """Agent-steps of the missed steps rebuilt from the agents' records (`ExternalEpisode.rebuild`)."""
         self.early: list[tuple[str, dict[str, Any]]] = []
         """External operation: severity and observation records of steps not yet recorded, as (kind, record)."""
 
@@ -248,7 +244,6 @@ class WorldProtocol:
             if self.ep is not None and t > 1:
                 assert isinstance(self.ep, ExternalEpisode)
                 self.ep.skip(t - 1)
-                self.missed_steps += t - 1
                 self.t = t
                 self.deadline = self._mono(clock.at(e, t)) + OBSERVE_AFTER * self.settings.period
                 out.log.append(("warning", f"episode {e}: steps 1..{t - 1} passed unobserved; logged as idle"))
@@ -316,7 +311,6 @@ class WorldProtocol:
                 late, missed = ep.rebuild(rec["agent"], [*before, int(rec["actions"][0])])
                 out.counters["absent_rebuilt"] += late
                 if missed:
-                    self.rebuilt_steps += missed
                     out.log.append(
                         (
                             "info",
