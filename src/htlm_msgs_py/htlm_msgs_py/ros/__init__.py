@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import faulthandler
+import gc
 import math
 import os
 import sys
@@ -430,7 +431,9 @@ def run_node(
     Construct the node before `try` (bad parameters exit with code 2 and the reason on stderr), route SIGINT and
     SIGTERM into `node.stop_signal` so `run` can stop cleanly, let SIGUSR1 dump every thread's stack to the log,
     then `cleanup(node)`, the executor's release of the node, `destroy_node()` and `try_shutdown()` whatever
-    happened; a teardown that takes longer than TEARDOWN_SECONDS prints every thread's stack and exits with code 1.
+    happened, with the cyclic garbage collector off and every live object frozen; a teardown (up to the
+    interpreter's own exit) that takes longer than TEARDOWN_SECONDS prints every thread's stack and exits with
+    code 1. Call it only as the process's main: the teardown's watchdog outlives the call.
 
     Returns the process exit code: what `run` returned, 130 on KeyboardInterrupt / external shutdown.
     """
@@ -466,10 +469,16 @@ def run_node(
         if health is not None and health.counters:
             counts = ", ".join(f"{k} {v}" for k, v in sorted(health.counters.items()))
             node.get_logger().info(f"counters at exit: {counts}")
-        # the node's work is done and logged: if tearing rclpy down hangs, the process still ends (faulthandler's
-        # own thread, which needs no GIL, prints every thread's stack to the log and exits with code 1). Seen on
-        # this machine: a process spinning at 98 % CPU for minutes in Node.destroy_node
-        # (`destroy_when_not_in_use`, inside rclpy and Fast DDS, with the GIL held), once in about 100 team runs.
+        # The node's work is done and logged. Seen on this machine, about once in 100 team runs: a process spinning
+        # at 98 % CPU for minutes in Node.destroy_node with the GIL held, and (gdb) one in the interpreter's exit,
+        # Py_FinalizeEx -> finalize_modules -> the cyclic collector's move_unreachable, over rclpy's torn-down
+        # objects. So no cyclic collection runs from here on: the collector is off, and every object alive now is
+        # frozen, which the collection at exit skips (the process's memory goes back to the system with it).
+        gc.disable()
+        gc.freeze()
+        # Whatever still hangs, the process ends: faulthandler's own thread, which needs no GIL, prints every
+        # thread's stack to the log and exits with code 1. It stays armed through the interpreter's exit, which
+        # disarms it last (after the modules are torn down), so every node's `main` must be the process's.
         faulthandler.dump_traceback_later(TEARDOWN_SECONDS, exit=True)
         try:  # the executor lets go of the node's entities before they are destroyed, not while Python tears it down
             executor.remove_node(node)  # (there a node's QoS event handler hung the exit: tests/ros saw it 4 times)
@@ -477,5 +486,4 @@ def run_node(
         finally:
             node.destroy_node()
             rclpy.try_shutdown()
-            faulthandler.cancel_dump_traceback_later()
     return code
