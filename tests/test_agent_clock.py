@@ -189,3 +189,4 @@ def test_a_teammate_whose_clock_is_off_by_more_than_a_quarter_period_is_reported
     warning = s.clock_warning()
     assert warning is not None and "agent5 +0.400 s" in warning, warning
     assert s.values()["clock_offset/agent5"] == "+0.400"
+    assert s.values()["clock_tolerance"] == f"{0.25 * PERIOD:g}"  # what htlm watch marks the offsets against

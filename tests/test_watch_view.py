@@ -251,3 +251,25 @@ def test_the_view_names_the_events_of_the_shown_episode() -> None:
     truth = {"episode": 2, "step": 2, "levels": [[4, 3, 2, 1]] * 2, "actions": [[0, 1, 4, 4, 5]] * 2}
     st.on_ground_truth(encode(S.GROUND_TRUTH, {**truth, "events": [[0, 1], [1]]}))
     assert "events: dropout agent3 (step 2), surge fire@site1 to 3 (step 2)" in text(st)
+
+
+def test_under_the_agents_own_clock_each_agent_shows_how_far_its_clock_is_ahead_of_its_teammates() -> None:
+    st = fed_state()
+    assert "clock ahead" not in text(st)  # the lockstep: no offsets measured, no column
+    names = st.agent_names
+    offsets = {"agent4": 0.1, "agent5": 0.3}  # ahead of the others, who agree with each other
+    for me in names:
+        mine = offsets.get(me, 0.0)
+        vals = {f"clock_offset/{k}": f"{offsets.get(k, 0.0) - mine:+.3f}" for k in names if k != me}
+        vals["clock_tolerance"] = "0.125"
+        st.on_diagnostics([(f"htlm: {me}", 0, "running", vals)], now=100.0)
+    rows: dict[str, str] = {}
+    for ln in text(st).splitlines():  # the agents table comes before the nodes table
+        if ln.split()[:1] and ln.split()[0] in names:
+            rows.setdefault(ln.split()[0], ln)
+    assert "clock ahead" in text(st)
+    assert "+0.300 s" in rows["agent5"] and "+0.100 s" in rows["agent4"]  # the median of four teammates' views
+    assert "-0.050 s" in rows["agent1"]  # agent4 and agent5 see it behind, the other two do not
+    assert st.clock_offset("agent5") == (0.3, True)  # beyond the tolerance 0.125
+    assert st.clock_offset("agent4") == (0.1, False)  # although agent5 sees it 0.2 s behind
+    assert st.clock_offset("agent1") == pytest.approx((-0.05, False))

@@ -11,6 +11,7 @@ The ROS node `htlm_agent.ros.watch_node` only moves messages into the state and 
 from __future__ import annotations
 
 import math
+import statistics
 from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -86,6 +87,13 @@ def _int(text: str) -> int:
         return int(text)
     except ValueError:
         return 0
+
+
+def _float(text: str, default: float) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        return default
 
 
 @dataclass
@@ -299,6 +307,26 @@ class WatchState:
             return []
         return [a for k, a in enumerate(self.agent_names) if k not in self.acted]
 
+    def clock_offset(self, agent: str) -> tuple[float, bool] | None:
+        """How far `agent`'s wall clock is ahead of its teammates', seconds: the median of what the teammates
+        measured (`clock_offset/<agent>` on their /diagnostics; a teammate whose own clock is off moves it little),
+        and whether that is more than they tolerate (`clock_tolerance`, a quarter of the period); None when no
+        teammate reports it (the lockstep clock, or no broadcast heard yet)."""
+        seen: list[float] = []
+        limit = math.inf
+        for name, s in self.nodes.items():
+            raw = s.values.get(f"clock_offset/{agent}")
+            if name == f"htlm: {agent}" or raw is None:
+                continue
+            x = _float(raw, math.nan)
+            if math.isfinite(x):
+                seen.append(x)
+                limit = min(limit, _float(s.values.get("clock_tolerance", "inf"), math.inf))
+        if not seen:
+            return None
+        median = statistics.median(seen)
+        return median, abs(median) > limit
+
     def silent(self, now: float) -> list[str]:
         """Nodes whose last /diagnostics is older than `stale_after`."""
         return sorted(n for n, s in self.nodes.items() if now - s.heard > self.stale_after)
@@ -414,7 +442,10 @@ def _agents_table(state: WatchState, now: float) -> Table | None:
     absent = set(state.absent())
     table = Table(title="agents", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
     robots = any(b.arrived != "unknown" for b in state.beliefs.values())
-    for col in ("agent", "assignment", "state", "rejected", "dropped") + (("robot",) if robots else ()):
+    clocks = {a: state.clock_offset(a) for a in state.agent_names}
+    own_clock = any(c is not None for c in clocks.values())  # the deployed team's own clock: offsets are measured
+    extra = (("robot",) if robots else ()) + (("clock ahead",) if own_clock else ())
+    for col in ("agent", "assignment", "state", "rejected", "dropped") + extra:
         table.add_column(col)
     for k, a in enumerate(state.agent_names):
         act = int(tr["actions"][row][k]) if tr is not None and row is not None else -1
@@ -437,6 +468,11 @@ def _agents_table(state: WatchState, now: float) -> Table | None:
         if robots:
             b = state.beliefs.get(a)
             cells.append(_robot(b) if b is not None else "-")
+        if own_clock:
+            c = clocks[a]
+            cells.append(
+                "-" if c is None else Text(f"{c[0]:+.3f} s", style="bold yellow" if c[1] else "")
+            )  # ahead of the teammates' clocks
         table.add_row(*cells)
     return table
 

@@ -920,6 +920,8 @@ class AgentSession:
             names = [a.name for a in self.scenario.agents]
             vals.update({f"clock_offset/{names[k]}": f"{-x:+.3f}" for k, x in offsets.items()})
             vals["clock_offset_max"] = f"{max(abs(x) for x in offsets.values()):.3f}"
+            if self.own_clock is not None:
+                vals["clock_tolerance"] = f"{CLOCK_TOLERANCE * self.period:g}"
         arrived, distance = self.arrival()
         vals.update({"arrived": arrived, "distance_to_site": f"{distance:g}"})
         if self.external is not None:
