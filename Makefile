@@ -14,7 +14,8 @@ test: setup
 	$(VENV)/python -m pytest -q
 
 # the tests marked slow: the fault and attack tests of the ROS runtime (kills, restarts, network cut, flood), the
-# batch-1 variants of the equivalence tests and the install test of the packages in a fresh venv (about 6 min)
+# batch-1 variants of the equivalence tests, the network tests (partition, bad links, clock offsets) and the install
+# test of the packages in a fresh venv (about 12 min)
 test-slow: setup
 	$(VENV)/python -m pytest -q -m slow
 

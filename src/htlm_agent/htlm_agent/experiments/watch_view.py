@@ -308,10 +308,11 @@ class WatchState:
         return [a for k, a in enumerate(self.agent_names) if k not in self.acted]
 
     def clock_offset(self, agent: str) -> tuple[float, bool] | None:
-        """How far `agent`'s wall clock is ahead of its teammates', seconds: the median of what the teammates
-        measured (`clock_offset/<agent>` on their /diagnostics; a teammate whose own clock is off moves it little),
-        and whether that is more than they tolerate (`clock_tolerance`, a quarter of the period); None when no
-        teammate reports it (the lockstep clock, or no broadcast heard yet)."""
+        """How far `agent`'s wall clock is ahead of the team's median clock, seconds, and whether that is more than
+        the teammates tolerate (`clock_tolerance`, a quarter of the period); None when no teammate reports it (the
+        lockstep clock, or no broadcast heard yet). Each teammate j measures o_agent - o_j (`clock_offset/<agent>`
+        on its /diagnostics); their median with the agent's own 0 is o_agent - median(o): one teammate whose own
+        clock is off moves it little."""
         seen: list[float] = []
         limit = math.inf
         for name, s in self.nodes.items():
@@ -324,7 +325,7 @@ class WatchState:
                 limit = min(limit, _float(s.values.get("clock_tolerance", "inf"), math.inf))
         if not seen:
             return None
-        median = statistics.median(seen)
+        median = statistics.median([0.0, *seen])
         return median, abs(median) > limit
 
     def silent(self, now: float) -> list[str]:
