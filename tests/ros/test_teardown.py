@@ -1,8 +1,8 @@
-"""A node process whose rclpy teardown hangs still ends (htlm_msgs_py.ros.run_node): its work done, a destroy_node
-that never returns is cut after TEARDOWN_SECONDS, every thread's stack goes to the log and the exit code is 1 (not a
-process spinning forever; seen once in about 100 team runs on this machine, inside rclpy and Fast DDS, and once in
-the interpreter's exit, in the cyclic garbage collector). The watchdog stays armed through that exit, and no cyclic
-collection runs once the work is done."""
+"""A node process whose rclpy teardown hangs still ends, with the exit code of its work (htlm_msgs_py.ros.run_node):
+a destroy_node that never returns, with the GIL held as Fast DDS's spinning participant destruction holds it, is cut
+after TEARDOWN_SECONDS; every thread's stack goes to the log and the process exits with the code `run` returned
+(htlm_msgs_py.ros.exit_timer). The watchdog stays armed through the interpreter's exit, and no cyclic collection
+runs once the work is done. Where the exit timer is missing, faulthandler ends the process with code 1."""
 
 from __future__ import annotations
 
@@ -13,11 +13,13 @@ import time
 
 import pytest
 
+from htlm_msgs_py.ros import exit_timer
+
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(60)]
 
 HEAD = textwrap.dedent(
     """
-    import atexit, gc, sys, time, types
+    import atexit, ctypes, gc, sys, time, types
     import htlm_msgs_py.ros as R
     from rclpy.node import Node
 
@@ -25,8 +27,7 @@ HEAD = textwrap.dedent(
 
     def hang(where):
         print(f"hanging in {where}", flush=True)
-        while True:
-            time.sleep(0.1)
+        ctypes.PyDLL(None).pause()  # in C with the GIL held, as Fast DDS's spin holds it: no Python thread runs
 
     class Node_(Node):
         settings = types.SimpleNamespace(executor="single")
@@ -34,19 +35,21 @@ HEAD = textwrap.dedent(
     """
 )
 
-SCRIPT = HEAD + textwrap.dedent(
+STUCK = HEAD + textwrap.dedent(
     """
     class Stuck(Node_):
         def destroy_node(self):
             hang("destroy_node")
 
-    sys.exit(R.run_node("stuck", lambda: Stuck("htlm_stuck_teardown"), lambda node, ex: 0, lambda node: None, []))
+    sys.exit(R.run_node("stuck", lambda: Stuck("htlm_stuck_teardown"), lambda node, ex: 3, lambda node: None, []))
     """
 )
 
+NO_TIMER = "import htlm_msgs_py.ros.exit_timer as T\nT.exit_after = lambda seconds, code: False\n" + STUCK
+
 AT_EXIT = HEAD + textwrap.dedent(
     """
-    code = R.run_node("stuck", lambda: Node_("htlm_stuck_exit"), lambda node, ex: 0, lambda node: None, [])
+    code = R.run_node("stuck", lambda: Node_("htlm_stuck_exit"), lambda node, ex: 5, lambda node: None, [])
     print(f"returned {code}, collector enabled {gc.isenabled()}, frozen {gc.get_freeze_count()}", flush=True)
     atexit.register(hang, "the interpreter's exit")
     sys.exit(code)
@@ -54,21 +57,34 @@ AT_EXIT = HEAD + textwrap.dedent(
 )
 
 
-def test_a_teardown_that_hangs_ends_the_process_with_the_stacks_and_code_1() -> None:
+def _run(script: str) -> subprocess.CompletedProcess[str]:
     t0 = time.monotonic()
-    p = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, timeout=45)
-    took = time.monotonic() - t0
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=45)
+    print(f"exit code {p.returncode} after {time.monotonic() - t0:.1f} s")
+    return p
+
+
+@pytest.mark.skipif(not exit_timer.supported(), reason="exit_timer needs 64-bit little-endian Linux")
+def test_a_teardown_that_hangs_holding_the_gil_ends_the_process_with_the_runs_code_and_the_stacks() -> None:
+    p = _run(STUCK)
+    assert "hanging in destroy_node" in p.stdout, (p.stdout, p.stderr)
+    assert p.returncode == 3, (p.returncode, p.stderr[-2000:])  # what `run` returned, not a failure of its own
+    assert "Timeout" in p.stderr and "destroy_node" in p.stderr, p.stderr[-2000:]  # faulthandler's stack dump
+
+
+def test_without_the_exit_timer_faulthandler_ends_the_hung_teardown_with_code_1() -> None:
+    p = _run(NO_TIMER)
     assert "hanging in destroy_node" in p.stdout, (p.stdout, p.stderr)
     assert p.returncode == 1, (p.returncode, p.stderr[-2000:])
-    assert "Timeout" in p.stderr and "destroy_node" in p.stderr, p.stderr[-2000:]  # faulthandler's stack dump
-    print(f"the stuck teardown ended the process with code 1 after {took:.1f} s")
+    assert "Timeout" in p.stderr and "destroy_node" in p.stderr, p.stderr[-2000:]
 
 
+@pytest.mark.skipif(not exit_timer.supported(), reason="exit_timer needs 64-bit little-endian Linux")
 def test_a_hang_in_the_interpreters_exit_after_run_node_returned_ends_the_process_too() -> None:
-    p = subprocess.run([sys.executable, "-c", AT_EXIT], capture_output=True, text=True, timeout=45)
-    assert "returned 0, collector enabled False" in p.stdout, (p.stdout, p.stderr)
+    p = _run(AT_EXIT)
+    assert "returned 5, collector enabled False" in p.stdout, (p.stdout, p.stderr)
     frozen = int(p.stdout.split("frozen ")[1].split()[0])
     assert frozen > 1000, p.stdout  # everything alive when the work was done: rclpy, numpy, the node
     assert "hanging in the interpreter's exit" in p.stdout, (p.stdout, p.stderr)
-    assert p.returncode == 1, (p.returncode, p.stderr[-2000:])
+    assert p.returncode == 5, (p.returncode, p.stderr[-2000:])
     assert "Timeout" in p.stderr and "hang" in p.stderr, p.stderr[-2000:]

@@ -40,6 +40,7 @@ from ..params import INT64_MAX, Constraint, constraints, field_docs
 from ..schema import Schema, WireError, decode, encode, record_text
 from ..signing import Signer
 from ..validation import ConversionError, convert, convert_value
+from . import exit_timer
 
 T = TypeVar("T")
 
@@ -415,7 +416,7 @@ def spin_until_finished(node: Any, executor: Executor) -> int:
     return 2 if node.fatal else 0
 
 
-TEARDOWN_SECONDS = 20.0
+TEARDOWN_SECONDS = 10.0
 """Longest a node process may take to tear rclpy down after its work is done (`run_node`); usually well under 1 s."""
 
 
@@ -432,8 +433,9 @@ def run_node(
     SIGTERM into `node.stop_signal` so `run` can stop cleanly, let SIGUSR1 dump every thread's stack to the log,
     then `cleanup(node)`, the executor's release of the node, `destroy_node()` and `try_shutdown()` whatever
     happened, with the cyclic garbage collector off and every live object frozen; a teardown (up to the
-    interpreter's own exit) that takes longer than TEARDOWN_SECONDS prints every thread's stack and exits with
-    code 1. Call it only as the process's main: the teardown's watchdog outlives the call.
+    interpreter's own exit) that takes longer than TEARDOWN_SECONDS prints every thread's stack and ends the
+    process with the code it returns (`exit_timer`). Call it only as the process's main: the teardown's watchdog
+    outlives the call.
 
     Returns the process exit code: what `run` returned, 130 on KeyboardInterrupt / external shutdown.
     """
@@ -469,17 +471,19 @@ def run_node(
         if health is not None and health.counters:
             counts = ", ".join(f"{k} {v}" for k, v in sorted(health.counters.items()))
             node.get_logger().info(f"counters at exit: {counts}")
-        # The node's work is done and logged. Seen on this machine, about once in 100 team runs: a process spinning
-        # at 98 % CPU for minutes in Node.destroy_node with the GIL held, and (gdb) one in the interpreter's exit,
-        # Py_FinalizeEx -> finalize_modules -> the cyclic collector's move_unreachable, over rclpy's torn-down
-        # objects. So no cyclic collection runs from here on: the collector is off, and every object alive now is
-        # frozen, which the collection at exit skips (the process's memory goes back to the system with it).
+        # The node's work is done and logged, and its exit code decided. Tearing rclpy down can hang: a Fast DDS
+        # participant's destruction can spin with the GIL held while a discovery callback starves (exit_timer says
+        # how; about one node exit in 1,500 in the ROS tests beside two CPU hogs). Then, after TEARDOWN_SECONDS,
+        # faulthandler's own thread prints every thread's stack to the log, and half a second later a timer ends
+        # the process with the code it would have had: the run's result stands, the stacks say where it hung
+        # (without the timer, where the platform lacks it, faulthandler exits with code 1). Both stay armed through
+        # the interpreter's exit (every node's `main` is the process's); neither needs the GIL.
+        # No cyclic collection runs from here on either (gdb caught one in the interpreter's exit, over rclpy's
+        # torn-down objects): the collector is off, and what is alive is frozen, which the collection at exit skips.
         gc.disable()
         gc.freeze()
-        # Whatever still hangs, the process ends: faulthandler's own thread, which needs no GIL, prints every
-        # thread's stack to the log and exits with code 1. It stays armed through the interpreter's exit, which
-        # disarms it last (after the modules are torn down), so every node's `main` must be the process's.
-        faulthandler.dump_traceback_later(TEARDOWN_SECONDS, exit=True)
+        timed = exit_timer.exit_after(TEARDOWN_SECONDS + 0.5, code)
+        faulthandler.dump_traceback_later(TEARDOWN_SECONDS, exit=not timed)
         try:  # the executor lets go of the node's entities before they are destroyed, not while Python tears it down
             executor.remove_node(node)  # (there a node's QoS event handler hung the exit: tests/ros saw it 4 times)
             executor.shutdown()
