@@ -1,14 +1,18 @@
 """A process exit with a chosen code that needs neither the GIL nor the main thread: `exit_after(seconds, code)`.
 
 Why: tearing rclpy down can spin forever with the GIL held. Fast DDS 2.14 (the PyPI wheels') destroys a
-participant with `set_listener(nullptr)`, which waits on a condition variable until `time_point<system_clock>::max()`
-for the participant's discovery callbacks to end; that deadline overflows in libstdc++'s conversion to the steady
-clock, so the wait returns at once and the loop spins, holding the listener's mutex nearly all the time. A
-discovery callback that needs that mutex to finish (another participant leaving at the same moment, as at the end
-of every team run) then starves, for minutes under CPU contention (gdb: the main thread in `rmw_destroy_node` ->
-`destroy_participant` -> `DomainParticipant::set_listener` -> `system_clock::now`, a receive thread in
-`onWriterDiscovery` waiting for a mutex, three more waiting for the PDP's). No Python thread can run meanwhile, and
-faulthandler's own exit uses code 1.
+participant with `set_listener(nullptr)`, which waits on a condition variable, until `steady_clock::time_point::max()`,
+for the participant's discovery callbacks to end. The wheel's libstdc++ (built for glibc 2.28, without
+`pthread_cond_clockwait`) waits on the system clock and converts that deadline by adding max − now to the system
+clock's now: it overflows into the past, every wait returns at once, and the loop spins (objdump of the wheel's
+`DomainParticipant::set_listener`: `pthread_cond_timedwait` between calls of both clocks' `now`). It holds the
+listener's mutex all but an instant of each turn, so a discovery callback that needs the mutex to finish (another
+participant leaving at the same moment, as at the end of every team run) starves: the same loop built here from a
+clock libstdc++ does not wait on natively kept another thread from a mutex for 9 minutes at 100 % CPU, beside a
+test run. (Built where glibc has `pthread_cond_clockwait`, as ROS 2 Jazzy's Ubuntu 24.04 packages are, it waits.)
+gdb of a hung node: its main thread in `rmw_destroy_node` -> `destroy_participant` ->
+`DomainParticipant::set_listener` -> `system_clock::now`, a receive thread in `onWriterDiscovery` waiting for a
+mutex, three more waiting for the PDP's. No Python thread can run meanwhile, and faulthandler's own exit uses code 1.
 
 How: a POSIX timer (`timer_create`, SIGEV_THREAD) whose notification is libc's `_exit` itself, called by glibc in
 a thread of its own with the timer's `sigval` as its argument, which holds the code. On the 64-bit little-endian
