@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -26,6 +25,7 @@ from htlm_agent.ros.settings import AgentSettings, validate_agent_settings
 from htlm_agent.session.core import AgentSession, SessionEffects
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
+from htlm_msgs_py.files import write_atomic
 from htlm_msgs_py.ros import (
     EVENTS,
     POSE_READER,
@@ -133,10 +133,7 @@ class AgentNode(Node):
         se = self.session
         if self.run_file is not None and se.own_clock is not None and rec["run"] == se.run and rec["epoch"] > 0.0:
             text = msg if isinstance(msg, str) else record_text(msg)
-            tmp = self.run_file.with_suffix(".tmp")
-            self.run_file.parent.mkdir(parents=True, exist_ok=True)
-            tmp.write_text(text, encoding="utf-8")
-            os.replace(tmp, self.run_file)
+            write_atomic(self.run_file, text)
 
     def _on_step(self, msg: bytes) -> None:
         rec = self.health.decode("step", msg, S.STEP, self.session.lim)

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from htlm_agent.learning.settings import Settings
+from htlm_msgs_py.files import write_atomic
 from htlm_msgs_py.qos import FASTDDS_LOOPBACK_PROFILE, FASTDDS_PROFILE
 from htlm_world.scenario import Scenario
 
@@ -126,9 +127,7 @@ def write_params(path: Path, params: dict[str, Any]) -> Path:
         lines = ["/**:", "  ros__parameters: {}"]
     else:
         lines = ["/**:", "  ros__parameters:"] + [f"    {k}: {_yaml_value(v)}" for k, v in params.items()]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    return write_atomic(path, "\n".join(lines) + "\n")  # the team's other launchers may be reading it
 
 
 def ros_env(cfg: LaunchConfig) -> dict[str, str]:
@@ -190,9 +189,8 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     if cfg.scenario_file:
         world["scenario"] = str(Path(cfg.scenario_file).resolve())
     specs.append(("world", "htlm_world.ros.world_node", world))
-    settings_file = run / "parameters" / "learner.json"
-    settings_file.parent.mkdir(parents=True, exist_ok=True)
-    settings_file.write_text(json.dumps(learner, indent=1) + "\n")
+    # every `htlm launch --only ...` of a team sharing the run directory writes it; a trainer may be reading it
+    settings_file = write_atomic(run / "parameters" / "learner.json", json.dumps(learner, indent=1) + "\n")
     specs.append(
         (
             "trainer",

@@ -21,6 +21,7 @@ from rclpy.node import Node
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
+from htlm_msgs_py.files import write_atomic
 from htlm_msgs_py.ros import (
     EVENTS,
     STATE,
@@ -160,12 +161,7 @@ class WorldNode(Node):
         """Write the protocol's progress durably (fsync, then an atomic rename)."""
         if self.progress_file is None:
             return
-        tmp = self.progress_file.with_suffix(".tmp")
-        with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(self.protocol.progress(), f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, self.progress_file)
+        write_atomic(self.progress_file, json.dumps(self.protocol.progress()), durable=True)
 
     def _on_settings(self, new: WorldSettings) -> None:
         self.settings = new
