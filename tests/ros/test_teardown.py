@@ -19,7 +19,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.timeout(60)]
 
 HEAD = textwrap.dedent(
     """
-    import atexit, ctypes, gc, sys, time, types
+    import atexit, ctypes, gc, sys, types
     import htlm_msgs_py.ros as R
     from rclpy.node import Node
 

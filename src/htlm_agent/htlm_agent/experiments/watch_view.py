@@ -473,7 +473,7 @@ def _agents_table(state: WatchState, now: float) -> Table | None:
             c = clocks[a]
             cells.append(
                 "-" if c is None else Text(f"{c[0]:+.3f} s", style="bold yellow" if c[1] else "")
-            )  # ahead of the teammates' clocks
+            )  # ahead of the team's median clock
         table.add_row(*cells)
     return table
 

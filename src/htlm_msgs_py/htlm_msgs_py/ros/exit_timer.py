@@ -62,7 +62,7 @@ def exit_after(seconds: float, code: int) -> bool:
     if not supported() or not 0 <= code <= 255:
         return False
     try:
-        libc = ctypes.CDLL(None, use_errno=True)
+        libc = ctypes.CDLL(None)
         timer_create, timer_settime, exit_now = libc.timer_create, libc.timer_settime, libc._exit
     except (OSError, AttributeError):
         return False
