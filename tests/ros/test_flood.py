@@ -6,7 +6,9 @@ ratio, never a time).
 - At 2,000 records/s, a flood the world reads as it comes: the lockstep slows by at most 2x where the machine has
   CPU to spare (0.95x measured; beside two CPU hogs on two cores 2.0x, printed then, not bounded) and loses no step
   (every episode equals the in-process one, no agent absent), the world's /diagnostics counts every record sent, by
-  reason, and its warning about them is rate-limited (one every 5 s at most).
+  reason (where the machine has CPU to spare; beside two CPU hogs the world reads slower than the flood comes, its
+  queue overflows and what DDS drops goes uncounted: the count is then bounded by what was sent, and printed), and its
+  warning about them is rate-limited (one every 5 s at most).
 - As fast as one Python process can publish (about 35,000 records/s here): every node stays up, the rejections it
   read are counted, the warning is rate-limited and the team finishes its run once the flood stops; the slowdown is
   printed, not bounded. On this 2-core machine such a flood stops the lockstep while it lasts: a receiving rclpy
@@ -144,7 +146,9 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int, every: bool = 
         got = read_json(diag) if diag.exists() else {}
         return sum(int(v) for k, v in got.get("htlm: world", {}).items() if k.startswith("rejected/action/"))
 
-    if every:  # the run goes on until the world has read the last record sent (it may still be on its way)
+    if every and foreign <= FOREIGN:  # the run goes on until the world has read the last record sent (it may still
+        # be on its way); on a machine shared with other processes the world's intake can fall below the flood's rate,
+        # its queue then overflows and DDS drops the oldest records uncounted (see the test), so the count stops short
         team.wait_for(lambda: counted() >= sent["sent"], 60, f"the world to count the {sent['sent']} records sent")
     else:
         seen = [counted(), time.monotonic()]
@@ -209,9 +213,17 @@ def test_a_flood_the_world_reads_as_it_comes_slows_the_lockstep_at_most_2x_and_l
     # the flood lasts as long as the flooded batches, which the lockstep's pace decides (four batches of 8 took 0.9 s
     # here, and a 2,000-record floor failed): 12 batches, some 2-3 s, and a floor that only says a flood happened
     f = run_flood(ros_team, ["--rate", "2000"], flooded=12, every=True)
-    # every record sent reached the world and was counted, under its reason (the flooder cycles the five)
-    assert sum(f.rejected.values()) == f.sent["sent"] > 1000, (f.rejected, f.sent)
-    assert max(f.rejected.values()) - min(f.rejected.values()) <= 1, f.rejected
+    # every record sent reached the world and was counted, under its reason (the flooder cycles the five), where the
+    # team had the machine to itself. Beside two CPU hogs the world's intake fell below 2,000 records/s: its reader's
+    # queue (EVENTS, depth 1000) overflowed and DDS replaced the oldest records unread, and tells nobody (a reader
+    # taking 1,000 records/s under this flood for 4 s got 2,972 of 8,000, every one acknowledged to the writer, no
+    # message_lost event). The count then stopped short (soak, 2026-11-27: still short 60 s after the flood of 18,570
+    # ended); it is printed, and bounded by what was sent
+    if f.foreign <= FOREIGN:
+        assert sum(f.rejected.values()) == f.sent["sent"] > 1000, (f.rejected, f.sent)
+        assert max(f.rejected.values()) - min(f.rejected.values()) <= 1, f.rejected
+    else:
+        assert 1000 < sum(f.rejected.values()) <= f.sent["sent"], (f.rejected, f.sent)
     # the bound is the product's on a machine the team has to itself. Beside two CPU hogs on two cores it slowed
     # 2.0-2.06x (0.93x alone) although the hogs got only 19 % of the CPU: every flood record wakes the world, and
     # under contention each wakeup waits for a core; the slowdown is then printed, not bounded
