@@ -21,6 +21,7 @@ Slow (each run floods several batches)."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import time
@@ -59,6 +60,8 @@ class Flood:
     foreign: float
     """The share of the machine's CPU that other processes than the test's took while the batches without the
     flood ran."""
+    flood_foreign: float
+    """The same share while the flood ran (from the go to the flooder's end)."""
     progress: float
     """Batches finished while flooded / the batches the same time holds unflooded."""
     expected: float
@@ -71,8 +74,9 @@ class Flood:
 
 
 FOREIGN = 0.1
-"""Largest share of the machine's CPU that processes other than the test's may take while unflooded for the 2x bound
-to be asserted (measured: 2 % alone; 19 % beside two CPU hogs, which the scheduler mostly keeps off)."""
+"""Largest share of the machine's CPU that processes other than the test's may take, unflooded and flooded, for the 2x
+bound and the exact count to be asserted (measured: 0-3 % alone; beside two CPU hogs 9-19 % unflooded, which the
+scheduler mostly keeps off while the whole team runs, but 42-45 % flooded)."""
 
 
 def _cpu(pids: list[int]) -> tuple[int, int, int]:
@@ -118,11 +122,12 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int, every: bool = 
     flooder = team.helper("flood", "--out", str(out), "--topic", topics.ACTION, "--go", str(go), *flood_args)
     team.start()
     team.wait_for(lambda: len(team.world_episodes()) >= B, 90, "the first batch")
-    pids = [p.popen.pid for p in team.procs.values()] + [h.pid for h in team.helpers]
+    pids = [os.getpid()] + [p.popen.pid for p in team.procs.values()] + [h.pid for h in team.helpers]  # the test's
     cpu_at = _cpu(pids)
     team.wait_for(lambda: len(team.world_episodes()) >= (1 + QUIET) * B, 90, "the batches without the flood")
     foreign = _foreign_share(cpu_at, _cpu(pids))
     go.touch()
+    cpu_at = _cpu(pids)
 
     def reached() -> bool:  # the world counted a rejected action record: the flood is on (the flooder takes a
         # second or more to start, and an unflooded batch timed as flooded would hide the slowdown)
@@ -137,6 +142,10 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int, every: bool = 
     during = len(team.world_episodes()) - at_go  # episodes the lockstep finished while flooded
     during_seconds = time.monotonic() - flood_at
     team.wait_for(lambda: len(team.world_episodes()) >= (batches - 1) * B, 300, "the flooded batches")
+    # while flooded the world is one busy reader beside the flooder: other processes can take enough to starve it
+    # although they took little while the whole team ran (the fair scheduler gives each runnable process its part;
+    # soak, 2026-11-27: 14 of 17,870 records dropped with two hogs, after an unflooded share within FOREIGN)
+    flood_foreign = _foreign_share(cpu_at, _cpu(pids))  # before the flooder ends: a reaped process's CPU is unread
     flooder.send_signal(signal.SIGTERM)
     flooder.wait(timeout=10)
     flood_seconds = time.monotonic() - flood_at
@@ -146,9 +155,10 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int, every: bool = 
         got = read_json(diag) if diag.exists() else {}
         return sum(int(v) for k, v in got.get("htlm: world", {}).items() if k.startswith("rejected/action/"))
 
-    if every and foreign <= FOREIGN:  # the run goes on until the world has read the last record sent (it may still
-        # be on its way); on a machine shared with other processes the world's intake can fall below the flood's rate,
-        # its queue then overflows and DDS drops the oldest records uncounted (see the test), so the count stops short
+    if every and max(foreign, flood_foreign) <= FOREIGN:  # the run goes on until the world has read the last record
+        # sent (it may still be on its way); on a machine shared with other processes the world's intake can fall
+        # below the flood's rate, its queue then overflows and DDS drops the oldest records uncounted (see the test),
+        # so the count stops short
         team.wait_for(lambda: counted() >= sent["sent"], 60, f"the world to count the {sent['sent']} records sent")
     else:
         seen = [counted(), time.monotonic()]
@@ -186,6 +196,7 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int, every: bool = 
         flood_seconds=flood_seconds,
         slowdown=(sum(flood) / len(flood)) / (sum(quiet) / len(quiet)),
         foreign=foreign,
+        flood_foreign=flood_foreign,
         progress=during / B / (during_seconds / (sum(quiet) / len(quiet))),
         expected=during_seconds / (sum(quiet) / len(quiet)),
         absent=sum(sum(w["metrics"]["absent"]) for w in eps),
@@ -197,7 +208,7 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int, every: bool = 
         f"flood: {sent['sent']} records in {sent['seconds']:.1f} s ({sent['rate']}/s) on {topics.ACTION}; world "
         f"rejected {sum(result.rejected.values())} {result.rejected}; {result.warnings} warnings in "
         f"{flood_seconds:.1f} s; episode-steps/s without/with {steps_per_s}; slowdown {result.slowdown:.2f}x "
-        f"(CPU taken by other processes meanwhile {result.foreign:.0%}); "
+        f"(CPU taken by other processes meanwhile {result.foreign:.0%}, while flooded {result.flood_foreign:.0%}); "
         f"progress while flooded {result.progress:.0%} of unflooded; "
         f"absent agent-steps {result.absent}"
     )
@@ -219,7 +230,7 @@ def test_a_flood_the_world_reads_as_it_comes_slows_the_lockstep_at_most_2x_and_l
     # taking 1,000 records/s under this flood for 4 s got 2,972 of 8,000, every one acknowledged to the writer, no
     # message_lost event). The count then stopped short (soak, 2026-11-27: still short 60 s after the flood of 18,570
     # ended); it is printed, and bounded by what was sent
-    if f.foreign <= FOREIGN:
+    if max(f.foreign, f.flood_foreign) <= FOREIGN:
         assert sum(f.rejected.values()) == f.sent["sent"] > 1000, (f.rejected, f.sent)
         assert max(f.rejected.values()) - min(f.rejected.values()) <= 1, f.rejected
     else:
@@ -227,7 +238,7 @@ def test_a_flood_the_world_reads_as_it_comes_slows_the_lockstep_at_most_2x_and_l
     # the bound is the product's on a machine the team has to itself. Beside two CPU hogs on two cores it slowed
     # 2.0-2.06x (0.93x alone) although the hogs got only 19 % of the CPU: every flood record wakes the world, and
     # under contention each wakeup waits for a core; the slowdown is then printed, not bounded
-    if f.foreign <= FOREIGN:
+    if max(f.foreign, f.flood_foreign) <= FOREIGN:
         assert f.slowdown <= 2.0, f.slowdown
     # no step lost: every episode ran all h steps with every agent, and the world's trajectories (levels,
     # assignments, observations) are exactly the in-process ones
