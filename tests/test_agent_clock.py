@@ -190,3 +190,31 @@ def test_a_teammate_whose_clock_is_off_by_more_than_a_quarter_period_is_reported
     assert warning is not None and "agent5 +0.400 s" in warning, warning
     assert s.values()["clock_offset/agent5"] == "+0.400"
     assert s.values()["clock_tolerance"] == f"{0.25 * PERIOD:g}"  # what htlm watch marks the offsets against
+
+
+def test_a_stop_that_comes_before_the_agents_timer_applied_the_last_instant_still_logs_the_episode() -> None:
+    # The world (observer) records the last step 0.05 s after its instant and announces the run stopped; an agent
+    # whose timer has not yet run since that instant (a busy host) must apply the instant before it stops, or its
+    # last episode is never logged (slow soak of 2026-11-27, test_clock_offset: agent3 logged no episode).
+    team = _Team(episodes=1)
+    logs: dict[int, list[dict[str, Any]]] = {k: [] for k in range(SC.n_agents)}
+    for k in range(SC.n_agents):
+        team.start(k)
+    orig = team._deliver
+
+    def deliver(k: int, eff: Any) -> None:
+        logs[k] += eff.episode_log
+        orig(k, eff)
+
+    team._deliver = deliver  # type: ignore[method-assign]
+    last = StepClock(EPOCH, PERIOD, SC.horizon, 0, 1).at(0, SC.horizon)
+    team.run_until(last - DT)  # every agent sent its action of the last step; its instant has not come
+    assert all(not x for x in logs.values())
+    team.now = last + DT  # the instant has passed; no agent's timer has run since
+    stop = {**team.rec, "seq": team.rec["seq"] + 1, "state": "stopped"}
+    for k, s in list(team.sessions.items()):
+        team._deliver(k, s.on_scenario(S.decode(S.encode(S.SCENARIO, stop), S.SCENARIO), team.now))
+        assert s.stopping
+    for k in range(SC.n_agents):
+        assert [x["episode"] for x in logs[k]] == [0], f"agent {k} logged no episode"
+        assert logs[k][0]["acted"] == [True] * SC.horizon, f"agent {k} missed a step"

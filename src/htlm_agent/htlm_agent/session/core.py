@@ -243,6 +243,7 @@ class AgentSession:
         if verdict == "stop":
             if not self.stopping:
                 self._close_step(now, out)
+            if not self.stopping:  # (closing the last step may have ended the run on our own clock already)
                 self._stop_run(now, out)
             return out
         if (
@@ -720,7 +721,10 @@ class AgentSession:
 
     def _close_step(self, now: float, out: SessionEffects) -> None:
         """Under our own clock, when the run stops: finish the step in progress with what arrived (the world may
-        announce the end before our update of the last step is done), so that its episode is logged."""
+        announce the end before our update of the last step is done), so that its episode is logged. The instants
+        that passed are applied first: on a busy host the world's stop, sent 0.05 s after the last instant, can be
+        read before our timer has run since that instant."""
+        self._run_clock(now, out)
         m = self.mind
         if self.own_clock is None or m is None or m.pending is None:
             return
