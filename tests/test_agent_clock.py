@@ -8,6 +8,7 @@ import dataclasses
 from typing import Any
 
 import numpy as np
+import pytest
 
 from htlm_agent.ros.settings import AgentSettings
 from htlm_agent.session.core import AgentSession
@@ -192,10 +193,20 @@ def test_a_teammate_whose_clock_is_off_by_more_than_a_quarter_period_is_reported
     assert s.values()["clock_tolerance"] == f"{0.25 * PERIOD:g}"  # what htlm watch marks the offsets against
 
 
-def test_a_stop_that_comes_before_the_agents_timer_applied_the_last_instant_still_logs_the_episode() -> None:
-    # The world (observer) records the last step 0.05 s after its instant and announces the run stopped; an agent
-    # whose timer has not yet run since that instant (a busy host) must apply the instant before it stops, or its
-    # last episode is never logged (slow soak of 2026-11-27, test_clock_offset: agent3 logged no episode).
+def _stop(team: _Team, at: float) -> None:
+    """Every session reads the world's announcement that the run stopped at `at`, before its timer runs again."""
+    team.now = at
+    stop = {**team.rec, "seq": team.rec["seq"] + 1, "state": "stopped"}
+    for k, s in list(team.sessions.items()):
+        team._deliver(k, s.on_scenario(S.decode(S.encode(S.SCENARIO, stop), S.SCENARIO), team.now))
+
+
+@pytest.mark.parametrize("read", [-0.2, 0.05])
+def test_the_worlds_stop_at_the_end_of_the_run_leaves_the_last_episode_logged(read: float) -> None:
+    # The world (observer) records the last step 0.05 s after its instant on its own clock, and announces the run
+    # stopped. An agent may read that before its timer has applied the last instant (a busy host: slow soak of
+    # 2026-11-27, test_clock_offset, agent3 logged no episode), or before the instant on its clock at all (the
+    # world's clock ahead of ours, within the tolerance). `read`: when, in periods after the last instant.
     team = _Team(episodes=1)
     logs: dict[int, list[dict[str, Any]]] = {k: [] for k in range(SC.n_agents)}
     for k in range(SC.n_agents):
@@ -208,13 +219,24 @@ def test_a_stop_that_comes_before_the_agents_timer_applied_the_last_instant_stil
 
     team._deliver = deliver  # type: ignore[method-assign]
     last = StepClock(EPOCH, PERIOD, SC.horizon, 0, 1).at(0, SC.horizon)
-    team.run_until(last - DT)  # every agent sent its action of the last step; its instant has not come
+    team.run_until(last + min(read, 0.0) * PERIOD - DT)  # the timers' last look is before the last instant
     assert all(not x for x in logs.values())
-    team.now = last + DT  # the instant has passed; no agent's timer has run since
-    stop = {**team.rec, "seq": team.rec["seq"] + 1, "state": "stopped"}
-    for k, s in list(team.sessions.items()):
-        team._deliver(k, s.on_scenario(S.decode(S.encode(S.SCENARIO, stop), S.SCENARIO), team.now))
-        assert s.stopping
-    for k in range(SC.n_agents):
+    _stop(team, last + read * PERIOD)
+    team.run_until(last + PERIOD)
+    for k, s in team.sessions.items():
+        assert s.stopping, f"agent {k} did not stop"
         assert [x["episode"] for x in logs[k]] == [0], f"agent {k} logged no episode"
         assert logs[k][0]["acted"] == [True] * SC.horizon, f"agent {k} missed a step"
+
+
+def test_the_worlds_stop_in_mid_run_costs_at_most_the_step_in_progress() -> None:
+    team = _Team(episodes=2)
+    for k in range(SC.n_agents):
+        team.start(k)
+    clock = StepClock(EPOCH, PERIOD, SC.horizon, 0, 2)
+    team.run_until(clock.at(0, 10) + 0.3 * PERIOD)
+    _stop(team, team.now)
+    team.run_until(clock.at(0, 12))
+    for k, s in team.sessions.items():
+        assert s.stopping, f"agent {k} did not stop"
+        assert max(team.actions[k]) == (0, 11), "no action after the one for the step after the stop"

@@ -209,6 +209,9 @@ class AgentSession:
         """The world restarted: take its next begin even if it interrupts our batch."""
         self.stopping = False
         self.stop_deadline = 0.0
+        self.stop_after: int | None = None
+        """Under our own clock, once the world announced the run stopped: the run-wide index of the last step we
+        finish before stopping (`_stop_on_our_clock`)."""
         # what was sent
         self.send_transitions = False
         self.seq = 0
@@ -241,10 +244,8 @@ class AgentSession:
             return out
         out.heard_world = True
         if verdict == "stop":
-            if not self.stopping:
-                self._close_step(now, out)
-            if not self.stopping:  # (closing the last step may have ended the run on our own clock already)
-                self._stop_run(now, out)
+            if not self.stopping and self.stop_after is None:
+                self._stop_on_our_clock(now, out)
             return out
         if (
             verdict in ("update", "restart")
@@ -268,6 +269,7 @@ class AgentSession:
             out.log.append(("warning", f"run {self.run}: the world restarted (announcement {rec['seq']}); rejoining"))
             self.rejoin = True
             self.stopping = False
+            self.stop_after = None
             return out
         try:
             sc = from_record(rec)
@@ -297,6 +299,7 @@ class AgentSession:
         self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, self.batch)
         self.mind = None
         self.stopping = False
+        self.stop_after = None
         s = self.settings
         self.send_transitions = s.transitions == "on" or (s.transitions == "auto" and self.mode == "train")
         kind = s.policy
@@ -358,10 +361,27 @@ class AgentSession:
         out.fatal = why
         out.log.append(("error", why))
 
-    def _stop_run(self, now: float, out: SessionEffects) -> None:
+    def _stop_on_our_clock(self, now: float, out: SessionEffects) -> None:
+        """The world announced the run stopped. Under our own clock we first finish the steps whose instants are
+        at most a quarter period (the clocks' tolerance) ahead of our clock, then stop: the world announces the end
+        of the run 0.05 s after the last instant on its clock, which may be ahead of ours, and a busy host may read
+        the announcement before its timer has applied that instant; stopping at once would leave the last episode
+        unlogged. A stop in mid-run (the world shut down) costs at most the step in progress."""
+        c = self.own_clock
+        if c is None or self.policy is None or self.fatal is not None:
+            self._stop_run(now, out)
+            return
+        last = c.last(now + self.wall_offset + CLOCK_TOLERANCE * self.period)
+        self.stop_after = last if c.in_run(last) or last < 0 else c.episodes * c.horizon - 1
+        if self.stop_after >= 0:
+            e, t = c.step(self.stop_after)
+            out.log.append(("info", f"run {self.run} stopped by the world: finishing episode {e} step {t} first"))
+        self._run_clock(now, out)
+
+    def _stop_run(self, now: float, out: SessionEffects, why: str = "stopped by the world") -> None:
         self.stopping = True
         self.stop_deadline = now + self.settings.stop_timeout
-        out.log.append(("info", f"run {self.run} stopped by the world; {len(self.outbox)} transitions unacknowledged"))
+        out.log.append(("info", f"run {self.run} {why}; {len(self.outbox)} transitions unacknowledged"))
 
     def finished(self, now: float) -> bool:
         """Whether the process should exit: fatal error, or the run stopped and the outbox is flushed (or the wait
@@ -693,6 +713,8 @@ class AgentSession:
         assert self.external is not None
         m = self._the_mind()
         target = c.last(now + self.wall_offset)
+        if self.stop_after is not None:
+            target = min(target, self.stop_after)
         if self.joined_at is None:  # our first look at the clock: the action of the first begin counts if in time
             p = m.pending
             mine = c.index(m.episode, p.t) if m.episode is not None and p is not None and p.observed_at is None else -1
@@ -710,32 +732,21 @@ class AgentSession:
             self.applied = i
             # the step is applied with our action: the robot's observation, or none after the wait
             self._observe_external(self.external.on_step(e, t, list(range(m.n)), now, self._wait()), now, out)
+        if self.stop_after is not None:  # stopped by the world: stop once the steps up to stop_after are finished,
+            # or at the next instant at the latest (a step still open then is given up: its episode goes unlogged)
+            done = c.index(m.episode, m.t) if m.episode is not None else -1
+            finished = self.applied >= self.stop_after and done >= self.applied
+            if finished or c.last(now + self.wall_offset) > self.stop_after:
+                self._stop_run(now, out)
+            return
         nxt = self.applied + 1
         if not c.in_run(nxt):
             if m.finished and not self.stopping:
-                self._stop_run(now, out)
+                self._stop_run(now, out, "over on our own clock")
             return
         e, t = c.step(nxt)
         if m.episode != e and m.finished:  # the last episode is done (or we just joined): act for the next step now
             self._act_for(e, t, now, out)
-
-    def _close_step(self, now: float, out: SessionEffects) -> None:
-        """Under our own clock, when the run stops: finish the step in progress with what arrived (the world may
-        announce the end before our update of the last step is done), so that its episode is logged. The instants
-        that passed are applied first: on a busy host the world's stop, sent 0.05 s after the last instant, can be
-        read before our timer has run since that instant."""
-        self._run_clock(now, out)
-        m = self.mind
-        if self.own_clock is None or m is None or m.pending is None:
-            return
-        if (
-            m.pending.observed_at is None
-            and self.external is not None
-            and (m.episode, m.pending.t) in self.external.steps
-        ):
-            self._observe_external(self.external.due(float("inf")), now, out)
-        if m.pending is not None and m.pending.observed_at is not None:
-            self._carry("clock", m.tick(now, -1.0), out)
 
     def _act_for(self, e: int, t: int, now: float, out: SessionEffects) -> None:
         """Make sure the mind has its actions of step t of episode e before the step's instant (closing what is
