@@ -264,5 +264,8 @@ def test_a_flood_as_fast_as_a_process_can_publish_stops_nothing_and_is_counted(r
     # 20 batches flooded: a batch of 8 takes about 0.3 s, less than the flooder takes to start; with 2 the run could
     # end before the flood reached the world (CI, 2026-11-26: flooded from batch 9 of 10)
     f = run_flood(ros_team, ["--seconds", "12"], flooded=20)
-    assert f.sent["sent"] > 100_000, f.sent  # at least 8,000 records/s
+    # a flood, not a speed: the flooder's rate is the CPU share it gets (28,800-41,000 records/s alone, 7,804/s beside
+    # two CPU hogs: slow soak of 2026-11-27, which failed the floor of 8,000/s this had), and it is printed; the
+    # floor is on volume, twenty times the world's reader queue (depth 1000)
+    assert f.sent["sent"] > 20 * 1000, f.sent
     assert 10_000 < sum(f.rejected.values()) <= f.sent["sent"], (f.rejected, f.sent)
