@@ -90,8 +90,9 @@ def _alone(*shares: float) -> bool:
 
 
 def _cpu(pids: list[int]) -> tuple[int, int, int]:
-    """CPU jiffies so far: of these processes, busy on the whole machine, and all of the machine (/proc; zeros
-    where there is none)."""
+    """CPU jiffies so far: of these processes (with their children they reaped: the flooder of a timed flood ends
+    and is reaped by pytest before the flooded share is read), busy on the whole machine, and all of the machine
+    (/proc; zeros where there is none)."""
     try:
         f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
     except (OSError, ValueError):
@@ -100,7 +101,7 @@ def _cpu(pids: list[int]) -> tuple[int, int, int]:
     for pid in pids:
         try:
             stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            ours += int(stat[11]) + int(stat[12])  # utime, stime
+            ours += sum(int(x) for x in stat[11:15])  # utime, stime, cutime, cstime
         except (OSError, ValueError, IndexError):
             pass
     return ours, sum(f) - f[3] - f[4], sum(f)
@@ -155,7 +156,7 @@ def run_flood(ros_team: Any, flood_args: list[str], flooded: int, every: bool = 
     # while flooded the world is one busy reader beside the flooder: other processes can take enough to starve it
     # although they took little while the whole team ran (the fair scheduler gives each runnable process its part;
     # soak, 2026-11-27: 14 of 17,870 records dropped with two hogs, after an unflooded share within FOREIGN)
-    flood_foreign = _foreign_share(flood_cpu_at, _cpu(pids))  # before the flooder ends: a reaped one is unread
+    flood_foreign = _foreign_share(flood_cpu_at, _cpu(pids))  # (a reaped flooder counts: _cpu)
     flooder.send_signal(signal.SIGTERM)
     flooder.wait(timeout=10)
     flood_seconds = time.monotonic() - flood_at
