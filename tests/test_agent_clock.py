@@ -41,17 +41,21 @@ class _Team:
         self.rec = _run_record(episodes)
         self.sessions: dict[int, AgentSession] = {}
         self.actions: dict[int, list[tuple[int, int]]] = {}
+        self.logs: dict[int, list[dict[str, Any]]] = {}
+        """Per agent, the episodes it logged."""
         self.now = EPOCH - 2.0
 
     def start(self, k: int) -> AgentSession:
         s = AgentSession(AgentSettings(agent=SC.agents[k].name, policy="greedy").session())
         self.sessions[k] = s
         self.actions.setdefault(k, [])
+        self.logs.setdefault(k, [])
         self._deliver(k, s.on_scenario(S.decode(S.encode(S.SCENARIO, self.rec), S.SCENARIO), self.now))
         return s
 
     def _deliver(self, k: int, eff: Any) -> None:
         assert eff.fatal is None, eff.fatal
+        self.logs[k] += eff.episode_log
         for kind, text in eff.publish:
             if kind == "action":
                 rec = S.decode(text, S.ACTION, LIM)
@@ -75,17 +79,10 @@ def _acted(s: AgentSession, log: list[dict[str, Any]]) -> list[list[bool]]:
 
 def test_each_agent_steps_on_its_own_clock_and_a_dead_teammate_costs_no_step() -> None:
     team = _Team(episodes=2)
-    logs: dict[int, list[dict[str, Any]]] = {k: [] for k in range(SC.n_agents)}
+    logs = team.logs
     for k in range(SC.n_agents):
         team.start(k)
     clock = StepClock(EPOCH, PERIOD, SC.horizon, 0, 2)
-    orig = team._deliver
-
-    def deliver(k: int, eff: Any) -> None:
-        logs[k] += eff.episode_log
-        orig(k, eff)
-
-    team._deliver = deliver  # type: ignore[method-assign]
     team.run_until(clock.at(0, 4) + 0.5)
     del team.sessions[2]  # agent 3 dies in step 4 of episode 0
     team.run_until(clock.at(1, SC.horizon) + PERIOD)
@@ -99,21 +96,13 @@ def test_each_agent_steps_on_its_own_clock_and_a_dead_teammate_costs_no_step() -
 
 def test_a_session_started_mid_run_joins_at_the_next_instant() -> None:
     team = _Team(episodes=2)
-    logs: list[dict[str, Any]] = []
     for k in range(SC.n_agents):
         if k != 1:
             team.start(k)
     clock = StepClock(EPOCH, PERIOD, SC.horizon, 0, 2)
     team.run_until(clock.at(0, 5) + 0.3)  # the instant of step 5 has passed: the newcomer joins at step 6
     late = team.start(1)
-    orig = team._deliver
-
-    def deliver(k: int, eff: Any) -> None:
-        if k == 1:
-            logs.extend(eff.episode_log)
-        orig(k, eff)
-
-    team._deliver = deliver  # type: ignore[method-assign]
+    logs = team.logs[1]
     team.run_until(clock.at(1, SC.horizon) + PERIOD)
     assert late.joined_at == (0, 6)
     assert [x["episode"] for x in logs] == [0, 1]
@@ -208,16 +197,9 @@ def test_the_worlds_stop_at_the_end_of_the_run_leaves_the_last_episode_logged(re
     # 2026-11-27, test_clock_offset, agent3 logged no episode), or before the instant on its clock at all (the
     # world's clock ahead of ours, within the tolerance). `read`: when, in periods after the last instant.
     team = _Team(episodes=1)
-    logs: dict[int, list[dict[str, Any]]] = {k: [] for k in range(SC.n_agents)}
+    logs = team.logs
     for k in range(SC.n_agents):
         team.start(k)
-    orig = team._deliver
-
-    def deliver(k: int, eff: Any) -> None:
-        logs[k] += eff.episode_log
-        orig(k, eff)
-
-    team._deliver = deliver  # type: ignore[method-assign]
     last = StepClock(EPOCH, PERIOD, SC.horizon, 0, 1).at(0, SC.horizon)
     team.run_until(last + min(read, 0.0) * PERIOD - DT)  # the timers' last look is before the last instant
     assert all(not x for x in logs.values())

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from htlm_msgs_py import topics
+from htlm_msgs_py import qos, topics
 from htlm_world.scenario import builtin
 
 from .conftest import in_process, read_json
@@ -268,5 +268,5 @@ def test_a_flood_as_fast_as_a_process_can_publish_stops_nothing_and_is_counted(r
     # a flood, not a speed: the flooder's rate is the CPU share it gets (28,800-41,000 records/s alone, 7,804/s beside
     # two CPU hogs: slow soak of 2026-11-27, which failed the floor of 8,000/s this had), and it is printed; the
     # floor is on volume, twenty times the world's reader queue (depth 1000)
-    assert f.sent["sent"] > 20 * 1000, f.sent
+    assert f.sent["sent"] > 20 * qos.EVENTS.depth, f.sent
     assert 10_000 < sum(f.rejected.values()) <= f.sent["sent"], (f.rejected, f.sent)

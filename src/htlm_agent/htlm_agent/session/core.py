@@ -372,7 +372,7 @@ class AgentSession:
             self._stop_run(now, out)
             return
         last = c.last(now + self.wall_offset + CLOCK_TOLERANCE * self.period)
-        self.stop_after = last if c.in_run(last) or last < 0 else c.episodes * c.horizon - 1
+        self.stop_after = min(last, c.episodes * c.horizon - 1) if c.episodes else last  # (0 episodes: until stopped)
         if self.stop_after >= 0:
             e, t = c.step(self.stop_after)
             out.log.append(("info", f"run {self.run} stopped by the world: finishing episode {e} step {t} first"))
