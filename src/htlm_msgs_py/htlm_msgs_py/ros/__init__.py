@@ -473,7 +473,7 @@ def run_node(
             node.get_logger().info(f"counters at exit: {counts}")
         # The node's work is done and logged, and its exit code decided. Tearing rclpy down can hang: a Fast DDS
         # participant's destruction can spin with the GIL held while a discovery callback starves (exit_timer says
-        # how; 7 of about 9,800 node exits in this project's ROS tests). Then, after TEARDOWN_SECONDS,
+        # how; 15 of about 14,500 node exits in this project's ROS tests). Then, after TEARDOWN_SECONDS,
         # faulthandler's own thread prints every thread's stack to the log, and half a second later a timer ends
         # the process with the code it would have had: the run's result stands, the stacks say where it hung
         # (without the timer, where the platform lacks it, faulthandler exits with code 1). Both stay armed through
