@@ -61,9 +61,17 @@ STATIC_LIMITS: dict[str, int] = {
 """Limits used before the scenario is known (and for names a Limits mapping leaves out)."""
 
 
-def limits(n_agents: int, n_tasks: int, n_actions: int, levels: int, horizon: int, batch: int = 4096) -> dict[str, int]:
-    """The named bounds of one scenario (N agents, p tasks, |G-bar| actions, L levels, horizon h) and of the run's
-    batch (at most B episodes per record)."""
+def limits(
+    n_agents: int,
+    n_tasks: int,
+    n_actions: int,
+    levels: int,
+    horizon: int,
+    batch: int = 4096,
+    knowledge: int | None = None,
+) -> dict[str, int]:
+    """The named bounds of one scenario (N agents, p tasks, |G-bar| actions, L levels, horizon h, the knowledge
+    state's length, default p·L + |G-bar|) and of the run's batch (at most B episodes per record)."""
     return {
         "agent": n_agents - 1,
         "action": n_actions - 1,
@@ -73,7 +81,7 @@ def limits(n_agents: int, n_tasks: int, n_actions: int, levels: int, horizon: in
         "agents": n_agents,
         "tasks": n_tasks,
         "actions": n_actions,
-        "knowledge": n_tasks * levels + n_actions,
+        "knowledge": n_tasks * levels + n_actions if knowledge is None else knowledge,
         "marginals": n_tasks * levels,
         "batch": batch,
     }

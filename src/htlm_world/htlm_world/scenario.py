@@ -56,6 +56,10 @@ class RewardParams:
     """How far capability must exceed the task's confident level to be penalised as excess."""
     reassign_cost: float = -1.0
     """tc of T_RP, paid when the site of the action differs from the site of the previous assignment."""
+    credit: Literal["team", "difference"] = "team"
+    """What R_comp credits the agent with: team (the paper: the completion reward of its whole belief) or difference
+    (the expected completion reward its own work adds to the step's prediction, against the same step with it idle:
+    a difference reward)."""
 
 
 @dataclass(frozen=True)
@@ -210,6 +214,10 @@ class Scenario:
     standby_accuracy: float | None = None
     """Accuracy of the observation an agent idling at a site makes of one of the site's tasks, whatever its sensing
     (not in the paper: docs/model.md, What the paper fixes and what we add); None: idle agents observe nothing."""
+    roster: bool = False
+    """The knowledge state also holds the roster: which teammates the agent heard from at its last step (their
+    broadcast arrived), so that a policy can leave out a teammate that has gone silent (not in the paper:
+    docs/model.md, Knowledge state)."""
     agents: tuple[AgentSpec, ...] = ()
     """The team."""
     team: str = ""
@@ -320,8 +328,9 @@ class Scenario:
 
     @property
     def knowledge_size(self) -> int:
-        """Length of the Q-network input: p*L marginals + one-hot previous assignment over G-bar."""
-        return self.n_tasks * self.levels + self.n_actions
+        """Length of the Q-network input: p*L marginals + one-hot previous assignment over G-bar (+ the roster of
+        N teammates heard from, with `roster`)."""
+        return self.n_tasks * self.levels + self.n_actions + (self.n_agents if self.roster else 0)
 
     def agent_reward(self, i: int) -> RewardParams:
         """Reward parameters of agent i (its own, else the shared ones)."""
@@ -361,6 +370,17 @@ class Scenario:
         """A copy with the shared reward parameters changed (agents with their own keep theirs)."""
         return self.replace(reward=dataclasses.replace(self.reward, **changes))
 
+    def with_credit(self, credit: Literal["team", "difference"]) -> Scenario:
+        """A copy whose every agent's R_comp is credited as `credit` (team or difference, `RewardParams.credit`),
+        preferences included."""
+        agents = tuple(
+            a if a.reward is None else dataclasses.replace(a, reward=dataclasses.replace(a.reward, credit=credit))
+            for a in self.agents
+        )
+        new = self.replace(reward=dataclasses.replace(self.reward, credit=credit), agents=agents)
+        validate(new, "credit")
+        return new
+
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form (lists, dicts) that from_dict reads back."""
         plain: dict[str, Any] = _to_plain(dataclasses.asdict(self))
@@ -374,7 +394,7 @@ class Scenario:
             "levels": self.levels,
             "actions": list(self.action_names),
             "n_agents": self.n_agents,
-            "knowledge": ["marginals(p,L)", "onehot(prev,|G|)"],
+            "knowledge": ["marginals(p,L)", "onehot(prev,|G|)"] + (["roster(N)"] if self.roster else []),
         }
         return hashlib.sha256(json.dumps(layout, sort_keys=True).encode()).hexdigest()[:16]
 

@@ -16,13 +16,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from htlm_agent.mind import knowledge
+from htlm_agent.mind.auction import allocate
 from htlm_agent.mind.context import Context
 from htlm_agent.mind.policies import AgentPolicy, RowPolicy
 from htlm_agent.mind.reward import RewardTables, confident_levels
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.types import IntArray
+from htlm_world.types import BoolArray, IntArray
 
 BASELINES = ("random", "greedy", "auction", "ht", "optimal")
 """Names accepted by `registry.make_baseline` and `htlm evaluate --baseline` (here, in a module without torch, so
@@ -121,37 +123,19 @@ class AuctionPolicy:
         self.threshold = RewardTables.build(scenario).threshold
         self.caps = self.model.agent_caps[:, : scenario.n_tasks]  # (N, p): c_kj
 
-    def allocate(self, lv: IntArray) -> IntArray:
+    def allocate(self, lv: IntArray, present: BoolArray | None = None) -> IntArray:
         """The auction of every auctioneer: (B, M, p) confident levels (auctioneer m's belief) -> (B, M, N) the task
-        every agent k gets in auctioneer m's auction, -1 for none."""
-        sc = self.scenario
-        b, m, p = lv.shape
-        n, cmax, L = sc.n_agents, sc.capability_max, sc.levels
-        caps = self.caps[None, None]  # (1, 1, N, p)
-        need = np.where((lv > 0) & ~self.model.blocked(lv), lv, 0).astype(np.int64)  # (B, M, p)
-        assigned = np.full((b, m, n), -1, dtype=np.int64)
-        rows = np.arange(b)[:, None], np.arange(m)[None, :]
-        for _ in range(n):  # each round assigns at most one agent per auction
-            useful = np.minimum(caps, need[:, :, None, :])  # (B, M, N, p)
-            # one integer per bid, ordered by useful capability, then need, then capability
-            key = (useful * L + need[:, :, None, :]) * (cmax + 1) + caps
-            key = np.where((useful > 0) & (assigned < 0)[..., None], key, -1).reshape(b, m, n * p)
-            win = key.argmax(axis=-1)  # the first maximum: lower agent, then lower task
-            ok = np.take_along_axis(key, win[..., None], axis=-1)[..., 0] >= 0  # (B, M)
-            if not ok.any():
-                break
-            k, j = win // p, win % p
-            assigned[rows[0], rows[1], k] = np.where(ok, j, assigned[rows[0], rows[1], k])
-            need[rows[0], rows[1], j] -= np.where(ok, self.caps[k, j], 0)
-            np.maximum(need, 0, out=need)
-        return assigned
+        every agent k gets in auctioneer m's auction, -1 for none; `present` (B, M, N) the teammates each counts on
+        (`mind.auction.allocate`)."""
+        return allocate(self.model, lv, present)
 
     def act(self, ctx: Context) -> IntArray:
         """One action per agent: its own assignment in the auction it runs on its own row of the Context."""
         sc = self.scenario
         lv = confident_levels(ctx.marginals, self.threshold)  # (B, N, p): row i is agent i's belief
         n = sc.n_agents
-        own = self.allocate(lv)[:, np.arange(n), np.arange(n)]  # (B, N): agent i's result in its own auction
+        present = knowledge.roster(ctx.knowledge, sc) if sc.roster else None  # (B, N, N): row i is agent i's roster
+        own = self.allocate(lv, present)[:, np.arange(n), np.arange(n)]  # (B, N): agent i's result in its own auction
         stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
         return np.where(own >= 0, own, stay).astype(np.int64)
 

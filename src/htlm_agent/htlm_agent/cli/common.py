@@ -20,7 +20,7 @@ TEAM_HELP = (
 
 
 def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
-    """--team, --idle-incentive, --reassign, --scenario, --mode."""
+    """--team, --idle-incentive, --reassign, --credit, --scenario, --mode, --events."""
     g = p.add_argument_group("scenario")
     g.add_argument(
         "--team",
@@ -39,6 +39,20 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
         choices=list(REASSIGN_COSTS),
         default=None,
         help="reassignment penalty T_RP level (default: medium)",
+    )
+    g.add_argument(
+        "--credit",
+        choices=["team", "difference"],
+        default=None,
+        help="what R_comp credits each agent with: team (the paper) or difference (its own contribution; "
+        "docs/model.md, Reward) (default: the scenario's, team)",
+    )
+    g.add_argument(
+        "--roster",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the knowledge state holds which teammates were heard from at the last step, so the auction and the "
+        "learners leave out a silent teammate (docs/model.md, Knowledge state) (default: the scenario's)",
     )
     g.add_argument("--scenario", default=None, metavar="FILE", help="scenario YAML (default: the built-in 'paper')")
     g.add_argument(
@@ -66,6 +80,10 @@ def scenario_from_args(args: argparse.Namespace) -> Scenario:
         sc = sc.with_reward(reassign_cost=REASSIGN_COSTS[args.reassign])
     if args.mode is not None:
         sc = sc.replace(mode=args.mode)
+    if getattr(args, "roster", None) is not None:
+        sc = sc.replace(roster=args.roster)
+    if getattr(args, "credit", None) is not None:
+        sc = sc.with_credit(args.credit)
     return with_events_from_args(sc, args)
 
 
@@ -83,7 +101,8 @@ def experiment_name(sc: Scenario) -> str:
     levels = {v: k for k, v in REASSIGN_COSTS.items()}
     tc = levels.get(sc.reward.reassign_cost, f"tc{sc.reward.reassign_cost:g}")
     base = sc.team if sc.name == "paper" else (f"{sc.name}-{sc.team}" if sc.team else sc.name)
-    return f"{base}-ii{sc.reward.idle_incentive:g}-{tc}" + ("-ht" if sc.mode == "ht" else "")
+    diff = "-diff" if sc.reward.credit == "difference" else ""
+    return f"{base}-ii{sc.reward.idle_incentive:g}-{tc}{diff}" + ("-ht" if sc.mode == "ht" else "")
 
 
 def run_name(experiment: str, seed: int) -> str:

@@ -30,7 +30,9 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     from htlm_msgs_py.params import field_docs
 
     docs = field_docs(Settings)
-    g = p.add_argument_group("learner settings (defaults: htlm_agent.learning.settings.Settings)")
+    g = p.add_argument_group(
+        "learner settings (defaults: htlm_agent.learning.settings.Settings; with --learner tokens, TOKENS_PRESET first)"
+    )
     for f in dataclasses.fields(Settings):
         if f.name in EXPLICIT:
             continue
@@ -105,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
             sc = ck.scenario
         else:
             sc = scenario_from_args(args)
-            settings = Settings(**changes)
+            settings = Settings.for_learner(**changes)
             out = Path(args.out) if args.out else Path("runs") / run_name(experiment_name(sc), settings.seed)
         if not args.no_progress:
             print(

@@ -26,12 +26,15 @@ import numpy as np
 import torch
 import yaml
 
+from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
 from htlm_agent.experiments.evaluate import evaluate, evaluate_run, write_reports
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.loop import LaggedNets, Selection, episode_epsilons
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
+from htlm_agent.mind.context import Policy
+from htlm_agent.mind.policies import team_epsilon_greedy
 from htlm_agent.progress import Progress
 from htlm_agent.runtime.team import Team
 from htlm_world import seeds
@@ -127,12 +130,19 @@ def dropouts(share: float, batch: int, n_agents: int, rng: np.random.Generator) 
     return mask
 
 
-def train_batch(learner: Learner, team: Team, batch_index: int, lagged: LaggedNets | None = None) -> dict[str, float]:
+def train_batch(
+    learner: Learner,
+    team: Team,
+    batch_index: int,
+    lagged: LaggedNets | None = None,
+    expert: Policy | None = None,
+) -> dict[str, float]:
     """Algorithm 1, lines 3-10, for B episodes at once: run one batch of episodes ε-greedily, storing every agent's
     transitions in its own memory and training every agent `updates_per_step` times per step; under a trainer lag
     the agents act with the networks of `lagged` (kept across the run's batches; default: new ones, this batch being
-    the run's first). Returns the batch's row of progress.csv (the metrics of `htlm_world.metrics` over its
-    episodes)."""
+    the run's first). With an `expert` (the warm start, `Settings.imitate`), the team acts with the expert's
+    choices (ε-greedily with the final ε) and the networks also learn to rank them first (`Learner.imitate`).
+    Returns the batch's row of progress.csv (the metrics of `htlm_world.metrics` over its episodes)."""
     sc, s, seed = learner.scenario, learner.settings, learner.seed
     if lagged is None:
         lagged = LaggedNets(learner, batch_index * sc.horizon)
@@ -149,7 +159,12 @@ def train_batch(learner: Learner, team: Team, batch_index: int, lagged: LaggedNe
     losses: list[float] = []
     for t in range(sc.horizon):
         net = lagged.at(batch_index * sc.horizon + t)
-        a = team.force_inactive(learner.act(k, m, eps_env, rngs, net))  # a dropped agent's stored action: its idling
+        if expert is not None:
+            a_exp = expert.act(team.context())
+            a = team.force_inactive(team_epsilon_greedy(a_exp, m, s.eps_end, rngs))
+            losses.append(learner.imitate(k, m, a_exp))
+        else:  # a dropped agent's stored action: its idling
+            a = team.force_inactive(learner.act(k, m, eps_env, rngs, net))
         k2, r, info = team.step(a)
         m2 = team.mask()
         learner.store_batch(k, a, r, k2, m2, t == sc.horizon - 1)
@@ -168,6 +183,13 @@ def train_batch(learner: Learner, team: Team, batch_index: int, lagged: LaggedNe
         "failure_rate": float(em.failed.mean()),
         "unused_fraction": float(em.unused_fraction.mean()),
     }
+
+
+def warm_start_expert(scenario: Scenario, settings: Settings) -> Policy | None:
+    """The baseline the warm start imitates (`Settings.imitate`), None without a warm start."""
+    if settings.imitate == "none" or settings.imitate_episodes == 0:
+        return None
+    return AuctionPolicy(scenario) if settings.imitate == "auction" else GreedyPolicy(scenario)
 
 
 # ----- validation and selection -----------------------------------------------------------------------------------
@@ -275,6 +297,8 @@ class _Run:
     ckpt_dir: Path
     t_start: float
     lagged: LaggedNets
+    expert: Policy | None = None
+    """The baseline of the warm start (`Settings.imitate`), None without one."""
     history: list[dict[str, float]] = field(default_factory=list)
     train_time: float = 0.0
     last_ckpt: int = 0
@@ -290,7 +314,8 @@ class _Run:
         """Train one batch, validate when due, log, and write a periodic checkpoint when due."""
         learner, s = self.learner, self.learner.settings
         t0 = time.perf_counter()
-        row = train_batch(learner, self.team, learner.episodes_done // s.envs, self.lagged)
+        expert = self.expert if learner.episodes_done < s.imitate_episodes else None
+        row = train_batch(learner, self.team, learner.episodes_done // s.envs, self.lagged, expert)
         self.train_time += time.perf_counter() - t0
         done = learner.episodes_done
         row["episodes"] = done
@@ -320,7 +345,7 @@ class _Run:
         row["val_completion"] = vm["completion"]["mean"]
         row["val_failure_rate"] = vm["completion"]["failure_rate"]
         row["val_unused_fraction"] = vm["unused_fraction"]["mean"]
-        if self.learner.episodes_done >= s.eps_fraction * s.episodes:
+        if self.learner.episodes_done >= s.selection_from:
             self.selection.offer(vm["completion"]["mean"])
 
 
@@ -403,6 +428,7 @@ def train(
         ckpt_dir=ckpt_dir,
         t_start=t_start,
         lagged=LaggedNets(learner, done // s.envs * scenario.horizon),
+        expert=warm_start_expert(scenario, s),
         last_ckpt=done,
         last_val=done,
     )

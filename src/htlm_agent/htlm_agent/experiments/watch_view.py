@@ -198,7 +198,9 @@ class WatchState:
         sc = self.scenario
         if sc is None or self.run is None:
             return None
-        return limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, int(self.run["batch"]))
+        return limits(
+            sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, int(self.run["batch"]), sc.knowledge_size
+        )
 
     @property
     def agent_names(self) -> list[str]:

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from htlm_agent.learning.qnet import layer_sizes, pack_weights, param_shapes
+from htlm_agent.learning.qnet import network_shapes, pack_weights
 from htlm_agent.learning.settings import Settings
 from htlm_world.scenario import Scenario, ScenarioError, from_dict
 
@@ -196,7 +196,7 @@ def load_checkpoint(path: str | Path, scenario: Scenario | None = None) -> Check
         raise CheckpointError(
             f"{agents_path}: wrong agent count: {got} networks, the checkpoint's scenario has {sc.n_agents} agents"
         )
-    shapes = param_shapes(layer_sizes(sc, settings.hidden))
+    shapes = network_shapes(sc, settings)
     weights: list[list[NDArray[np.float32]]] = []
     for i, a in enumerate(agents):
         try:

@@ -37,11 +37,20 @@ import torch
 
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.optim import StackedAdam, clip_grad_per_agent
-from htlm_agent.learning.qnet import StackedQ, layer_sizes, pack_weights
-from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.qnet import (
+    QNetwork,
+    StackedQ,
+    build_network,
+    copy_network,
+    init_params,
+    layer_sizes,
+    pack_weights,
+)
+from htlm_agent.learning.qpolicy import QPolicy, greedy_actions
 from htlm_agent.learning.replay import Batch, Replay
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
+from htlm_agent.learning.tokens import TokenQ
 from htlm_agent.learning.update import Minibatches, TwinNets, UpdateBatch, flush_denormals
 from htlm_agent.mind.knowledge import AnyFloats, previous
 from htlm_agent.mind.policies import team_epsilon_greedy
@@ -49,6 +58,10 @@ from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.types import BoolArray, FloatArray, IntArray
+
+IMITATION_MARGIN = 0.5
+"""m of the warm start's large-margin loss, in the learner's scaled Q units (`Settings.reward_scale`): how far
+above every other action the baseline's choice must score."""
 
 
 class Learner:
@@ -70,10 +83,23 @@ class Learner:
         self.seed = settings.seed if seed is None else int(seed)
         n = scenario.n_agents
         self.sizes = layer_sizes(scenario, settings.hidden)
-        self.twins = TwinNets(self.sizes, [seeds.network_init(self.seed, i) for i in range(n)])
-        self.net = self.twins.online
-        self.target = self.twins.target
-        self.opt = StackedAdam(self.net.flat, self.net.grad, settings.lr)
+        self.twins: TwinNets | None = None
+        self.net: QNetwork
+        self.target: QNetwork
+        self.opt: StackedAdam | torch.optim.Adam
+        if settings.learner == "tokens":  # autograd and torch.optim
+            count = 1 if settings.shared else n
+            init = [init_params(scenario, settings, seeds.network_init(self.seed, i)) for i in range(count)]
+            self.net = build_network(scenario, settings, init)
+            self.target = copy_network(self.net)
+            self.target.requires_grad_(False)
+            self.net.grad.zero_()
+            self.opt = torch.optim.Adam([self.net.flat], lr=settings.lr)
+        else:  # the paper's MLPs, updated by hand (`update.TwinNets`)
+            self.twins = TwinNets(self.sizes, [seeds.network_init(self.seed, i) for i in range(n)])
+            self.net = self.twins.online
+            self.target = self.twins.target
+            self.opt = StackedAdam(self.net.flat, self.net.grad, settings.lr)
         assert model is None or model.scenario == scenario, "a model of another scenario"
         self.model = model if model is not None else Model.build(scenario)
         self._mask_by_bits = self._masks_by_bits()
@@ -112,14 +138,18 @@ class Learner:
         mask: BoolArray,
         epsilon: float | FloatArray,
         rngs: Sequence[np.random.Generator],
-        net: StackedQ | None = None,
+        net: QNetwork | None = None,
     ) -> IntArray:
         """ε-greedy actions (B, N) over Â from knowledge (B, N, K) and masks (B, N, |Ḡ|); ε a number or one per
         episode (B,); agent i explores with rngs[i] (`policies.team_epsilon_greedy`, as the agents' processes do).
         `net`: the networks to act with (default: the online ones; `loop.LaggedNets` gives older ones under a trainer
         lag)."""
+        acting = self.net if net is None else net
         with flush_denormals():
-            greedy = self._greedy(knowledge, mask, self.net if net is None else net)
+            if isinstance(acting, StackedQ):
+                greedy = self._greedy(knowledge, mask, acting)
+            else:
+                greedy = greedy_actions(acting, knowledge, mask)
         return team_epsilon_greedy(greedy, mask, epsilon, rngs)
 
     def _greedy(self, knowledge: FloatArray, mask: BoolArray, net: StackedQ) -> IntArray:
@@ -223,7 +253,8 @@ class Learner:
         if self._mask_by_bits is None:
             out: BoolArray = self.model.action_mask(previous(k, sc))
             return out
-        bits = np.packbits(np.asarray(k)[..., sc.n_tasks * sc.levels :] > 0.5, axis=-1, bitorder="little")
+        start = sc.n_tasks * sc.levels
+        bits = np.packbits(np.asarray(k)[..., start : start + sc.n_actions] > 0.5, axis=-1, bitorder="little")
         code = bits[..., 0].astype(np.int64)
         if bits.shape[-1] > 1:
             code |= bits[..., 1].astype(np.int64) << 8
@@ -234,7 +265,7 @@ class Learner:
         """Â(a_o) for every pattern of the one-hot part of K taken as bits (bit j: entry j > 0.5), a_o the lowest set
         bit (-1 for none), as `previous` decodes it; None when the part has more than 16 entries."""
         sc = self.scenario
-        width = sc.knowledge_size - sc.n_tasks * sc.levels
+        width = sc.n_actions
         if width > 16:
             return None
         codes = np.arange(2**width)
@@ -287,6 +318,8 @@ class Learner:
             return self._train(ready, count)
 
     def _train(self, ready: BoolArray, count: int) -> list[float]:
+        if self.twins is None:
+            return self._train_autograd(ready, count)
         s = self.settings
         active = torch.from_numpy(ready)
         all_active = bool(ready.all())
@@ -302,8 +335,72 @@ class Learner:
             losses.append(float(per_agent.mean() if all_active else per_agent[active].mean()))
         return losses
 
+    def _train_autograd(self, ready: BoolArray, count: int) -> list[float]:
+        """`count` updates of the token networks: the loss of `batch_loss` through autograd, torch.optim's Adam."""
+        s = self.settings
+        net = self.net
+        assert isinstance(net, TokenQ) and isinstance(self.opt, torch.optim.Adam)
+        losses = []
+        for batch in self.update_batches(ready, count):
+            per_agent = self.batch_loss(batch)
+            net.grad.zero_()
+            per_agent.sum().backward()  # type: ignore[no-untyped-call]
+            clip_grad_per_agent(net.grad, s.grad_clip)
+            self.opt.step()
+            self.updates += ready
+            sync = ready & (self.updates % s.target_sync == 0)
+            if sync.any():
+                self.sync_target(sync)
+            losses.append(float(per_agent.detach()[torch.from_numpy(ready)].mean()))
+        return losses
+
+    def imitate(self, knowledge: FloatArray, mask: BoolArray, expert: IntArray) -> float:
+        """One supervised update of the token networks towards a baseline's actions (the warm start,
+        `Settings.imitate`): the large-margin loss of DQfD (Hester et al. 2018), max_a [Q(K, a) + m·(a ≠ a_E)] −
+        Q(K, a_E) over Â, m = `IMITATION_MARGIN`, on every agent's knowledge (B, N, K), masks (B, N, |Ḡ|) and
+        the baseline's actions (B, N) from the agent's own belief. Returns the loss."""
+        net = self.net
+        assert isinstance(net, TokenQ) and isinstance(self.opt, torch.optim.Adam)
+        x = torch.from_numpy(np.ascontiguousarray(knowledge.transpose(1, 0, 2), dtype=np.float32))
+        allowed = torch.from_numpy(np.ascontiguousarray(mask.transpose(1, 0, 2)))
+        a = torch.from_numpy(np.ascontiguousarray(expert.T, dtype=np.int64))[..., None]
+        with flush_denormals():
+            q = net(x)
+            margin = torch.full_like(q, IMITATION_MARGIN).scatter_(-1, a, 0.0)
+            best = (q + margin).masked_fill(~allowed, -math.inf).amax(dim=-1, keepdim=True)
+            loss = (best - q.gather(-1, a)).mean()
+            net.grad.zero_()
+            loss.backward()
+            clip_grad_per_agent(net.grad, self.settings.grad_clip)
+            self.opt.step()
+        return float(loss.detach())
+
+    def batch_loss(self, b: UpdateBatch) -> torch.Tensor:
+        """Every agent's loss (N,) on a minibatch of `update_batches`: its mean Huber TD error (Double DQN and
+        advantage learning as `Settings` says), 0 for the agents that do not train; the same loss as `loss`."""
+        s = self.settings
+        m = b.r.shape[1]
+        q_all = self.net(b.x)  # K then K' of every agent
+        q_a = q_all[:, :m].gather(-1, b.a_online)
+        with torch.no_grad():
+            qt = self.target(b.x)
+            qt_k, qt_k2 = qt[:, :m], qt[:, m:]
+            if s.double_dqn:
+                a2 = (q_all[:, m:].detach() + b.off2).argmax(dim=-1, keepdim=True)
+                nxt = qt_k2.gather(-1, a2)
+            else:
+                nxt = (qt_k2 + b.off2).amax(dim=-1, keepdim=True)
+            y = b.r + b.discount * nxt
+            if s.advantage_learning > 0:
+                best = (qt_k + b.off).amax(dim=-1, keepdim=True)
+                y = y - s.advantage_learning * (best - qt_k.gather(-1, b.a_online))
+        hub = torch.nn.functional.huber_loss(q_a, y, reduction="none", delta=s.huber_delta)
+        return (hub * b.weight).sum(dim=(1, 2))
+
     def sync_target(self, agents: BoolArray) -> None:
         """Copy the online networks of the marked agents into their target networks."""
+        if isinstance(self.net, TokenQ) and self.net.shared:
+            agents = np.ones(1, dtype=bool)
         idx = torch.from_numpy(np.flatnonzero(agents))
         with torch.no_grad():
             self.target.flat[idx] = self.net.flat[idx]
@@ -337,14 +434,14 @@ class Learner:
         """
         train_state = {
             "target": self.target.flat.detach().clone(),
-            "adam": self.opt.state(),
+            "adam": self.opt.state() if isinstance(self.opt, StackedAdam) else self.opt.state_dict(),
         }
         weights = [self.net.agent_params(i) for i in range(self.n_agents)]
         if policy_flat is not None:
             train_state["online"] = self.net.flat.detach().clone()
-            sel = StackedQ(self.sizes, [[torch.zeros(sh) for sh in self.net.shapes]] * self.n_agents)
+            sel = copy_network(self.net)
             with torch.no_grad():
-                sel.flat.copy_(policy_flat)
+                sel.flat.copy_(policy_flat[: sel.flat.shape[0]])
             weights = [sel.agent_params(i) for i in range(self.n_agents)]
         rs = self.replay.state() if replay else None
         info = {
@@ -382,7 +479,10 @@ class Learner:
                 lr.target.flat.copy_(ts["target"])
                 if "online" in ts:
                     lr.net.flat.copy_(ts["online"])
-            lr.opt.load_state(ts["adam"])
+            if isinstance(lr.opt, StackedAdam):
+                lr.opt.load_state(ts["adam"])
+            else:
+                lr.opt.load_state_dict(ts["adam"])
         else:
             lr.target.flat.copy_(lr.net.flat)
         lr.updates[:] = ck.info.get("updates", [0] * lr.n_agents)

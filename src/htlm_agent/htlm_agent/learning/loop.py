@@ -13,7 +13,7 @@ import torch
 
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.dqn import Learner
-from htlm_agent.learning.qnet import StackedQ
+from htlm_agent.learning.qnet import QNetwork, copy_network
 from htlm_agent.learning.settings import Settings
 from htlm_world.episode import acting_weights
 from htlm_world.types import FloatArray
@@ -39,9 +39,9 @@ class LaggedNets:
         self.first = first_step
         self.lag = learner.settings.trainer_lag
         self.versions: dict[int, torch.Tensor] = {}
-        self.net: StackedQ | None = None
+        self.net: QNetwork | None = None
 
-    def at(self, g: int) -> StackedQ | None:
+    def at(self, g: int) -> QNetwork | None:
         """The networks to act with at global step g, None for the learner's current ones (lag 0). Called once per
         step, in order, after the updates of the steps before g."""
         if self.lag == 0:
@@ -52,7 +52,7 @@ class LaggedNets:
         for v in [v for v in self.versions if v < version]:
             del self.versions[v]
         if self.net is None:
-            self.net = StackedQ(online.sizes, [[torch.zeros(sh) for sh in online.shapes]] * online.n_agents)
+            self.net = copy_network(online)
         with torch.no_grad():
             self.net.flat.copy_(self.versions[version])
         return self.net

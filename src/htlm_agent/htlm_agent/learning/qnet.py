@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
+from htlm_agent.learning.tokens import TokenQ, init_token_params, token_shapes
 from htlm_world.scenario import Scenario
 
 F32 = NDArray[np.float32]
@@ -253,15 +254,70 @@ def unpack_weights(data: bytes, expected: Sequence[tuple[int, ...]] | None = Non
     return out
 
 
+# ----- the network of a learner's settings ------------------------------------------------------------------------
+
+QNetwork = StackedQ | TokenQ
+"""The Q-networks of a set of agents, whichever the learner (`Settings.learner`)."""
+
+
+def network_shapes(scenario: Scenario, settings: Any) -> list[tuple[int, ...]]:
+    """Shapes of one agent's parameters for the learner of `settings` (a `learning.settings.Settings`)."""
+    if settings.learner == "tokens":
+        return token_shapes(scenario.levels, settings.hidden)
+    return param_shapes(layer_sizes(scenario, settings.hidden))
+
+
+def init_params(scenario: Scenario, settings: Any, seed: int) -> list[torch.Tensor]:
+    """Fresh parameters of one agent's network for the learner of `settings`."""
+    if settings.learner == "tokens":
+        return init_token_params(scenario.levels, settings.hidden, seed)
+    return init_agent_params(layer_sizes(scenario, settings.hidden), seed)
+
+
+def build_network(
+    scenario: Scenario, settings: Any, params: Sequence[Sequence[Any]], agents: Sequence[int] | None = None
+) -> QNetwork:
+    """The networks of the agents `agents` (default: the whole team) with the given parameters, one list per agent
+    (`network_shapes` order), for the learner of `settings`."""
+    tparams = [[torch.as_tensor(np.asarray(t, dtype=np.float32)) for t in ps] for ps in params]
+    if settings.learner == "tokens":
+        return TokenQ(scenario, settings.hidden, tparams, agents, shared=settings.shared)
+    return StackedQ(layer_sizes(scenario, settings.hidden), tparams)
+
+
+def copy_network(net: QNetwork) -> QNetwork:
+    """A network of the same layout, agents and parameters (its own storage)."""
+    out: QNetwork
+    if isinstance(net, TokenQ):
+        out = TokenQ(net.spec.scenario, net.hidden, [[torch.zeros(s) for s in net.shapes]], net.spec.agents, net.shared)
+    else:
+        out = StackedQ(net.sizes, [[torch.zeros(sh) for sh in net.shapes]] * net.n_agents)
+    with torch.no_grad():
+        out.flat.copy_(net.flat)
+    return out
+
+
 # ----- one agent's network ----------------------------------------------------------------------------------------
 
 
 class AgentQ:
     """One agent's Q-network on its own (for the ROS agent node): greedy masked argmax, weights as bytes."""
 
-    def __init__(self, sizes: Sequence[int], params: Sequence[NDArray[np.float32]] | None = None, seed: int = 0):
-        """A network of layer sizes `sizes` (K, hidden..., |Ḡ|) with the given parameters, or fresh ones."""
+    def __init__(
+        self,
+        sizes: Sequence[int],
+        params: Sequence[NDArray[np.float32]] | None = None,
+        seed: int = 0,
+        net: QNetwork | None = None,
+    ):
+        """A network of layer sizes `sizes` (K, hidden..., |Ḡ|) with the given parameters, or fresh ones; or the
+        one-agent network `net` (any learner's, `for_agent`)."""
         self.sizes = tuple(int(s) for s in sizes)
+        if net is not None:
+            self.shapes = list(net.shapes)
+            self.net: QNetwork = net
+            self.net.requires_grad_(False)
+            return
         self.shapes = param_shapes(self.sizes)
         if params is None:
             tparams = init_agent_params(self.sizes, seed)
@@ -274,12 +330,26 @@ class AgentQ:
         self.net.requires_grad_(False)
 
     @staticmethod
+    def for_agent(
+        scenario: Scenario, settings: Any, agent: int, params: Sequence[NDArray[np.float32]] | None = None
+    ) -> AgentQ:
+        """Agent `agent`'s network of the learner of `settings` (a `Settings`), with the given parameters or fresh
+        ones (raises ValueError when they do not fit)."""
+        if params is None:
+            params = [t.numpy() for t in init_params(scenario, settings, 0)]
+        got, want = [tuple(np.shape(p)) for p in params], network_shapes(scenario, settings)
+        if got != want:
+            raise ValueError(f"parameters have shapes {got}, this network needs {want}")
+        net = build_network(scenario, settings, [params], [agent])
+        return AgentQ((scenario.knowledge_size, scenario.n_actions), net=net)
+
+    @staticmethod
     def from_checkpoint(ckpt: Any, agent_index: int) -> AgentQ:
         """Agent `agent_index`'s network from a loaded checkpoint (`htlm_agent.learning.checkpoint.Checkpoint`)."""
         n = len(ckpt.weights)
         if not 0 <= agent_index < n:
             raise ValueError(f"agent index {agent_index!r} is out of range 0..{n - 1} of checkpoint {ckpt.path}")
-        return AgentQ(layer_sizes(ckpt.scenario, ckpt.settings.hidden), ckpt.weights[agent_index])
+        return AgentQ.for_agent(ckpt.scenario, ckpt.settings, agent_index, ckpt.weights[agent_index])
 
     @property
     def knowledge_size(self) -> int:

@@ -12,13 +12,44 @@ from typing import Any
 
 from htlm_msgs_py.validation import ConversionError, convert_value
 
+LEARNERS = ("paper", "tokens")
+"""The Q-networks a run can train (`Settings.learner`)."""
+
+IMITATE = ("none", "auction", "greedy")
+"""The baselines a warm start can imitate (`Settings.imitate`)."""
+
+
+TOKENS_PRESET: dict[str, Any] = {
+    "learner": "tokens",
+    "hidden": (32, 32),
+    "updates_per_step": 2,
+    "imitate": "auction",
+    "imitate_episodes": 2048,
+    "eps_start": 0.3,
+}
+"""The settings `htlm train --learner tokens` starts from (docs/model.md, The token learner): smaller layers and
+fewer updates than the paper's MLPs (every update trains on all agents' transitions at once), a warm start on the
+auction, and less exploration after it."""
+
 
 @dataclass(frozen=True)
 class Settings:
     """Everything that decides a training run besides the scenario. Saved with every run (settings.json)."""
 
+    learner: str = "paper"
+    """The Q-network: `paper`, one MLP per agent from K to one Q-value per element of Ḡ (the paper's learner);
+    `tokens`, one network scoring every action from its own features, shared across tasks (docs/model.md, The
+    token learner)."""
+    shared: bool = True
+    """tokens: the agents share one network (their capabilities and preferences are inputs); False: each agent
+    trains its own."""
+    imitate: str = "none"
+    """Warm start: `auction` or `greedy` trains the networks first to rank that baseline's choice, made from each
+    agent's own belief, above the other actions (with its episodes stored as experience); `none`: no warm start."""
+    imitate_episodes: int = 0
+    """Episodes of the warm start (part of `episodes`), run by the baseline the networks imitate."""
     hidden: tuple[int, ...] = (64, 64)
-    """Hidden layer sizes of every agent's Q-network MLP (ReLU)."""
+    """Hidden layer sizes of every agent's Q-network MLP (ReLU); tokens: the token encoder's and the head's."""
     lr: float = 1e-3
     """Adam learning rate."""
     batch_size: int = 128
@@ -124,6 +155,16 @@ class Settings:
             raise ValueError(
                 f"settings: reward_scale {self.reward_scale!r} and huber_delta {self.huber_delta!r} must be > 0"
             )
+        if self.learner not in LEARNERS:
+            raise ValueError(f"settings.learner: {self.learner!r} is not one of {', '.join(LEARNERS)}")
+        if self.imitate not in IMITATE:
+            raise ValueError(f"settings.imitate: {self.imitate!r} is not one of {', '.join(IMITATE)}")
+        if self.imitate_episodes < 0 or self.imitate_episodes > self.episodes:
+            raise ValueError(
+                f"settings.imitate_episodes: {self.imitate_episodes!r} must be in 0..episodes ({self.episodes})"
+            )
+        if self.imitate != "none" and self.learner != "tokens":
+            raise ValueError(f"settings.imitate: {self.imitate!r} needs learner 'tokens', not {self.learner!r}")
         if self.envs > self.memory:
             raise ValueError(f"settings.envs: {self.envs!r} must not exceed settings.memory {self.memory!r}")
 
@@ -133,6 +174,21 @@ class Settings:
         span = self.eps_fraction * self.episodes
         frac = 1.0 if span <= 0 else min(max(float(episode) / span, 0.0), 1.0)
         return self.eps_start + frac * (self.eps_end - self.eps_start)
+
+    @property
+    def selection_from(self) -> float:
+        """The episode from which validated networks compete for selection (`select_best`): once ε has decayed, or
+        once the warm start is over (its networks act as the baseline they imitated) when that comes first."""
+        decayed = self.eps_fraction * self.episodes
+        if self.imitate != "none" and self.imitate_episodes > 0:
+            return min(decayed, self.imitate_episodes)
+        return decayed
+
+    @staticmethod
+    def for_learner(**changes: Any) -> Settings:
+        """Settings with `changes`, starting from `TOKENS_PRESET` when they choose the token learner."""
+        base = TOKENS_PRESET if changes.get("learner") == "tokens" else {}
+        return Settings(**{**base, **changes})
 
     def replace(self, **changes: Any) -> Settings:
         """A copy with fields changed (validated)."""

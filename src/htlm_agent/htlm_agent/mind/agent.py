@@ -144,7 +144,8 @@ class AgentMind:
 
     def knowledge(self) -> FloatArray:
         """Knowledge states K = {b, a_o} (B, K)."""
-        return knowledge.build(self.marg, self.prev, self.scenario.n_actions)
+        roster = self.heard if self.scenario.roster else None
+        return knowledge.build(self.marg, self.prev, self.scenario.n_actions, roster)
 
     def mask(self) -> BoolArray:
         """Â(a_o) (B, |G|)."""
@@ -203,6 +204,7 @@ class AgentMind:
         self.marg = bf.marginals(self.model, self.belief)  # (B, p, L)
         self.prev = np.full(size, sc.start_assignment, dtype=np.int64)
         self.known = np.full((size, self.n), sc.start_assignment, dtype=np.int64)
+        self.heard = np.ones((size, self.n), dtype=bool)  # the roster: whose broadcast arrived at the last step
         b = episode // self.batch
         if self.mode == "train":
             self.chan = seeds.train_channel(self.seed, self.me, b)
@@ -438,14 +440,21 @@ class AgentMind:
         joint[:, me] = action if p.effective is None else p.effective
         lik = bf.agent_evidence(self.model, me, joint, obs, messages, heard, p.t)
         caps = self.model.joint_capability(joint)
+        prior = (
+            np.broadcast_to(self.marg[:, None], (size, n, *self.marg.shape[1:]))
+            if self.tables.difference.any()
+            else None
+        )
         self.belief, bad = bf.update(self.model, self.belief, caps, lik)
         self.impossible += int(bad.sum())
         self.marg = bf.marginals(self.model, self.belief)
         prev = np.broadcast_to(self.prev[:, None], (size, n))
         marg = np.broadcast_to(self.marg[:, None], (size, n, *self.marg.shape[1:]))
-        r, parts = reward(self.model, self.tables, prev, marg, joint)
+        r, parts = reward(self.model, self.tables, prev, marg, joint, prior)
         self.prev = np.where(action >= 0, action, self.prev)
         self.known = np.where(joint >= 0, joint, self.known)
+        self.heard = heard.copy()
+        self.heard[:, me] = True
         self.t = p.t
         self.pending = None
         sent = p.sent if p.sent is not None else np.full(size, -1, dtype=np.int64)

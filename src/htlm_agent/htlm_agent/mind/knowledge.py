@@ -3,8 +3,9 @@ its layout.
 
 Layout of the last axis (K = p·L + |Ḡ| entries): the per-task marginals of the belief, task-major (p rows of L
 levels, tasks in task order, `Scenario.tasks`), then the one-hot previous assignment a_o over
-Ḡ; a_o = -1 (no assignment yet) is all zeros. `Scenario.knowledge_size` is its length and `Scenario.layout_hash` its
-fingerprint.
+Ḡ; a_o = -1 (no assignment yet) is all zeros. With `Scenario.roster`, N more entries: 1 for every teammate heard
+from at the last step (the agent itself always; everyone before the first step). `Scenario.knowledge_size` is its
+length and `Scenario.layout_hash` its fingerprint.
 """
 
 from __future__ import annotations
@@ -21,9 +22,13 @@ AnyFloats = NDArray[np.floating[Any]]
 """Knowledge states as stored anywhere: float64 in the runtimes, float32 in the replay memories."""
 
 
-def build(marg: Marginals, prev: IntArray, n_actions: int) -> Knowledge:
-    """K from marginals (..., p, L) and previous assignments (...,): (..., p·L + |Ḡ|)."""
+def build(marg: Marginals, prev: IntArray, n_actions: int, roster: NDArray[np.bool_] | None = None) -> Knowledge:
+    """K from marginals (..., p, L) and previous assignments (...,): (..., p·L + |Ḡ|), followed with `roster`
+    (..., N) by 1 for every teammate heard from at the last step, 0 for the others (`Scenario.roster`)."""
     lead, size = marg.shape[:-2], marg.shape[-2] * marg.shape[-1]
+    if roster is not None:
+        head = build(marg, prev, n_actions)
+        return np.concatenate([head, np.broadcast_to(roster, lead + roster.shape[-1:]).astype(head.dtype)], axis=-1)
     out: Knowledge = np.empty(lead + (size + n_actions,))
     dst = out[..., :size].reshape(marg.shape)  # a view of out (its last axis split)
     if marg.strides[-1] == marg.itemsize or marg[..., 0, 0].size < 2048:
@@ -48,8 +53,18 @@ def marginals(k: AnyFloats, scenario: Scenario) -> AnyFloats:
 def previous(k: AnyFloats, scenario: Scenario) -> IntArray:
     """The previous assignments a_o (...,) held in knowledge states (..., K): the index of the one-hot entry, -1 when
     there is none."""
-    onehot = k[..., scenario.n_tasks * scenario.levels :] > 0.5
+    start = scenario.n_tasks * scenario.levels
+    onehot = k[..., start : start + scenario.n_actions] > 0.5
     return np.where(onehot.any(axis=-1), onehot.argmax(axis=-1), -1).astype(np.int64)
+
+
+def roster(k: AnyFloats, scenario: Scenario) -> NDArray[np.bool_]:
+    """The teammates heard from at the last step (..., N) held in knowledge states (..., K); every teammate when
+    the scenario keeps no roster."""
+    if not scenario.roster:
+        return np.ones(k.shape[:-1] + (scenario.n_agents,), dtype=bool)
+    out: NDArray[np.bool_] = k[..., scenario.knowledge_size - scenario.n_agents :] > 0.5
+    return out
 
 
 def split(k: AnyFloats, scenario: Scenario) -> tuple[AnyFloats, IntArray]:

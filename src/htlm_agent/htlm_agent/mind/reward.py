@@ -9,7 +9,7 @@ import numpy as np
 
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.types import FloatArray, IntArray, Marginals
+from htlm_world.types import BoolArray, FloatArray, IntArray, Marginals
 
 
 @dataclass(frozen=True)
@@ -24,6 +24,7 @@ class RewardTables:
     idle_belief: tuple[str, ...]  # (N,) constant, site or mission: how the idle bonus depends on the belief
     reassign_cost: FloatArray  # (N,)
     load_management: bool  # False in HT mode: R_LM = 0
+    difference: BoolArray  # (N,) R_comp as a difference reward (`credit: difference`)
 
     @staticmethod
     def build(sc: Scenario) -> RewardTables:
@@ -38,6 +39,7 @@ class RewardTables:
             idle_belief=tuple(r.idle_belief for r in rs),
             reassign_cost=np.array([r.reassign_cost for r in rs]),
             load_management=sc.mode == "htlm",
+            difference=np.array([r.credit == "difference" for r in rs], dtype=bool),
         )
 
 
@@ -94,8 +96,61 @@ def idle_weight(model: Model, tables: RewardTables, marg: Marginals, actions: In
     return weight
 
 
+def prediction_table(model: Model) -> FloatArray:
+    """T of every task as one array (p, C+1, L, L, L): [j, c, g, l, l'], the next level l' of task j at level l with
+    joint capability c while the task it depends on is at g (every g alike for a kind that depends on none)."""
+    sc = model.scenario
+    L, cm = sc.levels, sc.capability_max
+    out = np.zeros((sc.n_tasks, cm + 1, L, L, L))
+    for j, (_, k) in enumerate(sc.tasks):
+        table = model.kind_tables[k]  # (C+1, G, L, L)
+        out[j] = table if table.shape[1] == L else np.broadcast_to(table, (cm + 1, L, L, L))
+    return out
+
+
+def own_contribution(
+    model: Model, tables: RewardTables, prior: Marginals, joint: IntArray, table: FloatArray
+) -> FloatArray:
+    """The difference reward's R_comp (docs/model.md, Reward, `credit: difference`) of every agent (B, N): the
+    expected completion reward of the task it works on after the step as its belief predicts it with T, from its
+    marginals before the step (B, N, p, L), with the step's joint assignment `joint` (B, N), minus the same with the
+    agent idle, divided by p (the share of R_comp that task holds) and by 1 − γ: R_comp is paid every step while a
+    level lasts, so the progress of one step is worth its completion reward for as long as it lasts, which is what
+    the paper's reward pays for it over the following steps. 0 while idle. Tasks are taken as independent of the
+    task they depend on (the product of their marginals)."""
+    sc = model.scenario
+    p, cm = sc.n_tasks, sc.capability_max
+    b, n = joint.shape
+    working = (joint >= 0) & (joint < p)
+    task = np.where(working, joint, 0)
+    own = np.where(working, model.agent_caps[np.arange(n)[None, :], task], 0)  # (B, N)
+    total = np.zeros((b, p), dtype=np.int64)
+    np.add.at(total, (np.repeat(np.arange(b), n), task.reshape(-1)), own.reshape(-1))
+    on_task = np.take_along_axis(total, task, axis=1)  # (B, N) the uncapped joint capability on the agent's task
+    with_me, without = np.minimum(on_task, cm), np.minimum(on_task - own, cm)
+    m = np.take_along_axis(prior, task[..., None, None], axis=2)[:, :, 0]  # (B, N, L)
+    gate = model.task_gate[task]  # (B, N): p when none
+    ext = np.concatenate([prior, np.zeros(prior.shape[:-2] + (1, prior.shape[-1]))], axis=-2)
+    ext[..., p, 0] = 1.0  # the stand-in of no dependency: certain of level 0
+    g = np.take_along_axis(ext, gate[..., None, None], axis=2)[:, :, 0]  # (B, N, L)
+    rw = tables.level_rewards  # (N, L)
+    value = np.einsum("jcglm,im->ijcgl", table, rw)  # (N, p, C+1, L, L): expected R_l' from (c, g, l)
+    idx_i = np.broadcast_to(np.arange(n)[None, :], (b, n))
+    v_with = value[idx_i, task, with_me]  # (B, N, L, L) over (g, l)
+    v_without = value[idx_i, task, without]
+    gain = np.einsum("bngl,bng,bnl->bn", v_with - v_without, g, m)
+    out: FloatArray = np.where(working, gain / (p * (1.0 - sc.gamma)), 0.0)
+    return out
+
+
 def reward(
-    model: Model, tables: RewardTables, prev: IntArray, marg: Marginals, actions: IntArray
+    model: Model,
+    tables: RewardTables,
+    prev: IntArray,
+    marg: Marginals,
+    actions: IntArray,
+    prior: Marginals | None = None,
+    joint: IntArray | None = None,
 ) -> tuple[FloatArray, dict[str, FloatArray]]:
     """f_R for every agent (docs/model.md, Reward), from its own updated belief.
 
@@ -103,6 +158,8 @@ def reward(
         prev: (B, N) previous assignments a_o (-1: none).
         marg: (B, N, p, L) per-task marginals of each agent's updated belief.
         actions: (B, N) the actions taken.
+        prior: (B, N, p, L) the marginals before the step; needed where an agent's credit is `difference`.
+        joint: (B, N) the joint assignment each agent's prediction used (default: `actions`), for the same.
 
     Returns:
         (B, N) rewards and their parts {"comp", "idle", "reassign"}.
@@ -120,6 +177,10 @@ def reward(
         comp = total / p
     else:  # pairwise: along a contiguous axis, as numpy's mean
         comp = np.ascontiguousarray(r_levels).mean(axis=-1)
+    if tables.difference.any():
+        assert prior is not None, "a difference reward needs the marginals before the step"
+        own = own_contribution(model, tables, prior, actions if joint is None else joint, prediction_table(model))
+        comp = np.where(tables.difference[None, :], own, comp)
     if not tables.load_management:
         zero = np.zeros_like(comp)
         return comp, {"comp": comp, "idle": zero, "reassign": zero}

@@ -107,7 +107,9 @@ class TrainerNode(Node):
         self._apply(self.core.on_scenario(rec, time.monotonic()))
         sc = self.core.scenario
         if sc is not None and self.lim is None:
-            self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, self.core.batch)
+            self.lim = limits(
+                sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, self.core.batch, sc.knowledge_size
+            )
 
     def _on_transition(self, msg: bytes) -> None:
         if self.core.store is None:  # no scenario yet: the agents send it again until acknowledged

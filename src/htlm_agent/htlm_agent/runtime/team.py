@@ -108,9 +108,12 @@ class Team:
         self.sites = self._new_sites()
         self.sites[...] = bf.to_sites(b0.swapaxes(0, 1), sc.n_kinds)
         self.prev = np.full((self.batch, sc.n_agents), sc.start_assignment, dtype=np.int64)
+        self.heard = np.ones((self.batch, sc.n_agents), dtype=bool)
+        """(B, N) the teammates whose broadcast arrived at the last step (in process every message arrives: all but
+        those sitting out); everyone before the first step."""
         self.marg = self._marginals()
         self.t = 0
-        self._knowledge = knowledge.build(self.marg, self.prev, sc.n_actions)
+        self._knowledge = self._build_knowledge()
         return self.knowledge()
 
     def _marginals(self) -> FloatArray:
@@ -120,6 +123,20 @@ class Team:
         slots = bf.marginals_sites(self.sites, sc.levels, sc.n_kinds)  # each (L, S, N, B)
         marg: FloatArray = bf.task_marginals(self.model, slots).transpose(3, 2, 1, 0)
         return marg
+
+    def _build_knowledge(self) -> FloatArray:
+        """K of every agent (B, N, K) from the marginals, a_o and (with `Scenario.roster`) who was heard from."""
+        sc = self.scenario
+        roster = self.heard[:, None, :] | np.eye(sc.n_agents, dtype=bool)[None] if sc.roster else None
+        return knowledge.build(self.marg, self.prev, sc.n_actions, roster)
+
+    def _sitting_out(self) -> BoolArray:
+        """(B, N) the agents that sit out the step: kept out by an event, inactivated or dropped."""
+        out = self.events.out.copy()
+        out[:, list(self.inactive)] = True
+        if self.dropped is not None:
+            out |= self.dropped
+        return out
 
     def knowledge(self) -> FloatArray:
         """Current knowledge states (B, N, K)."""
@@ -160,10 +177,7 @@ class Team:
         """Inactivated and dropped agents and those an event keeps out observe nothing and broadcast no level,
         standing by or not (as an absent agent over ROS: `WorldEpisode.step`); the simulator's draws stay as they
         were."""
-        out = self.events.out.copy()
-        out[:, list(self.inactive)] = True
-        if self.dropped is not None:
-            out |= self.dropped
+        out = self._sitting_out()
         res.observations[out] = -1
         res.messages[out] = -1
 
@@ -185,12 +199,15 @@ class Team:
         self.sites, self._spare = new, self.sites
         bad = np.asarray(bad_site.any(axis=0).T, dtype=np.bool_)  # (B, N)
         self.impossible_count += int(bad.sum())
+        prior = self.marg.copy() if self.tables.difference.any() else None
         self.marg = self._marginals()
-        r, parts = reward(self.model, self.tables, self.prev, self.marg, actions)
+        r, parts = reward(self.model, self.tables, self.prev, self.marg, actions, prior)
         self.prev = np.where(actions >= 0, actions, self.prev)
         self.t += 1
+        if self.scenario.roster:
+            self.heard = ~self._sitting_out()
         info = StepInfo(res.levels, res.observations, res.messages, parts, bad, actions, fired)
-        self._knowledge = knowledge.build(self.marg, self.prev, self.scenario.n_actions)
+        self._knowledge = self._build_knowledge()
         return self.knowledge(), r, info
 
 

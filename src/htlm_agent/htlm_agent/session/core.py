@@ -296,7 +296,7 @@ class AgentSession:
         self.scenario_at = now
         self.model = Model.build(sc)
         self.index = names.index(self.name)
-        self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, self.batch)
+        self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, self.batch, sc.knowledge_size)
         self.mind = None
         self.stopping = False
         self.stop_after = None
@@ -438,7 +438,7 @@ class AgentSession:
             out.rejects.append(("weights", "data", str(e)))
             return out
         try:
-            from htlm_agent.learning.qnet import AgentQ, layer_sizes, param_shapes, unpack_weights
+            from htlm_agent.learning.qnet import AgentQ, network_shapes, unpack_weights
             from htlm_agent.learning.settings import Settings
 
             if self.learner_settings is None or rec["settings"] != self._settings_data:
@@ -446,8 +446,8 @@ class AgentSession:
                 self._settings_data = rec["settings"]
             else:
                 ls = self.learner_settings
-            sizes = layer_sizes(self.scenario, ls.hidden)
-            net = AgentQ(sizes, unpack_weights(data, param_shapes(sizes)))  # every version its own network
+            params = unpack_weights(data, network_shapes(self.scenario, ls))
+            net = AgentQ.for_agent(self.scenario, ls, self.index, params)  # every version its own network
         except ValueError as e:
             out.rejects.append(("weights", "data", str(e)))
             return out

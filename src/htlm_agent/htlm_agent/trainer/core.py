@@ -276,6 +276,11 @@ class TrainerCore:
         from htlm_agent.learning.loop import Selection
 
         settings = self.learner_settings(seed)
+        if self.mode == "train" and settings.imitate != "none" and settings.imitate_episodes > 0:
+            raise ValueError(
+                f"{self.learner_source}: imitate {settings.imitate!r}: the warm start runs in process only "
+                "(`htlm train`); train there and run the checkpoint over ROS (`htlm launch evaluate|deploy`)"
+            )
         torch.set_num_threads(settings.threads)  # as `htlm train`
         self.scenario = sc
         self.first_step = self.global_step(self.run_range[0], 1)
@@ -531,7 +536,7 @@ class TrainerCore:
                 val_failure_rate=vm["completion"]["failure_rate"],
                 val_unused_fraction=vm["unused_fraction"]["mean"],
             )
-            if done >= s.eps_fraction * s.episodes:
+            if done >= s.selection_from:
                 self.selection.offer(vm["completion"]["mean"])
             out.log.append(
                 (

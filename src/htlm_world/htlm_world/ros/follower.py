@@ -65,7 +65,9 @@ class RunFollower(Node):
             self.health.reject("scenario", e.reason, str(e))
             return
         self.run, self.seed, self.scenario, self.model = rec["run"], rec["seed"], sc, Model.build(sc)
-        self.lim = S.limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, rec["batch"])
+        self.lim = S.limits(
+            sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, rec["batch"], sc.knowledge_size
+        )
         self.epoch = rec["epoch"]
         self.on_run(rec)
         self.stopped = rec["state"] == "stopped"

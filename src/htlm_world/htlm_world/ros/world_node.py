@@ -75,7 +75,7 @@ class WorldNode(Node):
         except SigningError as e:
             raise SettingsError(str(e)) from None
         sc = self.scenario
-        self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, s.batch)
+        self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, s.batch, sc.knowledge_size)
         self.run_id = s.run_id or f"run-{s.seed}-{int(time.time())}"
         self.health = Health(self, "htlm: world", self.signer)
         self.stop_signal = 0

@@ -1,0 +1,213 @@
+"""Learned vs the market (docs/results/report.md, "Learned vs the market"): on each scenario, the teams a user would
+compare, on the same evaluation episodes: the token learner (`--learner tokens --credit difference`), the paper's
+learner, greedy and the auction; then the same teams under the scenario's stress sets.
+
+Every scenario runs with the roster on (`Scenario.roster`), so that the auction is the fair market that leaves a
+silent teammate out, as Open-RMF reassigns the tasks of a robot that dropped out. Every learned team is trained in
+process with `htlm train`'s code (`experiments.train.train`) for each seed, and
+evaluated on the seed's evaluation episodes, on which the baselines run too (their episodes are the same numbers:
+the world's streams depend on the seed, not on the policy). Under a stress set, `htlm stress`'s figures
+(`experiments.stress.run_stress`) with the most important agent named by the learned team's importance.
+
+    python -m htlm_agent.experiments.market --scenarios paper warehouse --seeds 0 1 2 --out docs/results/market
+
+writes market.json (every run), market.csv (one row per scenario, team and condition: mean over seeds ± SE) and
+market.png; a progress line on stderr per finished run. `--json` prints market.json's rows on stdout only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from htlm_agent.experiments.baselines import make_baseline
+from htlm_agent.experiments.evaluate import evaluate, importance_table
+from htlm_agent.experiments.stress import run_stress
+from htlm_agent.experiments.train import train
+from htlm_agent.learning.checkpoint import load_checkpoint
+from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.settings import Settings
+from htlm_world.events import resolve_agent
+from htlm_world.scenario import load
+
+LEARNERS: dict[str, dict[str, Any]] = {
+    "tokens": {"settings": {"learner": "tokens"}, "credit": "difference"},
+    "paper": {"settings": {}, "credit": None},
+}
+"""The learned teams: `Settings.for_learner` changes and the credit of the scenario they train on."""
+
+BASELINES = ("greedy", "auction")
+
+
+def _log(text: str) -> None:
+    print(f"market: {text}", file=sys.stderr, flush=True)
+
+
+def _figures(metrics: dict[str, Any]) -> dict[str, float]:
+    c = metrics["completion"]
+    return {
+        "completion": float(c["mean"]),
+        "failure_rate": float(c["failure_rate"]),
+        "unused_fraction": float(metrics["unused_fraction"]["mean"]),
+    }
+
+
+def run_scenario(
+    name: str, seeds: list[int], learners: list[str], episodes: int, eval_episodes: int, out: Path, stress: bool
+) -> list[dict[str, Any]]:
+    """Every run of one scenario: rows {scenario, team, condition, seed, completion, failure_rate, unused_fraction,
+    recovery, train_s}."""
+    sc = load(name).replace(roster=True)  # the auction is the fair market: it leaves a silent teammate out
+    rows: list[dict[str, Any]] = []
+    for seed in seeds:
+        teams: dict[str, tuple[Any, Any]] = {}
+        for learner in learners:
+            spec = LEARNERS[learner]
+            lsc = sc.with_credit(spec["credit"]) if spec["credit"] else sc
+            settings = Settings.for_learner(
+                **spec["settings"], seed=seed, episodes=episodes, eval_episodes=eval_episodes
+            )
+            run_dir = out / "runs" / f"{name}__{learner}__{seed}"
+            t0 = time.perf_counter()
+            res = train(lsc, settings, run_dir, progress=False, tensorboard=False)
+            took = time.perf_counter() - t0
+            rows.append({"scenario": name, "team": learner, "condition": "none", "seed": seed, "train_s": took})
+            rows[-1].update(_figures(res.metrics))
+            teams[learner] = (QPolicy.from_checkpoint(load_checkpoint(run_dir)), lsc)
+            _log(f"{name} {learner} seed {seed}: {rows[-1]['completion']:.2f} steps in {took:.0f} s")
+        for b in BASELINES:
+            pol, bsc = make_baseline(b, sc, seed=seed)
+            rows.append({"scenario": name, "team": b, "condition": "none", "seed": seed})
+            rows[-1].update(_figures(evaluate(pol, bsc, eval_episodes, seed=seed)))
+            teams[b] = (pol, bsc)
+        if not stress:
+            continue
+        stressed = sc.with_shipped_stress()
+        # the sets whose events surely happen (a set of chance events is for training)
+        sets = {k: v for k, v in stressed.stress.items() if all(e.probability == 1.0 for e in v)}
+        if any(ev.agent == "most_important" for evs in sets.values() for ev in evs):
+            first = learners[0] if learners else "greedy"
+            table = importance_table(teams[first][0], teams[first][1], min(eval_episodes, 500), seed=seed)
+            top = max(table["agents"], key=lambda a: a["zeta"])["agent"]
+            sets = {k: resolve_agent(stressed, evs, top) for k, evs in sets.items()}
+        for set_name, events in sets.items():
+            for r in run_stress(teams, events, set_name, eval_episodes, seed):
+                w = r["with"]
+                row = {"scenario": name, "team": r["policy"], "condition": set_name, "seed": seed}
+                row.update(
+                    {
+                        "completion": w["completion"]["mean"],
+                        "failure_rate": w["failure_rate"],
+                        "unused_fraction": w["unused_fraction"]["mean"],
+                        "recovery": w.get("recovery", {}).get("mean", float("nan")),
+                        "never": w.get("recovery", {}).get("never", float("nan")),
+                    }
+                )
+                rows.append(row)
+            _log(f"{name} seed {seed}: stress set {set_name} done")
+    return rows
+
+
+def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Mean over seeds ± SE of every figure, per scenario, team and condition."""
+    keys = list(dict.fromkeys((r["scenario"], r["condition"], r["team"]) for r in rows))
+    out = []
+    for sc, cond, team in keys:
+        group = [r for r in rows if (r["scenario"], r["condition"], r["team"]) == (sc, cond, team)]
+        row: dict[str, Any] = {"scenario": sc, "condition": cond, "team": team, "seeds": len(group)}
+        for f in ("completion", "failure_rate", "unused_fraction", "recovery", "never", "train_s"):
+            vals = np.array([r[f] for r in group if f in r and r[f] == r[f]], dtype=np.float64)
+            if vals.size:
+                row[f] = float(vals.mean())
+                row[f + "_se"] = float(vals.std(ddof=1) / np.sqrt(vals.size)) if vals.size > 1 else 0.0
+        out.append(row)
+    return out
+
+
+def plot(summary: list[dict[str, Any]], path: Path) -> None:
+    """One panel per scenario: each team's completion step (bars, ± SE over seeds) without events and under each
+    stress set, its failure rate written above."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenarios = list(dict.fromkeys(r["scenario"] for r in summary))
+    fig, axes = plt.subplots(len(scenarios), 1, figsize=(11, 3.2 * len(scenarios)), squeeze=False)
+    colours = {"tokens": "#1f6f8b", "paper": "#7fb3d5", "greedy": "0.6", "auction": "#c0392b"}
+    for ax, sc in zip(axes[:, 0], scenarios, strict=True):
+        block = [r for r in summary if r["scenario"] == sc]
+        conds = list(dict.fromkeys(r["condition"] for r in block))
+        teams = list(dict.fromkeys(r["team"] for r in block))
+        width = 0.8 / len(teams)
+        for k, team in enumerate(teams):
+            for i, cond in enumerate(conds):
+                r = next((x for x in block if x["team"] == team and x["condition"] == cond), None)
+                if r is None:
+                    continue
+                x = i + (k - (len(teams) - 1) / 2) * width
+                ax.bar(
+                    x,
+                    r["completion"],
+                    width,
+                    yerr=r.get("completion_se", 0.0),
+                    capsize=2,
+                    color=colours.get(team, "0.3"),
+                    label=team if i == 0 else None,
+                )
+                ax.text(x, r["completion"] + 0.3, f"{100 * r['failure_rate']:.0f}%", ha="center", fontsize=6.5)
+        ax.set_xticks(range(len(conds)), ["no events" if c == "none" else c for c in conds], fontsize=8)
+        ax.set_ylabel("completion step", fontsize=8)
+        ax.set_title(f"{sc}: completion (mean ± SE over seeds; failures above)", fontsize=9)
+        ax.margins(y=0.2)
+        ax.legend(fontsize=7, ncol=len(teams), loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the comparison and write market.json, market.csv and market.png."""
+    p = argparse.ArgumentParser(prog="python -m htlm_agent.experiments.market", description=__doc__.splitlines()[0])
+    p.add_argument("--scenarios", nargs="+", required=True, help="shipped scenario names or files")
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--learners", nargs="*", default=list(LEARNERS), choices=list(LEARNERS))
+    p.add_argument("--episodes", type=int, default=12_288, help="training episodes of every learned team")
+    p.add_argument("--eval-episodes", type=int, default=500)
+    p.add_argument("--no-stress", action="store_true", help="skip the stress sets")
+    p.add_argument("--out", default="runs/market")
+    p.add_argument("--json", action="store_true", help="print the rows as JSON on stdout")
+    args = p.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows: list[dict[str, Any]] = []
+    for name in args.scenarios:
+        rows += run_scenario(
+            name, args.seeds, args.learners, args.episodes, args.eval_episodes, out, not args.no_stress
+        )
+        summary = summarize(rows)
+        (out / "market.json").write_text(json.dumps({"runs": rows, "summary": summary}, indent=1) + "\n")
+        fields = ["scenario", "condition", "team", "seeds"] + [
+            f + s
+            for f in ("completion", "failure_rate", "unused_fraction", "recovery", "never", "train_s")
+            for s in ("", "_se")
+        ]
+        with (out / "market.csv").open("w", newline="") as f:
+            w = csv.DictWriter(f, fields, extrasaction="ignore")
+            w.writeheader()
+            w.writerows(summary)
+        plot(summary, out / "market.png")
+    if args.json:
+        print(json.dumps(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

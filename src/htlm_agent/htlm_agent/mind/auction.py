@@ -1,0 +1,46 @@
+"""The sequential single-item auction an agent runs in its head (docs/model.md, Baselines): the one definition, used
+by the auction baseline (`baselines.heuristics.AuctionPolicy`) and by the token learner, whose tokens carry the
+auction's choice made from the agent's own belief (`learning.tokens`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from htlm_world.model import Model
+from htlm_world.types import BoolArray, IntArray
+
+
+def allocate(model: Model, lv: IntArray, present: BoolArray | None = None) -> IntArray:
+    """The auction of every auctioneer: (B, M, p) confident levels (auctioneer m's belief) -> (B, M, N) the task
+    every agent k gets in auctioneer m's auction, -1 for none. `present` (B, M, N): the teammates auctioneer m
+    counts on (its roster, `Scenario.roster`); the others get no task and leave their work to the rest (default:
+    everyone).
+
+    A task j is open while its confident level l_j > 0, it is not `blocked`, and the capability assigned to it so far
+    does not cover l_j; every agent without a task bids its useful capability min(c_kj, need) on every open task it
+    has capability for; the highest bid wins (ties: larger need, larger capability, lower agent, lower task), and the
+    rounds repeat until nobody bids. Vectorized over the B episodes and the M auctioneers.
+    """
+    sc = model.scenario
+    b, m, p = lv.shape
+    n, cmax, L = sc.n_agents, sc.capability_max, sc.levels
+    caps_np = model.agent_caps[:, :p]  # (N, p): c_kj
+    caps = caps_np[None, None]  # (1, 1, N, p)
+    need = np.where((lv > 0) & ~model.blocked(lv), lv, 0).astype(np.int64)  # (B, M, p)
+    assigned = np.full((b, m, n), -1, dtype=np.int64)
+    bidders = np.ones((b, m, n), dtype=bool) if present is None else np.broadcast_to(present, (b, m, n))
+    rows = np.arange(b)[:, None], np.arange(m)[None, :]
+    for _ in range(n):  # each round assigns at most one agent per auction
+        useful = np.minimum(caps, need[:, :, None, :])  # (B, M, N, p)
+        # one integer per bid, ordered by useful capability, then need, then capability
+        key = (useful * L + need[:, :, None, :]) * (cmax + 1) + caps
+        key = np.where((useful > 0) & ((assigned < 0) & bidders)[..., None], key, -1).reshape(b, m, n * p)
+        win = key.argmax(axis=-1)  # the first maximum: lower agent, then lower task
+        ok = np.take_along_axis(key, win[..., None], axis=-1)[..., 0] >= 0  # (B, M)
+        if not ok.any():
+            break
+        k, j = win // p, win % p
+        assigned[rows[0], rows[1], k] = np.where(ok, j, assigned[rows[0], rows[1], k])
+        need[rows[0], rows[1], j] -= np.where(ok, caps_np[k, j], 0)
+        np.maximum(need, 0, out=need)
+    return assigned
