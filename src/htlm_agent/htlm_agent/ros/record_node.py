@@ -146,9 +146,10 @@ def close(node: RecordNode) -> None:
     """Complete the bag (the MCAP summary and metadata.yaml) and log what it holds."""
     node.recording.close()
     counts = node.recording.counts
+    wall = time.monotonic() - node.health.started
     node.get_logger().info(
         f"recorded {sum(counts.values())} messages ({node.recording.bytes} bytes) on {len(counts)} topics into "
-        f"{node.recording.path}"
+        f"{node.recording.path} in {wall:.1f} s, {time.process_time():.1f} s of CPU"
     )
 
 
