@@ -103,3 +103,15 @@ def test_record_settings_name_the_bad_parameter(field: str, bad: object) -> None
     assert validate_record_settings(good) == []
     problems = validate_record_settings(dataclasses.replace(good, **{field: bad}))
     assert problems and problems[0].startswith(f"{field}:")
+
+
+def test_htlm_show_says_what_a_recording_lacks(tmp_path: Path) -> None:
+    from htlm_agent.experiments.episode_plot import EpisodeLogError, read_episode
+
+    bag = tmp_path / "recording"
+    recording = Recording(bag)
+    recording.add(next(t for t in recorded_topics([]) if t.name == "/htlm/step"))
+    recording.write("/htlm/step", serialize_message(String(data="{}")), 1)
+    recording.close()
+    with pytest.raises(EpisodeLogError, match="no run announcement"):
+        read_episode(bag, 0)

@@ -177,6 +177,8 @@ def messages(bag: Path, only: Sequence[str] = ()) -> Iterator[Message]:
     store = get_typestore(Stores.ROS2_JAZZY)
     with Reader(bag) as reader:
         conns = [c for c in reader.connections if not only or c.topic in only]
+        if not conns:  # (rosbags reads every connection when given none)
+            return
         for conn, stamp, data in reader.messages(connections=conns):
             yield Message(conn.topic, conn.msgtype, stamp, store.deserialize_cdr(data, conn.msgtype))
 
