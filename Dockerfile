@@ -17,12 +17,12 @@ RUN apt-get update \
     && rm -rf /var/lib/apt/lists/*
 
 # The packages' run-time dependencies that colcon does not install (setup.py install_requires; rosdep has no key
-# for msgspec, tensorboard, pettingzoo or gymnasium). torch has no apt package: the pinned CPU build from PyTorch's CPU index (an unpinned torch pulls a CUDA build).
+# for msgspec, tensorboard, pettingzoo or gymnasium; rosbags, for recordings, comes from PyPI too). torch has no apt package: the pinned CPU build from PyTorch's CPU index (an unpinned torch pulls a CUDA build).
 # Ubuntu 24.04 marks the system Python as externally managed (PEP 668), hence --break-system-packages.
 RUN pip3 install --no-cache-dir --break-system-packages \
         --index-url https://download.pytorch.org/whl/cpu "torch==2.13.0" \
     && pip3 install --no-cache-dir --break-system-packages \
-        "msgspec>=0.18" "matplotlib>=3.8" "tensorboard>=2.15" "pettingzoo>=1.24" "gymnasium>=0.29"
+        "msgspec>=0.18" "matplotlib>=3.8" "tensorboard>=2.15" "pettingzoo>=1.24" "gymnasium>=0.29" "rosbags>=0.11"
 
 COPY . /htlm
 WORKDIR /htlm/ros_ws

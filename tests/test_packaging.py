@@ -19,7 +19,7 @@ PACKAGES = ("htlm_msgs_py", "htlm_world", "htlm_agent")
 EXECUTABLES = {
     "htlm_msgs_py": (),
     "htlm_world": ("world_node",),
-    "htlm_agent": ("agent_node", "trainer_node", "htlm"),
+    "htlm_agent": ("agent_node", "trainer_node", "record_node", "htlm"),
 }
 
 
@@ -89,6 +89,8 @@ def test_colcon_build(repo_root: Path, tmp_path: Path) -> None:
         for executable in EXECUTABLES[package]:
             path = install / package / "lib" / package / executable
             assert path.is_file() and os.access(path, os.X_OK), f"{package}: {executable} not installed"
+    launch_file = install / "htlm_agent" / "share" / "htlm_agent" / "launch" / "team.launch.py"
+    assert launch_file.is_file(), "`ros2 launch htlm_agent team.launch.py` would not find the launch file"
     shipped = sorted(p.name for p in (repo_root / "src" / "htlm_world" / "htlm_world" / "scenarios").glob("*.yaml"))
     installed = sorted(p.name for p in (install / "htlm_world" / "share" / "htlm_world" / "scenarios").glob("*.yaml"))
     assert shipped and installed == shipped

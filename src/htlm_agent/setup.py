@@ -1,5 +1,7 @@
 """Packaging of htlm_agent: an ament_python package that also installs with plain pip."""
 
+from glob import glob
+
 from setuptools import find_packages, setup
 
 PACKAGE = "htlm_agent"
@@ -11,6 +13,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/launch", sorted(glob("launch/*.launch.py"))),  # ros2 launch htlm_agent team.launch.py
     ],
     # What htlm_agent imports at run time, beyond the standard library:
     # - torch (learning/, the Q-networks) is deliberately absent: an unpinned torch pulls a multi-GB CUDA build.
@@ -26,6 +29,7 @@ setup(
         "tensorboard>=2.15",  # torch.utils.tensorboard in `htlm train`
         "pettingzoo>=1.24",  # runtime/pz_env.py, the PettingZoo ParallelEnv
         "gymnasium>=0.29",  # its observation and action spaces
+        "rosbags>=0.11",  # experiments/recording.py: `htlm launch --record` writes and reads ROS 2 bags (MCAP)
     ],
     python_requires=">=3.11",
     zip_safe=False,
@@ -37,6 +41,7 @@ setup(
         "console_scripts": [
             "agent_node = htlm_agent.ros.agent_node:main",
             "trainer_node = htlm_agent.ros.trainer_node:main",
+            "record_node = htlm_agent.ros.record_node:main",
             "htlm = htlm_agent.cli:main",
         ],
     },

@@ -8,10 +8,13 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from htlm_agent.cli.common import TEAM_HELP
 from htlm_world.scenario import ScenarioError, builtin, load
+
+if TYPE_CHECKING:
+    from htlm_agent.ros.launch import LaunchConfig
 
 
 def _kv(text: str) -> tuple[str, Any]:
@@ -133,6 +136,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="NAME=VALUE",
         help="robot_node parameter for every simulated robot, e.g. --robot-param speed=10.0",
     )
+    p.add_argument(
+        "--record",
+        action="store_true",
+        help="record every topic of the team into a ROS 2 bag (MCAP storage) in RUN/recording, for `ros2 bag "
+        "info/play` and Foxglove (a process of its own, `recorder`; with --only, on the host that names it)",
+    )
     p.add_argument("--timeout", type=float, default=0.0, help="stop the team after this many seconds (exit 124)")
     p.add_argument("--quiet", action="store_true", help="do not echo the episode lines")
     p.add_argument(
@@ -143,10 +152,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.epilog = "exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items())
 
 
-def run(args: argparse.Namespace) -> int:
-    """Check the launch's input (every problem on stderr, exit 2, nothing started), launch the team, print a summary."""
+class LaunchError(ValueError):
+    """The input of a launch has problems (one per line, each naming the option or file, the field and the value)."""
+
+
+def config(argv: list[str]) -> LaunchConfig:
+    """The launch of an `htlm launch` command line (the words after `htlm launch`), checked as `htlm launch` checks
+    it before it starts anything: the one reading of a launch's options, which team.launch.py uses too.
+
+    Raises:
+        LaunchError: every problem of the input (argparse's own errors exit as usual).
+    """
+    parser = argparse.ArgumentParser(prog="htlm launch")
+    add_arguments(parser)
+    cfg, bad = make_config(parser.parse_args(argv))
+    if bad:
+        raise LaunchError("\n".join(bad))
+    return cfg
+
+
+def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
+    """The launch of parsed `htlm launch` options and every problem of its input (empty: it can start)."""
     from htlm_agent.learning.settings import Settings
-    from htlm_agent.ros.launch import LaunchConfig, run_team, summarize
+    from htlm_agent.ros.launch import LaunchConfig
     from htlm_agent.ros.launch_check import check_launch
 
     bad: list[str] = []  # every problem of the input, reported together
@@ -180,6 +208,8 @@ def run(args: argparse.Namespace) -> int:
     known = {"world", "trainer", *(a.name for a in sc.agents)}
     if args.robots == "sim":
         known |= {"operation", *(f"robot_{a.name}" for a in sc.agents)}
+    if args.record:
+        known.add("recorder")
     if set(only) - known:
         bad.append(f"--only {sorted(set(only) - known)}: unknown; choose from {sorted(known)}")
     cfg = LaunchConfig(
@@ -209,8 +239,17 @@ def run(args: argparse.Namespace) -> int:
         robots="" if args.robots == "none" else args.robots,
         period=args.period,
         robot_params=dict(args.robot_param),
+        record=args.record,
     )
-    bad += check_launch(cfg)
+    return cfg, bad + check_launch(cfg)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Check the launch's input (every problem on stderr, exit 2, nothing started), launch the team, print a summary."""
+    from htlm_agent.ros.launch import LaunchConfig, run_team, summarize
+
+    cfg, bad = make_config(args)
+    sc, run_dir, only, episodes = cfg.scenario, cfg.run_dir, cfg.only, cfg.episodes
     if bad:
         for line in bad:
             print(f"htlm launch: {line}", file=sys.stderr)

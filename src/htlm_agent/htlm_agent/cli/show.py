@@ -2,7 +2,9 @@
 
 RUN_DIR is what `htlm launch`, `htlm evaluate` or `htlm train` printed (or an episode log, world.jsonl, itself); the
 episode comes from the run's evaluation when it has one (RUN/evaluate/ of `htlm launch train`, RUN/eval/ of `htlm
-train`), else from RUN/world.jsonl. The PNG's path is printed on stdout, the log it was read from on stderr.
+train`), else from RUN/world.jsonl. A recording (RUN/recording of `htlm launch --record`, a ROS 2 bag) is read as
+the world's log: the episode is rebuilt from its messages. The PNG's path is printed on stdout, the log it was read
+from on stderr.
 """
 
 from __future__ import annotations
@@ -15,7 +17,9 @@ from pathlib import Path
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm show`."""
     p.add_argument(
-        "run_dir", metavar="RUN_DIR", help="run directory of htlm launch / evaluate / train, or a world.jsonl file"
+        "run_dir",
+        metavar="RUN_DIR",
+        help="run directory of htlm launch / evaluate / train, a world.jsonl file, or a recording (RUN/recording)",
     )
     p.add_argument("--episode", type=int, default=0, metavar="E", help="episode index (default: 0)")
     p.add_argument(

@@ -22,8 +22,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
+from htlm_agent.experiments.recording import episode_log, records
+from htlm_msgs_py.topics import SCENARIO
 from htlm_world.metrics import completion_step
-from htlm_world.scenario import Scenario, ScenarioError, builtin, load
+from htlm_world.scenario import Scenario, ScenarioError, ScenarioRecordError, builtin, from_record, load
 from htlm_world.types import FloatArray, IntArray
 
 if TYPE_CHECKING:
@@ -191,6 +193,8 @@ def read_episode(path: str | Path, episode: int) -> LoggedEpisode:
         EpisodeLogError: no log, a malformed line (file:line), no such episode (the message lists those the log
             holds), or an episode that does not fit the scenario.
     """
+    if (Path(path) / "metadata.yaml").is_file():  # a recording (`htlm launch --record`: RUN/recording)
+        return _recorded_episode(Path(path), episode)
     log = find_log(path)
     seen: list[int] = []
     found: tuple[int, dict[str, Any]] | None = None
@@ -211,8 +215,33 @@ def read_episode(path: str | Path, episode: int) -> LoggedEpisode:
         held = f"it holds episodes {_ranges(seen)}" if seen else "it holds no episode"
         raise EpisodeLogError(f"episode {episode!r} is not in {log}: {held}")
     n, record = found
-    where = f"{log}:{n}"
     sc, sc_source = find_scenario(log)
+    return _logged_episode(record, log, n, f"{log}:{n}", sc, sc_source)
+
+
+def _recorded_episode(bag: Path, episode: int) -> LoggedEpisode:
+    """Episode `episode` of a recording, from its episode log rebuilt (`recording.episode_log`) and the scenario of
+    its run announcement."""
+    try:
+        announced = records(bag, SCENARIO)
+        lines = episode_log(bag)
+        sc = from_record(announced[0]) if announced else None
+    except (OSError, ValueError, ScenarioRecordError) as e:
+        raise EpisodeLogError(f"{bag}: not a readable recording: {e}") from None
+    if sc is None:
+        raise EpisodeLogError(f"{bag}: the recording holds no run announcement (/htlm/scenario)")
+    for n, record in enumerate(lines, start=1):
+        if record["metrics"]["episode"] == episode:
+            return _logged_episode(record, bag, n, f"{bag} (recorded episode {episode})", sc, f"{bag} (/htlm/scenario)")
+    held = _ranges([r["metrics"]["episode"] for r in lines])
+    raise EpisodeLogError(f"episode {episode!r} is not in {bag}: it holds episodes {held or 'none'}")
+
+
+def _logged_episode(
+    record: dict[str, Any], source: Path, n: int, where: str, sc: Scenario, sc_source: str
+) -> LoggedEpisode:
+    """One episode record checked against its scenario."""
+    log = source
     levels = _table(record, "levels", sc.n_tasks, 0, sc.levels - 1, where, unknown_rows=True)
     actions = _table(record, "actions", sc.n_agents, -1, sc.n_actions - 1, where)
     if levels.shape[0] != actions.shape[0] + 1 or actions.shape[0] == 0:
@@ -229,7 +258,7 @@ def read_episode(path: str | Path, episode: int) -> LoggedEpisode:
         source=log,
         line=n,
         run=str(record.get("run", "")),
-        episode=episode,
+        episode=int(record["metrics"]["episode"]),
         scenario=sc,
         scenario_source=sc_source,
         levels=levels,

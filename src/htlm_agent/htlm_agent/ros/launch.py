@@ -40,6 +40,9 @@ EXIT_CODES = {
 }
 """Exit codes of `htlm launch`."""
 
+RECORD_NODE = "htlm_agent.ros.record_node"
+"""The recorder's module (`htlm launch --record`)."""
+
 DISCOVERY = {"localhost": "LOCALHOST", "subnet": "SUBNET", "off": "OFF", "system_default": "SYSTEM_DEFAULT"}
 
 DEFAULT_LEARNER: dict[str, Any] = {}
@@ -106,6 +109,8 @@ class LaunchConfig:
     """Step period of the free clock (external operation), seconds."""
     robot_params: dict[str, Any] = field(default_factory=dict)
     """Extra robot_node parameters (every simulated robot)."""
+    record: bool = False
+    """Start the recorder too: every topic of the team into a ROS 2 bag (MCAP storage) under run_dir/recording."""
 
 
 @dataclass
@@ -166,6 +171,57 @@ def ros_env(cfg: LaunchConfig) -> dict[str, str]:
     return env
 
 
+@dataclass(frozen=True)
+class ProcessSpec:
+    """One process of a team: what `htlm launch` starts and what the ROS 2 launch file (team.launch.py) hands to
+    launch_ros, from the one definition `team_processes`."""
+
+    name: str
+    """Process name: world, trainer, an agent's name, operation, robot_<agent>, recorder (its log is logs/NAME.log)."""
+    module: str
+    """Its Python module (`python -m MODULE`), PACKAGE.ros.EXECUTABLE."""
+    params: dict[str, Any]
+    """Its node parameters (written to parameters/NAME.yaml)."""
+    respawn: bool
+    """Restart it whenever it exits (deploy: the team keeps stepping on its own clock while it is down)."""
+
+    @property
+    def package(self) -> str:
+        """The ROS package of its executable."""
+        return self.module.split(".", 1)[0]
+
+    @property
+    def executable(self) -> str:
+        """Its console script, `ros2 run PACKAGE EXECUTABLE`."""
+        return self.module.rsplit(".", 1)[1]
+
+    @property
+    def node(self) -> str:
+        """Its node name."""
+        return f"htlm_{self.name}"
+
+
+RESPAWN_DELAY = 1.0
+"""Seconds before a respawned process starts again (team.launch.py's `respawn_delay`)."""
+
+
+def team_processes(cfg: LaunchConfig) -> list[ProcessSpec]:
+    """Every process this host starts, with its parameters: the one definition `htlm launch` and team.launch.py use.
+
+    ROS-free; it writes the learner settings file (parameters/learner.json) the trainer's parameters name."""
+    respawn = cfg.mode == "deploy"
+    return [ProcessSpec(name, module, params, respawn) for name, module, params in process_specs(cfg)]
+
+
+def prepare(cfg: LaunchConfig) -> list[tuple[ProcessSpec, Path]]:
+    """`team_processes` with the parameters file of each written (parameters/NAME.yaml), and logs/ made."""
+    (cfg.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+    return [
+        (spec, write_params(cfg.run_dir / "parameters" / f"{spec.name}.yaml", spec.params))
+        for spec in team_processes(cfg)
+    ]
+
+
 def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     """(name, module, parameters) of every process this host starts."""
     run = cfg.run_dir.resolve()
@@ -210,6 +266,9 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         specs.append(("operation", "htlm_world.ros.operation_node", {}))
         for a in sc.agents:
             specs.append((f"robot_{a.name}", "htlm_world.ros.robot_node", {"agent": a.name, **cfg.robot_params}))
+    if cfg.record:  # the agents are named up front: their topics are recorded from the first message on
+        agents = ",".join(a.name for a in sc.agents)
+        specs.append(("recorder", RECORD_NODE, {"path": str(run / "recording"), "agents": agents}))
     if cfg.only:
         specs = [s for s in specs if s[0] in cfg.only]
     return specs
@@ -233,13 +292,21 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
 def start(cfg: LaunchConfig) -> list[Proc]:
     """Start every process of the launch (world first); returns them."""
     logs = cfg.run_dir / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
     env = ros_env(cfg)
     procs = []
-    for name, module, params in process_specs(cfg):
-        pfile = write_params(cfg.run_dir / "parameters" / f"{name}.yaml", params)
-        node = f"htlm_{name}"
-        cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__node:={node}", "--params-file", str(pfile)]
+    # the recorder first, and the team once it is subscribed: a run's first messages are recorded too
+    for spec, pfile in sorted(prepare(cfg), key=lambda sp: sp[0].name != "recorder"):
+        name = spec.name
+        cmd = [
+            sys.executable,
+            "-m",
+            spec.module,
+            "--ros-args",
+            "-r",
+            f"__node:={spec.node}",
+            "--params-file",
+            str(pfile),
+        ]
         log = logs / f"{name}.log"
         with open(log, "ab") as out:
             popen = subprocess.Popen(
@@ -252,7 +319,26 @@ def start(cfg: LaunchConfig) -> list[Proc]:
                 preexec_fn=_die_with_parent,
             )
         procs.append(Proc(name, popen, log))
+        if name == "recorder":
+            _wait_for_line(procs[-1], RECORDER_READY, RECORDER_START)
     return procs
+
+
+RECORDER_READY = "]: recording "
+"""The recorder's log line once it has subscribed to every topic (htlm_agent.ros.record_node)."""
+RECORDER_START = 30.0
+"""Longest `start` waits for the recorder before it starts the team anyway, seconds."""
+
+
+def _wait_for_line(proc: Proc, text: str, timeout: float) -> bool:
+    """Wait until the process's log holds `text` (True), it exited or `timeout` seconds passed (False)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and proc.popen.poll() is None:
+        with contextlib.suppress(OSError):
+            if text in proc.log.read_text(errors="replace"):
+                return True
+        time.sleep(0.05)
+    return False
 
 
 def stop(procs: list[Proc], sig: int = signal.SIGINT, wait: float = 10.0) -> None:

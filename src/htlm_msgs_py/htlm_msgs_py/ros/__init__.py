@@ -416,6 +416,28 @@ def spin_until_finished(node: Any, executor: Executor) -> int:
     return 2 if node.fatal else 0
 
 
+FLUSH_SECONDS = 1.0
+"""Longest a node process waits at exit for its reliable readers to acknowledge what it published (`flush`)."""
+
+
+def flush(node: Node, seconds: float) -> bool:
+    """Wait until every reliable reader matched with the node's publishers has acknowledged every message they
+    published, at most `seconds` in all; returns whether all were.
+
+    Without it a node's last messages can be lost to a reader that had not received them yet when the node left:
+    its goodbye may be handled before the data (another socket, another thread), and the data of a writer that is
+    gone is dropped. A recorder missed an agent's last belief and ready that way.
+    """
+    from rclpy.duration import Duration
+
+    end = time.monotonic() + seconds
+    for pub in list(node.publishers):
+        left = end - time.monotonic()
+        if left <= 0 or not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+            return False
+    return True
+
+
 TEARDOWN_SECONDS = 10.0
 """Longest a node process may take to tear rclpy down after its work is done (`run_node`); usually well under 1 s."""
 
@@ -471,6 +493,7 @@ def run_node(
         if health is not None and health.counters:
             counts = ", ".join(f"{k} {v}" for k, v in sorted(health.counters.items()))
             node.get_logger().info(f"counters at exit: {counts}")
+        flush(node, FLUSH_SECONDS)
         # The node's work is done and logged, and its exit code decided. Tearing rclpy down can hang: a Fast DDS
         # participant's destruction can spin with the GIL held while a discovery callback starves (exit_timer says
         # how; 15 of about 14,500 node exits in this project's ROS tests). Then, after TEARDOWN_SECONDS,

@@ -1,0 +1,106 @@
+"""A team over ROS 2 from `ros2 launch`: the processes and parameters of `htlm launch`, started by launch_ros.
+
+    ros2 launch htlm_agent team.launch.py mode:=deploy checkpoint:=runs/x/checkpoint robots:=sim
+    ros2 launch htlm_agent team.launch.py mode:=evaluate policy:=greedy episodes:=20 record:=true
+    ros2 launch htlm_agent team.launch.py mode:=deploy checkpoint:=DIR args:="--agent-param belief_every=5"
+
+Thin on purpose: the launch arguments become the words of an `htlm launch` command line, which
+`htlm_agent.cli.launch.config` reads and checks exactly as `htlm launch` does (every problem at once, nothing
+started), and `htlm_agent.ros.launch.prepare` gives the processes, their parameters files and their environment from
+the one definition both use. In deploy every process respawns when it exits (the team keeps stepping on its own
+clock meanwhile), and the launch ends when the world finishes its run.
+"""
+
+from __future__ import annotations
+
+import shlex
+from typing import Any
+
+from launch import LaunchContext, LaunchDescription
+from launch.actions import DeclareLaunchArgument, EmitEvent, OpaqueFunction, RegisterEventHandler
+from launch.event_handlers import OnProcessExit
+from launch.events import Shutdown
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+from htlm_agent.cli.launch import config
+from htlm_agent.ros.launch import RESPAWN_DELAY, prepare, ros_env
+
+ARGUMENTS = {
+    # launch argument: (option of `htlm launch`, description); an empty value leaves the option out (its default)
+    "scenario": ("--scenario", "scenario YAML file or shipped scenario name (default: the built-in 'paper')"),
+    "team": ("--team", "a built-in team instead of a scenario file"),
+    "checkpoint": ("--checkpoint", "checkpoint directory of `htlm train` (evaluate, deploy)"),
+    "policy": ("--policy", "agents' policy: auto, checkpoint, greedy, auction, random"),
+    "robots": ("--robots", "sim: a simulated robot per agent and their stand-in operation; none"),
+    "episodes": ("--episodes", "episodes to run (deploy: 0, until stopped)"),
+    "batch": ("--batch", "B, episodes run at once"),
+    "seed": ("--seed", "master seed"),
+    "period": ("--period", "step period of the free clock, seconds (external operation)"),
+    "run_dir": ("--run-dir", "run directory (default: runs/launch-MODE__SEED__TIMESTAMP)"),
+    "only": ("--only", "comma-separated processes to start on this host"),
+    "domain_id": ("--domain-id", "ROS_DOMAIN_ID of every process (default 42)"),
+    "discovery": ("--discovery", "localhost (default), subnet, system_default, off"),
+    "peers": ("--peers", "ROS_STATIC_PEERS for unicast discovery of other hosts"),
+    "key_file": ("--key-file", "team key file: sign every message"),
+}
+
+
+def command_line(values: dict[str, str]) -> list[str]:
+    """The `htlm launch` words of the launch arguments' values."""
+    argv = [values["mode"]]
+    for name, (option, _) in ARGUMENTS.items():
+        if values.get(name, ""):
+            argv += [option, values[name]]
+    if values.get("record", "false").lower() in ("true", "1", "yes"):
+        argv.append("--record")
+    return argv + shlex.split(values.get("args", ""))
+
+
+def team(context: LaunchContext) -> list[Any]:
+    """The team's processes as launch_ros nodes (OpaqueFunction: the arguments' values are known here)."""
+    names = ["mode", "record", "args", *ARGUMENTS]
+    cfg = config(command_line({n: LaunchConfiguration(n).perform(context) for n in names}))
+    env = ros_env(cfg)
+    actions: list[Any] = []
+    for spec, params_file in prepare(cfg):
+        node = Node(
+            package=spec.package,
+            executable=spec.executable,
+            name=spec.node,
+            parameters=[str(params_file)],
+            env=env,
+            output="screen",
+            respawn=spec.respawn,
+            respawn_delay=RESPAWN_DELAY,
+        )
+        actions.append(node)
+        if spec.name == "world" and spec.respawn:  # its run is over when it exits by itself with 0
+            actions.append(
+                RegisterEventHandler(
+                    OnProcessExit(
+                        target_action=node,
+                        on_exit=lambda event, _context: (
+                            [EmitEvent(event=Shutdown(reason="the world finished its run"))]
+                            if event.returncode == 0
+                            else None
+                        ),
+                    )
+                )
+            )
+    return actions
+
+
+def generate_launch_description() -> LaunchDescription:
+    """The launch arguments of `htlm launch` and the team they describe."""
+    return LaunchDescription(
+        [
+            DeclareLaunchArgument(
+                "mode", description="train, evaluate or deploy", choices=["train", "evaluate", "deploy"]
+            ),
+            DeclareLaunchArgument("record", default_value="false", description="record the team into RUN/recording"),
+            DeclareLaunchArgument("args", default_value="", description="further `htlm launch` options, as one string"),
+            *(DeclareLaunchArgument(n, default_value="", description=d) for n, (_, d) in ARGUMENTS.items()),
+            OpaqueFunction(function=team),
+        ]
+    )
