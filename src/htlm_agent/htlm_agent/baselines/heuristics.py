@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from htlm_agent.mind import knowledge
-from htlm_agent.mind.auction import allocate
+from htlm_agent.mind.auction import allocate, own_assignment
 from htlm_agent.mind.context import Context
 from htlm_agent.mind.policies import AgentPolicy, RowPolicy
 from htlm_agent.mind.reward import RewardTables, confident_levels
@@ -134,8 +134,10 @@ class AuctionPolicy:
         sc = self.scenario
         lv = confident_levels(ctx.marginals, self.threshold)  # (B, N, p): row i is agent i's belief
         n = sc.n_agents
-        present = knowledge.roster(ctx.knowledge, sc) if sc.roster else None  # (B, N, N): row i is agent i's roster
-        own = self.allocate(lv, present)[:, np.arange(n), np.arange(n)]  # (B, N): agent i's result in its own auction
+        b, p = lv.shape[0], sc.n_tasks
+        present = knowledge.roster(ctx.knowledge, sc).reshape(b * n, n) if sc.roster else None  # row: its roster
+        # agent i's result in the auction it runs on its own row (allocate's, without the rounds after it)
+        own = own_assignment(self.model, lv.reshape(b * n, p), np.tile(np.arange(n), b), present).reshape(b, n)
         stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
         return np.where(own >= 0, own, stay).astype(np.int64)
 

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from htlm_agent.experiments.baselines import make_baseline
 from htlm_agent.experiments.evaluate import evaluate, importance_table
@@ -60,10 +61,17 @@ def _figures(metrics: dict[str, Any]) -> dict[str, float]:
 
 
 def run_scenario(
-    name: str, seeds: list[int], learners: list[str], episodes: int, eval_episodes: int, out: Path, stress: bool
+    name: str,
+    seeds: list[int],
+    learners: list[str],
+    episodes: int,
+    eval_episodes: int,
+    out: Path,
+    stress: bool,
+    changes: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
     """Every run of one scenario: rows {scenario, team, condition, seed, completion, failure_rate, unused_fraction,
-    recovery, train_s}."""
+    recovery, train_s}. `changes`: settings of every learned team beyond its learner's (`--set`)."""
     sc = load(name).replace(roster=True)  # the auction is the fair market: it leaves a silent teammate out
     rows: list[dict[str, Any]] = []
     for seed in seeds:
@@ -72,7 +80,7 @@ def run_scenario(
             spec = LEARNERS[learner]
             lsc = sc.with_credit(spec["credit"]) if spec["credit"] else sc
             settings = Settings.for_learner(
-                **spec["settings"], seed=seed, episodes=episodes, eval_episodes=eval_episodes
+                **{**spec["settings"], **(changes or {})}, seed=seed, episodes=episodes, eval_episodes=eval_episodes
             )
             run_dir = out / "runs" / f"{name}__{learner}__{seed}"
             t0 = time.perf_counter()
@@ -182,15 +190,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=12_288, help="training episodes of every learned team")
     p.add_argument("--eval-episodes", type=int, default=500)
     p.add_argument("--no-stress", action="store_true", help="skip the stress sets")
+    p.add_argument(
+        "--set", nargs="*", default=[], metavar="KEY=VALUE", help="learner settings of every learned team (YAML values)"
+    )
     p.add_argument("--out", default="runs/market")
     p.add_argument("--json", action="store_true", help="print the rows as JSON on stdout")
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    changes = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set)}
     rows: list[dict[str, Any]] = []
     for name in args.scenarios:
         rows += run_scenario(
-            name, args.seeds, args.learners, args.episodes, args.eval_episodes, out, not args.no_stress
+            name, args.seeds, args.learners, args.episodes, args.eval_episodes, out, not args.no_stress, changes
         )
         summary = summarize(rows)
         (out / "market.json").write_text(json.dumps({"runs": rows, "summary": summary}, indent=1) + "\n")

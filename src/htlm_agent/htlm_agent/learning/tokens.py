@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from htlm_agent.mind.auction import allocate
+from htlm_agent.mind.auction import own_assignment
 from htlm_world.model import Model, p_drop_table
 from htlm_world.scenario import Scenario
 
@@ -134,10 +134,11 @@ class TokenSpec:
         """(A, M, |Ḡ|) one-hot of the auction's choice for each agent, run on its own confident levels (A, M, p)
         and roster (A, M, N) (`mind.auction.allocate`): its task, or the idle location at the site of a_o when it
         gets none."""
-        lv = conf.to(torch.int64).numpy()
-        present = None if roster is None else roster.numpy() > 0.5
-        got = allocate(self.model, lv, present)  # (A, M, N): every auctioneer's whole allocation
-        own = torch.from_numpy(np.take_along_axis(got, np.array(self.agents)[:, None, None], axis=-1)[..., 0])
+        a_n, m, p = conf.shape
+        lv = conf.to(torch.int64).numpy().reshape(a_n * m, p)
+        present = None if roster is None else roster.numpy().reshape(a_n * m, -1) > 0.5
+        who = np.repeat(np.array(self.agents, dtype=np.int64), m)
+        own = torch.from_numpy(own_assignment(self.model, lv, who, present).reshape(a_n, m))
         site = prev_site.round().to(torch.int64).clamp(0, max(self.q - 1, 0))
         choice = torch.where(own >= 0, own, self.p + site) if self.q else own.clamp(min=0)
         return torch.nn.functional.one_hot(choice, self.n_actions).to(torch.float32)

@@ -44,3 +44,47 @@ def allocate(model: Model, lv: IntArray, present: BoolArray | None = None) -> In
         need[rows[0], rows[1], j] -= np.where(ok, caps_np[k, j], 0)
         np.maximum(need, 0, out=need)
     return assigned
+
+
+def own_assignment(model: Model, lv: IntArray, agent: IntArray, present: BoolArray | None = None) -> IntArray:
+    """What `allocate` gives each auctioneer's own agent, without running the auctions on once it is settled:
+    (R, p) confident levels, (R,) the auctioneer of each row, (R, N) its roster -> (R,) its task, -1 for none.
+
+    The same rounds as `allocate`, on the rows still open only: a row stops once its own agent has won a task or
+    nobody bids, which for a team of N agents is usually long before N rounds. Within a round, the best bid on a
+    task comes from the free agent with the largest capability for it (the lowest index among equals: a useful
+    capability min(c, need) never decreases with c), so each task's bidder is the first free agent in the task's
+    order of capabilities, and only the p tasks' best bids are compared."""
+    sc = model.scenario
+    r, p = lv.shape
+    n, cmax, L = sc.n_agents, sc.capability_max, sc.levels
+    caps_np = model.agent_caps[:, :p]  # (N, p)
+    order = np.argsort(-caps_np.T, axis=1, kind="stable")  # (p, N): task j's agents, largest capability first
+    ordered_caps = np.take_along_axis(caps_np.T, order, axis=1)  # (p, N)
+    need = np.where((lv > 0) & ~model.blocked(lv), lv, 0).astype(np.int64)  # (R, p)
+    free = np.ones((r, n), dtype=bool) if present is None else np.array(present, dtype=bool)  # may still bid
+    out = np.full(r, -1, dtype=np.int64)
+    rows = np.arange(r)
+    tasks = np.arange(p)
+    for _ in range(n):
+        if rows.size == 0:
+            break
+        bidding = free[rows][:, order] & (ordered_caps > 0)  # (r', p, N): free agents able to, in task order
+        first = bidding.argmax(axis=-1)  # (r', p) the best bidder's place in the order
+        has = np.take_along_axis(bidding, first[..., None], axis=-1)[..., 0]
+        c = ordered_caps[tasks, first]  # (r', p) its capability
+        nd = need[rows]
+        useful = np.minimum(c, nd)
+        bidder = order[tasks, first]  # (r', p) the best bidder's index
+        # allocate's order of bids: key, then the lower agent, then the lower task
+        key = np.where(has & (useful > 0), ((useful * L + nd) * (cmax + 1) + c) * n + (n - 1 - bidder), -1)
+        j = key.argmax(axis=-1)
+        ok = key[np.arange(rows.size), j] >= 0
+        k = bidder[np.arange(rows.size), j]
+        mine = ok & (k == agent[rows])
+        out[rows[mine]] = j[mine]
+        go = ok & ~mine
+        rows, k, j = rows[go], k[go], j[go]
+        free[rows, k] = False
+        need[rows, j] = np.maximum(need[rows, j] - caps_np[k, j], 0)
+    return out
