@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from htlm_agent.baselines.heuristics import AuctionPolicy
+from htlm_agent.experiments.market import changed_operations
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.dqn import Learner
@@ -118,3 +119,18 @@ def test_difference_credit_pays_an_agent_only_for_what_its_own_work_adds() -> No
     assert alone[1] > comp[1]  # agent2 adds more to fire@1 alone than beside agent3
     team = reward(model, RewardTables.build(builtin()), prev, prior, actions)[1]["comp"][0]
     assert np.allclose(team, team[0])  # the paper's credit: the same completion reward for every agent
+
+
+def test_a_trained_network_acts_on_a_changed_team_and_operation() -> None:
+    """The transfer of docs/results/market.md: one agent lost, one added, capabilities changed, a site added; the
+    shared network built for each from the same weights acts within Â."""
+    sc = builtin().replace(roster=True)
+    params = [t.numpy() for t in init_params(sc, TOKENS, 5)]
+    changed = changed_operations(sc)
+    assert [c.n_agents for c in changed.values()] == [4, 6, 5, 5]
+    assert changed["site added"].n_sites == sc.n_sites + 1
+    for c in changed.values():
+        net = build_network(c, TOKENS, [params])
+        team = Team(c, 4, 1)
+        a = greedy_actions(net, team.knowledge(), team.mask())
+        assert np.take_along_axis(team.mask(), a[..., None], axis=-1).all()

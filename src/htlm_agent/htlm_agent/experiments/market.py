@@ -1,4 +1,4 @@
-"""Learned vs the market (docs/results/report.md, "Learned vs the market"): on each scenario, the teams a user would
+"""Learned vs the market (docs/results/market.md): on each scenario, the teams a user would
 compare, on the same evaluation episodes: the token learner (`--learner tokens --credit difference`), the paper's
 learner, greedy and the auction; then the same teams under the scenario's stress sets.
 
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import sys
 import time
@@ -33,10 +34,11 @@ from htlm_agent.experiments.evaluate import evaluate, importance_table
 from htlm_agent.experiments.stress import run_stress
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
+from htlm_agent.learning.qnet import build_network
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
 from htlm_world.events import resolve_agent
-from htlm_world.scenario import load
+from htlm_world.scenario import Scenario, load
 
 LEARNERS: dict[str, dict[str, Any]] = {
     "tokens": {"settings": {"learner": "tokens"}, "credit": "difference"},
@@ -123,6 +125,51 @@ def run_scenario(
     return rows
 
 
+def changed_operations(sc: Scenario) -> dict[str, Scenario]:
+    """The changes a trained team meets without retraining: its last agent lost, an agent added (the first agent's
+    twin), the first agent's capabilities rotated between the kinds it uses, and a site added (the first site's
+    twin, further on)."""
+    first = sc.agents[0]
+    names = list(first.capabilities)
+    rotated = {names[(i + 1) % len(names)]: v for i, v in enumerate(first.capabilities.values())}
+    site = sc.sites[0]
+    far = max(s.position[0] for s in sc.sites) + 50.0
+    return {
+        "agent lost": sc.replace(agents=sc.agents[:-1]),
+        "agent added": sc.replace(agents=(*sc.agents, dataclasses.replace(first, name=f"{first.name}_twin"))),
+        "capabilities changed": sc.replace(agents=(dataclasses.replace(first, capabilities=rotated), *sc.agents[1:])),
+        "site added": sc.replace(
+            sites=(*sc.sites, dataclasses.replace(site, name=f"{site.name}_twin", position=(far, site.position[1])))
+        ),
+    }
+
+
+def run_transfer(name: str, seed: int, episodes: int, eval_episodes: int, out: Path) -> list[dict[str, Any]]:
+    """The token team of `name` trained once, acting on every `changed_operations` without retraining, beside a
+    token team retrained on the change, greedy and the auction, on the same episodes."""
+    sc = load(name).replace(roster=True).with_credit("difference")
+    settings = Settings.for_learner(learner="tokens", seed=seed, episodes=episodes, eval_episodes=eval_episodes)
+    base = out / "runs" / f"{name}__transfer__{seed}"
+    train(sc, settings, base, progress=False, tensorboard=False)
+    weights = load_checkpoint(base).weights[0]  # the shared network
+    rows = []
+    for change, changed in changed_operations(sc).items():
+        net = build_network(changed, settings, [weights])
+        net.requires_grad_(False)
+        teams: dict[str, Any] = {"trained before": QPolicy(changed, net)}
+        retrained = out / "runs" / f"{name}__{change.replace(' ', '-')}__{seed}"
+        train(changed, settings, retrained, progress=False, tensorboard=False)
+        teams["retrained"] = QPolicy.from_checkpoint(load_checkpoint(retrained))
+        for b in BASELINES:
+            teams[b] = make_baseline(b, changed, seed=seed)[0]
+        for team, pol in teams.items():
+            row = {"scenario": name, "change": change, "team": team, "seed": seed}
+            row.update(_figures(evaluate(pol, changed, eval_episodes, seed=seed)))
+            rows.append(row)
+        _log(f"{name} {change}: " + ", ".join(f"{r['team']} {r['completion']:.2f}" for r in rows[-len(teams) :]))
+    return rows
+
+
 def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Mean over seeds ± SE of every figure, per scenario, team and condition."""
     keys = list(dict.fromkeys((r["scenario"], r["condition"], r["team"]) for r in rows))
@@ -195,11 +242,30 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--out", default="runs/market")
     p.add_argument("--json", action="store_true", help="print the rows as JSON on stdout")
+    p.add_argument(
+        "--transfer",
+        action="store_true",
+        help="instead: train the token team of each scenario once (the first seed) and act on a changed team and "
+        "operation without retraining, beside a team retrained on the change (transfer.json, transfer.csv)",
+    )
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    rows: list[dict[str, Any]]
+    if args.transfer:
+        rows = [
+            r for n in args.scenarios for r in run_transfer(n, args.seeds[0], args.episodes, args.eval_episodes, out)
+        ]
+        (out / "transfer.json").write_text(json.dumps(rows, indent=1) + "\n")
+        with (out / "transfer.csv").open("w", newline="") as f:
+            w = csv.DictWriter(f, list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+        if args.json:
+            print(json.dumps(rows))
+        return 0
     changes = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set)}
-    rows: list[dict[str, Any]] = []
+    rows = []
     for name in args.scenarios:
         rows += run_scenario(
             name, args.seeds, args.learners, args.episodes, args.eval_episodes, out, not args.no_stress, changes

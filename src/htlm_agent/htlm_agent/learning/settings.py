@@ -22,14 +22,13 @@ IMITATE = ("none", "auction", "greedy")
 TOKENS_PRESET: dict[str, Any] = {
     "learner": "tokens",
     "hidden": (32, 32),
-    "updates_per_step": 2,
+    "updates_per_step": 8,
     "imitate": "auction",
     "imitate_episodes": 2048,
     "eps_start": 0.3,
 }
-"""The settings `htlm train --learner tokens` starts from (docs/model.md, The token learner): smaller layers and
-fewer updates than the paper's MLPs (every update trains on all agents' transitions at once), a warm start on the
-auction, and less exploration after it."""
+"""The settings `htlm train --learner tokens` starts from (docs/model.md, The token learner): smaller layers than
+the paper's MLPs (one network serves every action), a warm start on the auction, and less exploration after it."""
 
 
 @dataclass(frozen=True)
