@@ -138,3 +138,53 @@ def test_no_launched_process_maps_fast_dds_shared_memory(ros_team: Any) -> None:
     assert mapped == {name: [] for name in team.procs}, mapped
     assert team.wait("world", 60) == 0
     assert team.wait_all(30) == dict.fromkeys(team.procs, 0)
+
+
+def test_token_networks_with_a_roster_over_ros_equal_in_process(ros_team: Any, tmp_path: Path) -> None:
+    """The token learner's networks (one shared network, a copy in every agent process) on a scenario with the roster
+    and a dropout: every agent sees from the broadcasts who went silent, as the in-process Team does from who sat
+    out, and the 4 episodes equal Team(scenario, 4, seed, b) bit for bit."""
+    import yaml
+
+    from htlm_agent.learning.checkpoint import load_checkpoint
+    from htlm_agent.learning.dqn import Learner
+    from htlm_agent.learning.qnet import AgentQ
+    from htlm_agent.learning.settings import Settings
+    from htlm_world.scenario import EventSpec, builtin
+
+    sc = builtin().replace(roster=True).with_events((EventSpec("dropout", agent="agent2", at=3),))
+    (path := tmp_path / "roster.yaml").write_text(yaml.safe_dump(sc.to_dict()))
+    team = ros_team(policy="checkpoint", seed=6, episodes=4, batch=4, scenario=sc, scenario_file=str(path))
+    learner = Learner(sc, Settings(learner="tokens", hidden=(16, 16), memory=1000, envs=1), seed=8)
+    with np.errstate(all="ignore"):
+        ckpt = learner.save(tmp_path / "ckpt")
+    team.cfg.checkpoint = str(ckpt)
+    team.start()
+    assert team.wait("world", 90) == 0
+    assert team.wait_all(30) == dict.fromkeys(team.procs, 0)
+    ck = load_checkpoint(ckpt)
+    nets = [AgentQ.from_checkpoint(ck, i) for i in range(sc.n_agents)]
+
+    def reference(b: int) -> Any:
+        dp = DecentralizedPolicy(nets, 6, 0.0)  # type: ignore[arg-type]
+        dp.begin(b)
+        return rollout(Team(sc, 4, 6, episode=b), dp)
+
+    assert assert_same_as_in_process(team, 6, reference) == 4
+
+
+def test_the_fair_market_over_ros_equals_in_process(ros_team: Any, tmp_path: Path) -> None:
+    """The auction with the roster (docs/model.md, Baselines: the fair market): every agent process leaves out the
+    teammate whose broadcasts stopped, as in process, bit for bit."""
+    import yaml
+
+    from htlm_world.scenario import EventSpec, builtin
+
+    sc = builtin().replace(roster=True).with_events((EventSpec("dropout", agent="agent2", at=3),))
+    (path := tmp_path / "roster.yaml").write_text(yaml.safe_dump(sc.to_dict()))
+    team = ros_team(policy="auction", seed=4, episodes=4, batch=4, scenario=sc, scenario_file=str(path))
+    team.start()
+    assert team.wait("world", 60) == 0
+    assert team.wait_all(30) == dict.fromkeys(team.procs, 0)
+    assert assert_same_as_in_process(team, 4, "auction") == 4
+    assert all(w["metrics"]["completion"] < 30 for w in team.world_episodes()), "the market left agent2's work undone"

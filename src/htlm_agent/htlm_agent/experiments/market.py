@@ -11,8 +11,9 @@ the world's streams depend on the seed, not on the policy). Under a stress set, 
 
     python -m htlm_agent.experiments.market --scenarios paper warehouse --seeds 0 1 2 --out docs/results/market
 
-writes market.json (every run), market.csv (one row per scenario, team and condition: mean over seeds ± SE) and
-market.png; a progress line on stderr per finished run. `--json` prints market.json's rows on stdout only.
+writes market.json (every run), market.csv (one row per scenario, team and condition: mean over seeds ± SE),
+tables.md (the same as Markdown) and market.png; a progress line on stderr per finished run. `--json` prints
+market.json's rows on stdout only.
 """
 
 from __future__ import annotations
@@ -186,6 +187,35 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+def tables(summary: list[dict[str, Any]]) -> str:
+    """The summary as Markdown: one table per scenario, a row per condition and team."""
+
+    def cell(r: dict[str, Any], f: str, pct: bool = False) -> str:
+        if f not in r:
+            return "-"
+        if pct:
+            return f"{100 * r[f]:.1f} %"
+        se = r.get(f + "_se")
+        return f"{r[f]:.2f}" + (f" ± {se:.2f}" if se else "")
+
+    out = []
+    for sc in dict.fromkeys(r["scenario"] for r in summary):
+        out += [
+            f"### {sc}",
+            "",
+            "| condition | team | seeds | completion | failures | unused | recovery | never recovered |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for r in (x for x in summary if x["scenario"] == sc):
+            cond = "no events" if r["condition"] == "none" else r["condition"]
+            out.append(
+                f"| {cond} | {r['team']} | {r['seeds']} | {cell(r, 'completion')} | {cell(r, 'failure_rate', True)} "
+                f"| {cell(r, 'unused_fraction', True)} | {cell(r, 'recovery')} | {cell(r, 'never', True)} |"
+            )
+        out.append("")
+    return "\n".join(out)
+
+
 def plot(summary: list[dict[str, Any]], path: Path) -> None:
     """One panel per scenario: each team's completion step (bars, ± SE over seeds) without events and under each
     stress set, its failure rate written above."""
@@ -282,6 +312,7 @@ def main(argv: list[str] | None = None) -> int:
             w.writeheader()
             w.writerows(summary)
         plot(summary, out / "market.png")
+        (out / "tables.md").write_text(tables(summary))
     if args.json:
         print(json.dumps(rows))
     return 0
