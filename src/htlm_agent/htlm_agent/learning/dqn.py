@@ -380,22 +380,18 @@ class Learner:
         advantage learning as `Settings` says), 0 for the agents that do not train; the same loss as `loss`."""
         s = self.settings
         m = b.r.shape[1]
+        a = b.a_online[..., 0]
         q_all = self.net(b.x)  # K then K' of every agent
-        q_a = q_all[:, :m].gather(-1, b.a_online)
+        q_a = q_all[:, :m].gather(-1, a[..., None])[..., 0]
         with torch.no_grad():
             qt = self.target(b.x)
             qt_k, qt_k2 = qt[:, :m], qt[:, m:]
-            if s.double_dqn:
-                a2 = (q_all[:, m:].detach() + b.off2).argmax(dim=-1, keepdim=True)
-                nxt = qt_k2.gather(-1, a2)
-            else:
-                nxt = (qt_k2 + b.off2).amax(dim=-1, keepdim=True)
-            y = b.r + b.discount * nxt
+            q_o = q_all[:, m:].detach() if s.double_dqn else None
+            y = bellman_targets(b.r[..., 0], b.discount[..., 0], qt_k2, b.off2 == 0, q_o)
             if s.advantage_learning > 0:
-                best = (qt_k + b.off).amax(dim=-1, keepdim=True)
-                y = y - s.advantage_learning * (best - qt_k.gather(-1, b.a_online))
+                y = y - s.advantage_learning * advantage_gap(qt_k, b.off == 0, a)
         hub = torch.nn.functional.huber_loss(q_a, y, reduction="none", delta=s.huber_delta)
-        return (hub * b.weight).sum(dim=(1, 2))
+        return (hub * b.weight[..., 0]).sum(dim=1)
 
     def sync_target(self, agents: BoolArray) -> None:
         """Copy the online networks of the marked agents into their target networks."""
