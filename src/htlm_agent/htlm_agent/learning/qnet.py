@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from htlm_agent.learning.tokens import TokenQ, init_token_params, token_shapes
+from htlm_agent.learning.tokens import TokenQ, flatten, init_token_params, token_shapes, unflatten
 from htlm_world.scenario import Scenario
 
 F32 = NDArray[np.float32]
@@ -169,16 +169,12 @@ class StackedQ(torch.nn.Module):
 
     def agent_params(self, agent: int) -> list[NDArray[np.float32]]:
         """Copies of one agent's parameters in `param_shapes` order, as float32 arrays."""
-        row = self.flat[agent].detach().numpy()
-        o = self.offsets
-        return [row[o[j] : o[j + 1]].reshape(s).astype(np.float32, copy=True) for j, s in enumerate(self.shapes)]
+        return unflatten(self.flat[agent], self.offsets, self.shapes)
 
     def set_agent_params(self, agent: int, params: Sequence[NDArray[np.float32]]) -> None:
         """Overwrite one agent's parameters (shapes as `param_shapes`)."""
-        row = np.concatenate([np.asarray(p, dtype=np.float32).reshape(-1) for p in params])
-        assert row.shape == (self.n_params,), (row.shape, self.n_params)
         with torch.no_grad():
-            self.flat[agent].copy_(torch.from_numpy(row))
+            self.flat[agent].copy_(flatten(params, self.n_params))
 
 
 def masked_argmax(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

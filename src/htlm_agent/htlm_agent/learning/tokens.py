@@ -42,6 +42,19 @@ GLOBAL_FEATURES = 4
 """Features every token carries about the whole operation (see `TokenSpec.features`)."""
 
 
+def unflatten(row: torch.Tensor, offsets: Sequence[int], shapes: Sequence[tuple[int, ...]]) -> list[F32]:
+    """Copies of the parameters held in one row of a flat parameter tensor, as float32 arrays of `shapes`."""
+    flat = row.detach().numpy()
+    return [flat[offsets[j] : offsets[j + 1]].reshape(s).astype(np.float32, copy=True) for j, s in enumerate(shapes)]
+
+
+def flatten(params: Sequence[NDArray[np.float32]], size: int) -> torch.Tensor:
+    """Parameters as one row of `size` numbers (the inverse of `unflatten`)."""
+    row = np.concatenate([np.asarray(p, dtype=np.float32).reshape(-1) for p in params])
+    assert row.shape == (size,), (row.shape, size)
+    return torch.from_numpy(row)
+
+
 def token_features(levels: int) -> int:
     """F, the size of a token for a scenario with `levels` levels: the marginals and the named features below."""
     return levels + 18 + GLOBAL_FEATURES
@@ -342,13 +355,9 @@ class TokenQ(torch.nn.Module):
 
     def agent_params(self, agent: int) -> list[F32]:
         """Copies of agent `agent`'s parameters in `token_shapes` order."""
-        row = self.flat[self.row(agent)].detach().numpy()
-        o = self.offsets
-        return [row[o[j] : o[j + 1]].reshape(s).astype(np.float32, copy=True) for j, s in enumerate(self.shapes)]
+        return unflatten(self.flat[self.row(agent)], self.offsets, self.shapes)
 
     def set_agent_params(self, agent: int, params: Sequence[NDArray[np.float32]]) -> None:
         """Overwrite agent `agent`'s parameters (for shared networks: the one set)."""
-        row = np.concatenate([np.asarray(p, dtype=np.float32).reshape(-1) for p in params])
-        assert row.shape == (self.n_params,), (row.shape, self.n_params)
         with torch.no_grad():
-            self.flat[self.row(agent)].copy_(torch.from_numpy(row))
+            self.flat[self.row(agent)].copy_(flatten(params, self.n_params))
