@@ -72,10 +72,14 @@ def run_scenario(
     out: Path,
     stress: bool,
     changes: dict[str, Any] | None = None,
+    idle_incentive: float | None = None,
 ) -> list[dict[str, Any]]:
     """Every run of one scenario: rows {scenario, team, condition, seed, completion, failure_rate, unused_fraction,
-    recovery, train_s}. `changes`: settings of every learned team beyond its learner's (`--set`)."""
+    recovery, train_s}. `changes`: settings of every learned team beyond its learner's (`--set`); `idle_incentive`:
+    the scale of R_II of the scenario (`--idle-incentive`, default the scenario's)."""
     sc = load(name).replace(roster=True)  # the auction is the fair market: it leaves a silent teammate out
+    if idle_incentive is not None:
+        sc = sc.with_reward(idle_incentive=idle_incentive)
     rows: list[dict[str, Any]] = []
     for seed in seeds:
         teams: dict[str, tuple[Any, Any]] = {}
@@ -267,6 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=12_288, help="training episodes of every learned team")
     p.add_argument("--eval-episodes", type=int, default=500)
     p.add_argument("--no-stress", action="store_true", help="skip the stress sets")
+    p.add_argument("--idle-incentive", type=float, default=None, metavar="X", help="scale of R_II (0: off)")
     p.add_argument(
         "--set", nargs="*", default=[], metavar="KEY=VALUE", help="learner settings of every learned team (YAML values)"
     )
@@ -298,7 +303,15 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name in args.scenarios:
         rows += run_scenario(
-            name, args.seeds, args.learners, args.episodes, args.eval_episodes, out, not args.no_stress, changes
+            name,
+            args.seeds,
+            args.learners,
+            args.episodes,
+            args.eval_episodes,
+            out,
+            not args.no_stress,
+            changes,
+            args.idle_incentive,
         )
         summary = summarize(rows)
         (out / "market.json").write_text(json.dumps({"runs": rows, "summary": summary}, indent=1) + "\n")
