@@ -133,7 +133,8 @@ def run_scenario(
 def changed_operations(sc: Scenario) -> dict[str, Scenario]:
     """The changes a trained team meets without retraining: its last agent lost, an agent added (the first agent's
     twin), the first agent's capabilities rotated between the kinds it uses, and a site added (the first site's
-    twin, further on)."""
+    twin, further on). The changed scenarios keep no stress sets (they may name the agent that is lost)."""
+    sc = sc.replace(stress={}, events=())
     first = sc.agents[0]
     names = list(first.capabilities)
     rotated = {names[(i + 1) % len(names)]: v for i, v in enumerate(first.capabilities.values())}
