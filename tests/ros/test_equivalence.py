@@ -58,14 +58,21 @@ def test_ros_evaluation_of_a_checkpoint_equals_in_process(
     ros_team: Any, tmp_path: Path, batch: int, episodes: int, first: int
 ) -> None:
     """Agents load their own Q-networks (AgentQ) from a checkpoint of the learner, as `htlm evaluate` does."""
-    from htlm_agent.learning.checkpoint import load_checkpoint
-    from htlm_agent.learning.dqn import Learner
-    from htlm_agent.learning.qnet import AgentQ
     from htlm_agent.learning.settings import Settings
 
     team = ros_team(policy="checkpoint", seed=3, episodes=episodes, first_episode=first, batch=batch)
+    assert _checkpoint_run_equals_in_process(team, tmp_path, Settings(memory=1000, envs=1), 3, batch) == episodes
+
+
+def _checkpoint_run_equals_in_process(team: Any, tmp_path: Path, settings: Any, seed: int, batch: int) -> int:
+    """Run `team` (not started, policy checkpoint, master seed `seed`) with fresh networks of a learner of `settings`
+    and check its episodes against Team(scenario, batch, seed, b) acting with the same networks; their number."""
+    from htlm_agent.learning.checkpoint import load_checkpoint
+    from htlm_agent.learning.dqn import Learner
+    from htlm_agent.learning.qnet import AgentQ
+
     sc = team.cfg.scenario
-    learner = Learner(sc, Settings(memory=1000, envs=1), seed=42)
+    learner = Learner(sc, settings, seed=42)
     with np.errstate(all="ignore"):
         ckpt = learner.save(tmp_path / "ckpt")
     team.cfg.checkpoint = str(ckpt)
@@ -76,11 +83,12 @@ def test_ros_evaluation_of_a_checkpoint_equals_in_process(
     nets = [AgentQ.from_checkpoint(ck, i) for i in range(sc.n_agents)]
 
     def reference(b: int) -> Any:
-        dp = DecentralizedPolicy(nets, 3, 0.0)  # type: ignore[arg-type]
+        dp = DecentralizedPolicy(nets, seed, 0.0)  # type: ignore[arg-type]
         dp.begin(b)
-        return rollout(Team(sc, batch, 3, episode=b), dp)
+        return rollout(Team(sc, batch, seed, episode=b), dp)
 
-    assert assert_same_as_in_process(team, 3, reference) == episodes
+    n: int = assert_same_as_in_process(team, seed, reference)
+    return n
 
 
 def test_free_running_clock_equals_in_process(ros_team: Any) -> None:
@@ -146,31 +154,14 @@ def test_token_networks_with_a_roster_over_ros_equal_in_process(ros_team: Any, t
     out, and the 4 episodes equal Team(scenario, 4, seed, b) bit for bit."""
     import yaml
 
-    from htlm_agent.learning.checkpoint import load_checkpoint
-    from htlm_agent.learning.dqn import Learner
-    from htlm_agent.learning.qnet import AgentQ
     from htlm_agent.learning.settings import Settings
     from htlm_world.scenario import EventSpec, builtin
 
     sc = builtin().replace(roster=True).with_events((EventSpec("dropout", agent="agent2", at=3),))
     (path := tmp_path / "roster.yaml").write_text(yaml.safe_dump(sc.to_dict()))
     team = ros_team(policy="checkpoint", seed=6, episodes=4, batch=4, scenario=sc, scenario_file=str(path))
-    learner = Learner(sc, Settings(learner="tokens", hidden=(16, 16), memory=1000, envs=1), seed=8)
-    with np.errstate(all="ignore"):
-        ckpt = learner.save(tmp_path / "ckpt")
-    team.cfg.checkpoint = str(ckpt)
-    team.start()
-    assert team.wait("world", 90) == 0
-    assert team.wait_all(30) == dict.fromkeys(team.procs, 0)
-    ck = load_checkpoint(ckpt)
-    nets = [AgentQ.from_checkpoint(ck, i) for i in range(sc.n_agents)]
-
-    def reference(b: int) -> Any:
-        dp = DecentralizedPolicy(nets, 6, 0.0)  # type: ignore[arg-type]
-        dp.begin(b)
-        return rollout(Team(sc, 4, 6, episode=b), dp)
-
-    assert assert_same_as_in_process(team, 6, reference) == 4
+    settings = Settings(learner="tokens", hidden=(16, 16), memory=1000, envs=1)
+    assert _checkpoint_run_equals_in_process(team, tmp_path, settings, 6, 4) == 4
 
 
 def test_the_fair_market_over_ros_equals_in_process(ros_team: Any, tmp_path: Path) -> None:
