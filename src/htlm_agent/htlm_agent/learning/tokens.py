@@ -139,9 +139,7 @@ class TokenSpec:
         site_of[model.task_site, np.arange(p)] = 1.0
         self.site_of = torch.tensor(site_of)
         self.site_count = torch.tensor(site_of.sum(axis=1))
-        self.width = token_features(L)
         self.model = model
-        self.rows = torch.tensor(self.agents, dtype=torch.int64)
 
     def advice(self, conf: torch.Tensor, prev_site: torch.Tensor, roster: torch.Tensor | None) -> torch.Tensor:
         """(A, M, |Ḡ|) one-hot of the auction's choice for each agent, run on its own confident levels (A, M, p)
