@@ -97,14 +97,26 @@ def test_a_recorded_evaluation_holds_every_message_the_team_published(tmp_path: 
         beliefs = _records(msgs, f"/htlm/{agent}/belief")
         assert (beliefs[-1]["episode"], beliefs[-1]["step"]) == (episodes - 1, h), agent  # its last one too
         assert msgs[f"/htlm/{agent}/goal_pose"][-1][0].header.frame_id == "map"
-    broadcasts = Counter((r["agent"], r["episode"], r["step"]) for r in _records(msgs, "/htlm/broadcast"))
-    assert broadcasts == Counter({(k, e, t): 1 for k in range(n) for e in range(episodes) for t in range(1, h + 1)})
-    # every agent's action of every step; the world may have received more (an agent answers the first begin again
-    # until the world has its answer), and the very first answer can precede the recorder's match with its writer
-    actions = Counter((r["agent"], r["episode"], r["step"]) for r in _records(msgs, "/htlm/action"))
-    assert set(actions) == {(k, e, t) for k in range(n) for e in range(episodes) for t in range(1, h + 1)}
-    assert n * episodes * h <= actions.total() <= _world_counter(run, "action")
-    assert len(msgs["/htlm/ready"]) == _world_counter(run, "ready") == n * episodes
+    # an agent's writers reach the recorder once the two processes have discovered each other: on a loaded machine
+    # an agent's first steps may precede that (11 steps of one agent's broadcasts once, in a full `make test`); from
+    # then on every record is there, once
+    every = [(e, t) for e in range(episodes) for t in range(1, h + 1)]
+    for topic in ("/htlm/broadcast", "/htlm/action"):
+        got = Counter((r["agent"], r["episode"], r["step"]) for r in _records(msgs, topic))
+        for k in range(n):
+            mine = sorted((e, t) for (a, e, t) in got if a == k)
+            assert mine and mine == every[every.index(mine[0]) :], (topic, k, mine[:3])
+            assert mine[0][0] == 0, f"{topic}: agent {k} recorded from episode {mine[0][0]} only"
+        if topic == "/htlm/broadcast":
+            assert all(c == 1 for c in got.values()), topic
+    # the world may have received more actions (an agent answers the first begin again until the world has its answer)
+    assert len(_records(msgs, "/htlm/action")) <= _world_counter(run, "action")
+    assert _world_counter(run, "ready") == n * episodes
+    readies = Counter((r["agent"], r["episode"]) for r in _records(msgs, "/htlm/ready"))  # the same limit as above
+    assert all(c == 1 for c in readies.values())
+    for k in range(n):
+        mine = sorted(e for (a, e) in readies if a == k)
+        assert mine == list(range(mine[0], episodes)) and mine[0] <= 1, (k, mine)
     assert _records(msgs, "/htlm/scenario")[-1]["state"] == "stopped"
     markers = [m for m, _ in msgs["/htlm/markers"]]
     assert markers and all(mk.header.frame_id == "map" for m in markers for mk in m.markers)
