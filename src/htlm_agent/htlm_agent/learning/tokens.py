@@ -106,7 +106,6 @@ class TokenSpec:
         ahead &= order[None, :, None] != idx[:, None, None]
         others = caps.sum(axis=0)[None, :] - own
         self.own_cap = torch.tensor(own / cmax, dtype=torch.float32)  # (A, p)
-        self.own_cap_int = torch.tensor(own, dtype=torch.int64)
         self.others_cap = torch.tensor(others / cmax, dtype=torch.float32)
         self.ahead_cap = torch.tensor((caps[None] * ahead).sum(axis=1) / cmax, dtype=torch.float32)
         self.team_caps = torch.tensor(caps / cmax, dtype=torch.float32)  # (N_team, p)
@@ -124,7 +123,8 @@ class TokenSpec:
         drop = np.zeros((p, cmax + 1, L))  # probability of progress for capability c at level l (any drop)
         for j, (_, k) in enumerate(sc.tasks):
             drop[j] = p_drop_table(sc, kinds[k].p_drop or None)  # (C+1, L)
-        self.drop = torch.tensor(drop, dtype=torch.float32)  # (p, C+1, L)
+        # (A, p, L) the chance of progress of each agent alone on each task, by level
+        self.own_drop = torch.tensor(drop[np.arange(p)[None, :], own.astype(np.int64)], dtype=torch.float32)
         self.growth = torch.tensor([kinds[k].growth for _, k in sc.tasks], dtype=torch.float32)
         self.hazard = torch.tensor([kinds[k].hazard for _, k in sc.tasks], dtype=torch.float32)
         gate = model.task_gate  # p: none
@@ -181,8 +181,7 @@ class TokenSpec:
         blocked = (gate_marg * self.block_levels).sum(-1) * self.has_gate
         own = self.own_cap[:, None, :].expand(a_n, m, p)
         useful = torch.minimum(own * self.scenario.capability_max, conf) / (L - 1)
-        drop = self.drop[torch.arange(p)[None, :], self.own_cap_int]  # (A, p, L)
-        progress = (marg * drop[:, None]).sum(-1) * (1.0 - blocked)
+        progress = (marg * self.own_drop[:, None]).sum(-1) * (1.0 - blocked)
         prev_site = (prev * self.action_site.to(torch.float32)).sum(-1)  # (A, M), site of a_o (0 with none)
         has_prev = prev.sum(-1)
         same_task_site = (self.task_site.to(torch.float32)[None, None, :] == prev_site[..., None]).to(torch.float32)

@@ -25,6 +25,7 @@ class RewardTables:
     reassign_cost: FloatArray  # (N,)
     load_management: bool  # False in HT mode: R_LM = 0
     difference: BoolArray  # (N,) R_comp as a difference reward (`credit: difference`)
+    contribution: FloatArray | None  # (N, p, C+1, L, L) expected R_l' after a step from (c, g, l); None: team credit
 
     @staticmethod
     def build(sc: Scenario) -> RewardTables:
@@ -40,6 +41,11 @@ class RewardTables:
             reassign_cost=np.array([r.reassign_cost for r in rs]),
             load_management=sc.mode == "htlm",
             difference=np.array([r.credit == "difference" for r in rs], dtype=bool),
+            contribution=(
+                np.einsum("jcglm,im->ijcgl", prediction_table(Model.build(sc)), np.array([r.level_rewards for r in rs]))
+                if any(r.credit == "difference" for r in rs)
+                else None
+            ),
         )
 
 
@@ -108,9 +114,7 @@ def prediction_table(model: Model) -> FloatArray:
     return out
 
 
-def own_contribution(
-    model: Model, tables: RewardTables, prior: Marginals, joint: IntArray, table: FloatArray
-) -> FloatArray:
+def own_contribution(model: Model, tables: RewardTables, prior: Marginals, joint: IntArray) -> FloatArray:
     """The difference reward's R_comp (docs/model.md, Reward, `credit: difference`) of every agent (B, N): the
     expected completion reward of the task it works on after the step as its belief predicts it with T, from its
     marginals before the step (B, N, p, L), with the step's joint assignment `joint` (B, N), minus the same with the
@@ -133,8 +137,8 @@ def own_contribution(
     ext = np.concatenate([prior, np.zeros(prior.shape[:-2] + (1, prior.shape[-1]))], axis=-2)
     ext[..., p, 0] = 1.0  # the stand-in of no dependency: certain of level 0
     g = np.take_along_axis(ext, gate[..., None, None], axis=2)[:, :, 0]  # (B, N, L)
-    rw = tables.level_rewards  # (N, L)
-    value = np.einsum("jcglm,im->ijcgl", table, rw)  # (N, p, C+1, L, L): expected R_l' from (c, g, l)
+    value = tables.contribution  # (N, p, C+1, L, L): expected R_l' from (c, g, l), made once
+    assert value is not None, "a difference reward needs RewardTables.contribution"
     idx_i = np.broadcast_to(np.arange(n)[None, :], (b, n))
     v_with = value[idx_i, task, with_me]  # (B, N, L, L) over (g, l)
     v_without = value[idx_i, task, without]
@@ -179,7 +183,7 @@ def reward(
         comp = np.ascontiguousarray(r_levels).mean(axis=-1)
     if tables.difference.any():
         assert prior is not None, "a difference reward needs the marginals before the step"
-        own = own_contribution(model, tables, prior, actions if joint is None else joint, prediction_table(model))
+        own = own_contribution(model, tables, prior, actions if joint is None else joint)
         comp = np.where(tables.difference[None, :], own, comp)
     if not tables.load_management:
         zero = np.zeros_like(comp)
