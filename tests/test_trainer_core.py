@@ -18,6 +18,7 @@ import pytest
 
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.settings import Settings
+from htlm_agent.mind.knowledge import previous
 from htlm_agent.trainer.core import Schedule, TrainerCore, TrainerEffects, load_learner_data
 from htlm_msgs_py import schema as S
 from htlm_world.model import Model
@@ -98,9 +99,14 @@ def _steps(lo: int, hi: int, batch: int = 2, seed: int = 0) -> list[dict[str, An
 
 
 def _core(
-    run_dir: Path, schedule: Schedule = SCHED, batch: int = 2, resume: bool = True, **scenario: Any
+    run_dir: Path,
+    schedule: Schedule = SCHED,
+    batch: int = 2,
+    resume: bool = True,
+    learner: dict[str, Any] | None = None,
+    **scenario: Any,
 ) -> TrainerCore:
-    core = TrainerCore(run_dir, schedule, {**LEARNER, "envs": batch}, "test", resume)
+    core = TrainerCore(run_dir, schedule, {**(learner or LEARNER), "envs": batch}, "test", resume)
     eff = core.on_scenario(_scenario(batch=batch, **scenario), 0.0)
     assert eff.fatal is None, eff.fatal
     return core
@@ -178,13 +184,20 @@ def test_rounds_are_deterministic_whatever_the_arrival_order(tmp_path: Path) -> 
     assert runs[0][3] == 2  # the first batch of 2 episodes is done
 
 
-@pytest.mark.parametrize("wire", [False, True])
-def test_trainer_rounds_equal_the_in_process_learner(tmp_path: Path, wire: bool) -> None:
+WARM_START = {**LEARNER, "learner": "tokens", "hidden": [8, 8], "imitate": "auction", "imitate_episodes": 4}
+"""Token networks whose first batch of 4 episodes is a warm start on the auction."""
+
+
+@pytest.mark.parametrize(("wire", "settings"), [(False, LEARNER), (True, LEARNER), (True, WARM_START)])
+def test_trainer_rounds_equal_the_in_process_learner(tmp_path: Path, wire: bool, settings: dict[str, Any]) -> None:
     """Round by round the trainer does what `htlm train` does per step: store_batch of every agent's transitions,
     then train_steps(updates_per_step); the networks are identical. Also when the records went through the wire
-    (`wire`: K and K' as float32, the rest exactly) while the in-process learner gets the float64 originals."""
+    (`wire`: K and K' as float32, the rest exactly) while the in-process learner gets the float64 originals, and in
+    a warm start (the imitation update of `imitate_step` on the step's knowledge states first)."""
+    from htlm_agent.experiments.train import imitate_step, warm_start_expert
+
     batch, steps = 4, 2 * H + 5
-    core = _core(tmp_path, batch=batch)
+    core = _core(tmp_path, batch=batch, learner=settings)
     recs = _steps(0, steps, batch, seed=2)
     sent = sorted(recs, key=lambda r: (r["agent"], r["seq"]))
     if wire:
@@ -193,13 +206,17 @@ def test_trainer_rounds_equal_the_in_process_learner(tmp_path: Path, wire: bool)
         assert sent[0]["k"].dtype == np.float32 and not np.array_equal(sent[0]["k"], np.asarray(recs[0]["k"]))
     _feed(core, sent)
     assert core.trained == steps
-    learner = Learner(SC, Settings.from_dict({"seed": 7, **LEARNER, "envs": batch}, "test"), 7)
+    learner = Learner(SC, Settings.from_dict({"seed": 7, **settings, "envs": batch}, "test"), 7)
+    expert = warm_start_expert(SC, learner.settings)
+    assert (expert is None) == (settings is LEARNER)
     for g in range(steps):
         step = recs[g * N : (g + 1) * N]
 
         def col(f: str, step: list[dict[str, Any]] = step) -> np.ndarray:
             return np.stack([np.asarray(r[f]) for r in step], axis=1)  # (B, N, ...)
 
+        if expert is not None and learner.settings.warm_start(learner.episodes_done):
+            imitate_step(learner, expert, col("k"), MODEL.action_mask(previous(col("k"), SC)))
         learner.store_batch(col("k"), col("a"), col("r"), col("k2"), col("mask2").astype(bool), bool(step[0]["done"]))
         learner.train_steps(LEARNER["updates_per_step"])
         if g % H == H - 1:

@@ -2,7 +2,8 @@
 launched team (world, five agents, trainer over real DDS; the world paces steps by the trainer's progress and the
 agents act with the trainer's weights on the cadence) ends with exactly the Q-networks of the in-process
 htlm_agent.experiments.train.train(), 96 episodes in batches of 32, at trainer lag 0 (Algorithm 1 as written) and at the
-learner's default lag (the agents act with networks k steps older while the trainer's updates overlap their work)."""
+learner's default lag (the agents act with networks k steps older while the trainer's updates overlap their work),
+and for the token networks with a warm start on the auction."""
 
 from __future__ import annotations
 
@@ -22,13 +23,28 @@ LEARNER = {"envs": 32, "learning_starts": 300, "batch_size": 32, "validate_every
 EPISODES, SEED = 96, 0
 
 
-@pytest.mark.parametrize("lag", sorted({0, Settings().trainer_lag}))
-def test_training_over_ros_equals_htlm_train(ros_team: Any, tmp_path: Path, lag: int) -> None:
+WARM_START = {"learner": "tokens", "hidden": [16, 16], "imitate": "auction", "imitate_episodes": 32}
+"""Token networks whose first batch is a warm start: the agents act with the auction on their own belief and the
+trainer's networks learn to rank its choices first."""
+
+
+@pytest.mark.parametrize(
+    ("lag", "changes"),
+    [
+        (0, {}),
+        *([(Settings().trainer_lag, {})] if Settings().trainer_lag else []),
+        (Settings().trainer_lag, WARM_START),
+    ],
+    ids=lambda v: "warm-start" if v == WARM_START else str(v) if not isinstance(v, dict) else "paper",
+)
+def test_training_over_ros_equals_htlm_train(ros_team: Any, tmp_path: Path, lag: int, changes: dict[str, Any]) -> None:
     from htlm_agent.experiments.train import train
 
     sc = builtin()
-    learner = {**LEARNER, "trainer_lag": lag}
-    settings = Settings.from_dict({**learner, "episodes": EPISODES, "seed": SEED, "eval_episodes": 0})
+    learner = {**LEARNER, "trainer_lag": lag, **changes}
+    settings = Settings.from_dict(
+        Settings.with_preset({**learner, "episodes": EPISODES, "seed": SEED, "eval_episodes": 0})
+    )
     train(sc, settings, tmp_path / "inproc", progress=False, tensorboard=False, evaluate_at_end=False)
     ref = load_checkpoint(tmp_path / "inproc" / "checkpoint")
 

@@ -187,7 +187,7 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     if args.mode in ("evaluate", "deploy") and args.policy in ("auto", "checkpoint") and not args.checkpoint:
         bad.append(f"{args.mode}: needs --checkpoint DIR (or --policy greedy / auction / random)")
     try:
-        learner = Settings.from_dict(dict(args.learner), "--set")
+        learner = Settings.from_dict(Settings.with_preset(dict(args.learner)), "--set")  # for the defaults
     except ValueError:  # check_launch reports every bad key
         learner = Settings()
     if args.mode == "train" and learner.dropout > 0:

@@ -34,13 +34,13 @@ from htlm_agent.learning.loop import LaggedNets, Selection, episode_epsilons
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind.context import Policy
-from htlm_agent.mind.policies import team_epsilon_greedy
+from htlm_agent.mind.policies import knowledge_context, team_epsilon_greedy
 from htlm_agent.progress import Progress
 from htlm_agent.runtime.team import Team
 from htlm_world import seeds
 from htlm_world.metrics import episode_metrics
 from htlm_world.scenario import Scenario
-from htlm_world.types import BoolArray
+from htlm_world.types import BoolArray, FloatArray
 
 
 @dataclass
@@ -141,7 +141,8 @@ def train_batch(
     transitions in its own memory and training every agent `updates_per_step` times per step; under a trainer lag
     the agents act with the networks of `lagged` (kept across the run's batches; default: new ones, this batch being
     the run's first). With an `expert` (the warm start, `Settings.imitate`), the team acts with the expert's
-    choices (ε-greedily with the final ε) and the networks also learn to rank them first (`Learner.imitate`).
+    choices, each agent's made from its own knowledge state as an agent process makes them (`knowledge_context`),
+    ε-greedily with the final ε, and the networks also learn to rank them first (`imitate_step`).
     Returns the batch's row of progress.csv (the metrics of `htlm_world.metrics` over its episodes)."""
     sc, s, seed = learner.scenario, learner.settings, learner.seed
     if lagged is None:
@@ -159,10 +160,10 @@ def train_batch(
     losses: list[float] = []
     for t in range(sc.horizon):
         net = lagged.at(batch_index * sc.horizon + t)
-        if expert is not None:
-            a_exp = expert.act(team.context())
-            a = team.force_inactive(team_epsilon_greedy(a_exp, m, s.eps_end, rngs))
-            losses.append(learner.imitate(k, m, a_exp))
+        if expert is not None:  # each agent acts around the expert's choice from its own K, as a process does
+            a_exp = expert.act(knowledge_context(sc, k, m))
+            a = team.force_inactive(team_epsilon_greedy(a_exp, m, eps_env, rngs))
+            losses.append(imitate_step(learner, expert, k, m))
         else:  # a dropped agent's stored action: its idling
             a = team.force_inactive(learner.act(k, m, eps_env, rngs, net))
         k2, r, info = team.step(a)
@@ -183,6 +184,15 @@ def train_batch(
         "failure_rate": float(em.failed.mean()),
         "unused_fraction": float(em.unused_fraction.mean()),
     }
+
+
+def imitate_step(learner: Learner, expert: Policy, k: FloatArray, m: BoolArray) -> float:
+    """The warm start's update of one step for the whole team, in process and in the trainer over ROS alike: the
+    networks learn to rank first the expert's choices made from every agent's own knowledge state (B, N, K) and mask
+    (`Learner.imitate`), the knowledge as the trainer receives it (float32, the precision of the wire and of the
+    replay memories). Returns the loss."""
+    k32 = np.asarray(k, dtype=np.float32).astype(np.float64)  # the values of float32, as the trainer has them
+    return learner.imitate(k32, m, np.asarray(expert.act(knowledge_context(learner.scenario, k32, m)), dtype=np.int64))
 
 
 def warm_start_expert(scenario: Scenario, settings: Settings) -> Policy | None:
@@ -314,7 +324,7 @@ class _Run:
         """Train one batch, validate when due, log, and write a periodic checkpoint when due."""
         learner, s = self.learner, self.learner.settings
         t0 = time.perf_counter()
-        expert = self.expert if learner.episodes_done < s.imitate_episodes else None
+        expert = self.expert if s.warm_start(learner.episodes_done) else None
         row = train_batch(learner, self.team, learner.episodes_done // s.envs, self.lagged, expert)
         self.train_time += time.perf_counter() - t0
         done = learner.episodes_done

@@ -381,10 +381,12 @@ class Learner:
         s = self.settings
         m = b.r.shape[1]
         a = b.a_online[..., 0]
-        q_all = self.net(b.x)  # K then K' of every agent
+        assert isinstance(self.net, TokenQ) and isinstance(self.target, TokenQ)
+        tok = self.net.spec.features(b.x)  # K then K' of every agent, the tokens of both networks
+        q_all = self.net.score(tok)
         q_a = q_all[:, :m].gather(-1, a[..., None])[..., 0]
         with torch.no_grad():
-            qt = self.target(b.x)
+            qt = self.target.score(tok)
             qt_k, qt_k2 = qt[:, :m], qt[:, m:]
             q_o = q_all[:, m:].detach() if s.double_dqn else None
             y = bellman_targets(b.r[..., 0], b.discount[..., 0], qt_k2, b.off2 == 0, q_o)

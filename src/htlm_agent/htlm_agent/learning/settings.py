@@ -174,6 +174,11 @@ class Settings:
         frac = 1.0 if span <= 0 else min(max(float(episode) / span, 0.0), 1.0)
         return self.eps_start + frac * (self.eps_end - self.eps_start)
 
+    def warm_start(self, episodes_done: int) -> bool:
+        """Whether the batch after `episodes_done` training episodes is one of the warm start: the baseline of
+        `imitate` acts (ε-greedily with eps_end) and the networks learn to rank its choices first."""
+        return self.imitate != "none" and episodes_done < self.imitate_episodes
+
     @property
     def selection_from(self) -> float:
         """The episode from which validated networks compete for selection (`select_best`): once ε has decayed, or
@@ -184,10 +189,21 @@ class Settings:
         return decayed
 
     @staticmethod
+    def with_preset(changes: dict[str, Any]) -> dict[str, Any]:
+        """Settings changes as plain data, after `TOKENS_PRESET` when they choose the token learner (what
+        `htlm train --learner tokens` and `htlm launch train --set learner=tokens` start from). A budget of
+        `episodes` below twice the preset's warm start keeps half of it for the warm start."""
+        if changes.get("learner") != "tokens":
+            return dict(changes)
+        base = dict(TOKENS_PRESET)
+        if isinstance(changes.get("episodes"), int):
+            base["imitate_episodes"] = min(base["imitate_episodes"], max(changes["episodes"], 0) // 2)
+        return {**base, **changes}
+
+    @staticmethod
     def for_learner(**changes: Any) -> Settings:
         """Settings with `changes`, starting from `TOKENS_PRESET` when they choose the token learner."""
-        base = TOKENS_PRESET if changes.get("learner") == "tokens" else {}
-        return Settings(**{**base, **changes})
+        return Settings(**Settings.with_preset(changes))
 
     def replace(self, **changes: Any) -> Settings:
         """A copy with fields changed (validated)."""

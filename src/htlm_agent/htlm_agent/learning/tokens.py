@@ -331,9 +331,12 @@ class TokenQ(torch.nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Q-values (A, M, |Ḡ|) of knowledge states (A, M, K), row a being agent `agents[a]`'s."""
-        a_n, m = x.shape[0], x.shape[1]
-        tok = self.spec.features(x)  # (A, M, G, F)
-        g = tok.shape[2]
+        return self.score(self.spec.features(x))
+
+    def score(self, tok: torch.Tensor) -> torch.Tensor:
+        """Q-values (A, M, |Ḡ|) of tokens (A, M, |Ḡ|, F) made by `spec.features` (so that two networks of the
+        same agents, online and target, share one computation of the tokens)."""
+        a_n, m, g = tok.shape[0], tok.shape[1], tok.shape[2]
         w1, b1, w2, b2, w3, b3, w4, b4 = self._params()
         h = torch.relu(self._linear(tok.reshape(a_n, m * g, -1), w1, b1))
         h = torch.relu(self._linear(h, w2, b2)).reshape(a_n, m, g, -1)

@@ -88,18 +88,26 @@ class RowPolicy:
 
     def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
         """See AgentPolicy.act: read the agent's marginals and a_o from K = {b, a_o} and ask the team policy."""
-        sc = self.scenario
-        b, n = knowledge.shape[0], sc.n_agents
-        marg, prev = split_knowledge(knowledge, sc)
-        ctx = Context(
-            knowledge=np.repeat(knowledge[:, None], n, axis=1),
-            mask=np.repeat(mask[:, None], n, axis=1),
-            marginals=np.repeat(marg[:, None], n, axis=1),
-            prev=np.repeat(prev[:, None], n, axis=1),
-            t=0,
-            true_levels=np.zeros((b, sc.n_tasks), dtype=np.int64),  # decentralized policies never read it
+        n = self.scenario.n_agents
+        ctx = knowledge_context(
+            self.scenario, np.repeat(knowledge[:, None], n, axis=1), np.repeat(mask[:, None], n, axis=1)
         )
         return np.asarray(self.policy.act(ctx)[:, self.agent], dtype=np.int64)
+
+
+def knowledge_context(scenario: Scenario, knowledge: FloatArray, mask: BoolArray) -> Context:
+    """The Context of a decentralized team policy read from knowledge states alone: (B, N, K) knowledge and
+    (B, N, |G|) masks; agent i's row holds its marginals and a_o from its own K = {b, a_o} (what every agent process
+    has), no step count and no true levels (decentralized policies read neither)."""
+    marg, prev = split_knowledge(knowledge, scenario)
+    return Context(
+        knowledge=knowledge,
+        mask=mask,
+        marginals=np.asarray(marg, dtype=np.float64),
+        prev=prev,
+        t=0,
+        true_levels=np.zeros((knowledge.shape[0], scenario.n_tasks), dtype=np.int64),
+    )
 
 
 class DecentralizedPolicy:

@@ -45,10 +45,6 @@ RECORD_NODE = "htlm_agent.ros.record_node"
 
 DISCOVERY = {"localhost": "LOCALHOST", "subnet": "SUBNET", "off": "OFF", "system_default": "SYSTEM_DEFAULT"}
 
-DEFAULT_LEARNER: dict[str, Any] = {}
-"""Learner settings of a launched training run unless overridden: none, so training over ROS uses the settings of
-`htlm train` (htlm_agent.learning.settings.Settings), with B = envs episodes per batch."""
-
 
 @dataclass
 class LaunchConfig:
@@ -85,7 +81,8 @@ class LaunchConfig:
     key_file: str = ""
     """Team key file for message signing (HTLM_TEAM_KEY_FILE)."""
     learner: dict[str, Any] = field(default_factory=dict)
-    """Learner settings overriding DEFAULT_LEARNER (train)."""
+    """Learner settings of a training run (`--set`; none: those of `htlm train`, with `TOKENS_PRESET` first for the
+    token learner, `Settings.with_preset`)."""
     world_params: dict[str, Any] = field(default_factory=dict)
     """Extra world_node parameters."""
     agent_params: dict[str, Any] = field(default_factory=dict)
@@ -227,7 +224,8 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     run = cfg.run_dir.resolve()
     sc = cfg.scenario
     specs: list[tuple[str, str, dict[str, Any]]] = []
-    learner = {**DEFAULT_LEARNER, "episodes": max(cfg.episodes, 1), **cfg.learner}
+    # the learner of a training run (its budget the run's episodes); evaluate and deploy learn nothing
+    learner = Settings.with_preset({"episodes": max(cfg.episodes, 1), **cfg.learner}) if cfg.mode == "train" else {}
     world = {
         "team": sc.team,
         "seed": cfg.seed,

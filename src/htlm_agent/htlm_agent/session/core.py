@@ -191,6 +191,8 @@ class AgentSession:
         self.mind: AgentMind | None = None
         # the policy
         self.policy: AgentPolicy | None = None
+        self.expert: AgentPolicy | None = None
+        """The baseline the agent acts with in the warm start of a training run (`Settings.imitate`)."""
         self.policy_kind = ""
         self.policy_epsilon = 0.0
         self.learner_settings: Any = None
@@ -408,8 +410,12 @@ class AgentSession:
     def _gate(self, episode: int, t: int) -> AgentPolicy | None:
         """The trainer's weights to act with at step t of the batch from `episode` on (the fixed cadence): those
         taken after the updates of the steps before T = max(g0, g - lag), the newest at or below T; None while the
-        newest at or below T is older than the cadence's last version R <= T (they are on their way)."""
+        newest at or below T is older than the cadence's last version R <= T (they are on their way). In the warm
+        start of a training run (`Settings.warm_start`) the baseline it imitates, as `htlm train` acts."""
         assert self.scenario is not None
+        ls = self.learner_settings
+        if ls is not None and self.mode == "train" and ls.warm_start(episode):  # episode: as `_epsilon` counts
+            return self._expert(ls.imitate)  # the warm start: the baseline acts, no weights needed
         g = global_step(episode, self.batch, t, self.scenario.horizon)
         target, need = acting_weights(g, self.first_step, self.trainer_lag, self.weights_every)
         have = [v for v in self.versions if v <= target]
@@ -418,6 +424,13 @@ class AgentSession:
                 self.deferred_since = self.now
             return None
         return self.versions[max(have)]
+
+    def _expert(self, name: str) -> AgentPolicy:
+        """The warm start's baseline `name` as this agent runs it on its own knowledge (made once)."""
+        if self.expert is None:
+            assert self.scenario is not None
+            self.expert = builtin_policy(self.scenario, name, self.index)[0]
+        return self.expert
 
     def on_weights(self, rec: dict[str, Any], now: float) -> SessionEffects:
         """The trainer's weights for this agent (a decoded weights record): cache them by the step they were taken

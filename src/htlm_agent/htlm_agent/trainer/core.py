@@ -25,6 +25,7 @@ import numpy as np
 
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
+from htlm_agent.mind.knowledge import previous
 from htlm_msgs_py.payload import seal
 from htlm_msgs_py.run_control import RunControl
 from htlm_world.episode import global_step
@@ -166,6 +167,8 @@ class TrainerCore:
         self.fatal: str | None = None
         self.scenario: Scenario | None = None
         self.learner: Any = None
+        self.expert: Any = None
+        """The baseline of the warm start while the learner's settings have one (`Settings.imitate`)."""
         self.selection: Any = None
         self.last_val = 0
         self.last_ckpt = 0
@@ -271,16 +274,12 @@ class TrainerCore:
         """
         import torch
 
+        from htlm_agent.experiments.train import warm_start_expert
         from htlm_agent.learning.checkpoint import CheckpointError
         from htlm_agent.learning.dqn import Learner
         from htlm_agent.learning.loop import Selection
 
         settings = self.learner_settings(seed)
-        if self.mode == "train" and settings.imitate != "none" and settings.imitate_episodes > 0:
-            raise ValueError(
-                f"{self.learner_source}: imitate {settings.imitate!r}: the warm start runs in process only "
-                "(`htlm train`); train there and run the checkpoint over ROS (`htlm launch evaluate|deploy`)"
-            )
         torch.set_num_threads(settings.threads)  # as `htlm train`
         self.scenario = sc
         self.first_step = self.global_step(self.run_range[0], 1)
@@ -316,6 +315,7 @@ class TrainerCore:
             )
         else:
             self.learner = Learner(sc, settings, seed)
+        self.expert = warm_start_expert(sc, settings)
         if self.run_lag != settings.trainer_lag:
             out.log.append(
                 (
@@ -485,8 +485,14 @@ class TrainerCore:
             a = np.stack([r["a"] for r in recs], axis=1)
             rew = np.stack([r["r"] for r in recs], axis=1)
             m2 = np.stack([r["mask2"] for r in recs], axis=1)
+            if self.expert is not None and self.learner.settings.warm_start(self.learner.episodes_done):
+                from htlm_agent.experiments.train import imitate_step
+
+                # the agents acted around the expert's choices from these knowledge states: as `htlm train`
+                mask = self.learner.model.action_mask(previous(k, sc))
+                self.last_loss = imitate_step(self.learner, self.expert, k, mask)
             self.learner.store_batch(k, a, rew, k2, m2, bool(recs[0]["done"]))
-        else:
+        else:  # a round without every agent has no warm-start update (the expert's team choice needs them all)
             out.counters["partial_rounds"] += 1
             for i in sorted(rnd.records):
                 self._store_one(rnd.records[i])
