@@ -7,8 +7,10 @@
 Thin on purpose: the launch arguments become the words of an `htlm launch` command line, which
 `htlm_agent.cli.launch.config` reads and checks exactly as `htlm launch` does (every problem at once, nothing
 started), and `htlm_agent.ros.launch.prepare` gives the processes, their parameters files and their environment from
-the one definition both use. In deploy every process respawns when it exits (the team keeps stepping on its own
-clock meanwhile), and the launch ends when the world finishes its run.
+the one definition both use, with the respawn parameters (`respawn_delay`, `respawn_max_retries`). In deploy every
+process respawns when it exits (the team keeps stepping on its own clock meanwhile), and the launch ends when the world
+finishes its run; in train and evaluate a process that exits with an error or is killed ends the launch (launch_ros
+cannot restart only the killed ones, as `htlm launch` does).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 from htlm_agent.cli.launch import config
-from htlm_agent.ros.launch import RESPAWN_DELAY, prepare, ros_env
+from htlm_agent.ros.launch import prepare, ros_env
 
 ARGUMENTS = {
     # launch argument: (option of `htlm launch`, description); an empty value leaves the option out (its default)
@@ -43,6 +45,8 @@ ARGUMENTS = {
     "discovery": ("--discovery", "localhost (default), subnet, system_default, off"),
     "peers": ("--peers", "ROS_STATIC_PEERS for unicast discovery of other hosts"),
     "key_file": ("--key-file", "team key file: sign every message"),
+    "respawn_delay": ("--respawn-delay", "deploy: seconds before a process that exited starts again (default 1)"),
+    "max_restarts": ("--max-restarts", "deploy: restarts of one process before it is left down (default 5)"),
 }
 
 
@@ -72,23 +76,37 @@ def team(context: LaunchContext) -> list[Any]:
             env=env,
             output="screen",
             respawn=spec.respawn,
-            respawn_delay=RESPAWN_DELAY,
+            respawn_delay=spec.respawn_delay,
+            respawn_max_retries=spec.max_restarts,
         )
         actions.append(node)
         if spec.name == "world" and spec.respawn:  # its run is over when it exits by itself with 0
-            actions.append(
-                RegisterEventHandler(
-                    OnProcessExit(
-                        target_action=node,
-                        on_exit=lambda event, _context: (
-                            [EmitEvent(event=Shutdown(reason="the world finished its run"))]
-                            if event.returncode == 0
-                            else None
-                        ),
-                    )
-                )
-            )
+            actions.append(RegisterEventHandler(OnProcessExit(target_action=node, on_exit=_world_finished)))
+        elif not spec.respawn:  # lockstep: launch_ros cannot tell a kill from an error, so a failure ends the launch
+            actions.append(RegisterEventHandler(OnProcessExit(target_action=node, on_exit=_failed(spec.name))))
     return actions
+
+
+STOPPED = (0, 130, 143, -2, -15)
+"""Exit codes of a process that finished or that the launch stopped (SIGINT, SIGTERM)."""
+
+
+def _world_finished(event: Any, _context: Any) -> list[Any] | None:
+    """Deploy: the launch ends when the world exits by itself with 0 (its run is over); else it is respawned."""
+    if event.returncode == 0:
+        return [EmitEvent(event=Shutdown(reason="the world finished its run"))]
+    return None
+
+
+def _failed(name: str) -> Any:
+    """Train, evaluate: a process that exits otherwise than finished or stopped ends the launch, naming it."""
+
+    def on_exit(event: Any, _context: Any) -> list[Any] | None:
+        if event.returncode in STOPPED:
+            return None
+        return [EmitEvent(event=Shutdown(reason=f"{name} exited with {event.returncode}"))]
+
+    return on_exit
 
 
 def generate_launch_description() -> LaunchDescription:

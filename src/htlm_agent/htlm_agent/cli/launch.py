@@ -32,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm launch`."""
     from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
     from htlm_agent.learning.settings import Settings
-    from htlm_agent.ros.launch import EXIT_CODES
+    from htlm_agent.ros.launch import EXIT_CODES, MAX_RESTARTS, RESPAWN_DELAY, RESPAWN_DELAY_MAX, RESPAWN_STABLE
 
     p.add_argument("mode", choices=("train", "evaluate", "deploy"), help="what the team does")
     p.add_argument(
@@ -142,6 +142,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="record every topic of the team into a ROS 2 bag (MCAP storage) in RUN/recording, for `ros2 bag "
         "info/play` and Foxglove (a process of its own, `recorder`; with --only, on the host that names it)",
     )
+    p.add_argument(
+        "--respawn-delay",
+        type=float,
+        default=RESPAWN_DELAY,
+        help=f"seconds before a process that died starts again, doubled at each restart in a row up to "
+        f"{RESPAWN_DELAY_MAX:g} s (default {RESPAWN_DELAY:g}); deploy restarts any process that exits with an error "
+        "or is killed, train and evaluate a process killed by a signal",
+    )
+    p.add_argument(
+        "--max-restarts",
+        type=int,
+        default=MAX_RESTARTS,
+        help=f"restarts in a row of one process before the launch gives up and stops the team (default "
+        f"{MAX_RESTARTS}; a process up for {RESPAWN_STABLE:g} s counts from 0 again; 0: a process that dies stops "
+        "the team)",
+    )
     p.add_argument("--timeout", type=float, default=0.0, help="stop the team after this many seconds (exit 124)")
     p.add_argument("--quiet", action="store_true", help="do not echo the episode lines")
     p.add_argument(
@@ -200,6 +216,10 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         bad.append(f"{args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
     if args.period <= 0:
         bad.append(f"--period {args.period!r}: must be > 0")
+    if not args.respawn_delay >= 0:
+        bad.append(f"--respawn-delay {args.respawn_delay!r}: must be >= 0")
+    if args.max_restarts < 0:
+        bad.append(f"--max-restarts {args.max_restarts!r}: must be >= 0")
     if batch < 1 or args.first_episode % batch:
         bad.append(f"--batch {batch}: must be >= 1 and divide --first-episode {args.first_episode}")
     stamp = time.strftime("%Y%m%d-%H%M%S")
@@ -240,6 +260,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         period=args.period,
         robot_params=dict(args.robot_param),
         record=args.record,
+        respawn_delay=args.respawn_delay,
+        max_restarts=args.max_restarts,
     )
     return cfg, bad + check_launch(cfg)
 

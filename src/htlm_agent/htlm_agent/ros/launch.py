@@ -2,9 +2,10 @@
 
 Every process gets its own parameters file and log file under the run directory, the ROS domain and discovery
 settings of the launch (by default ROS_DOMAIN_ID=42 and discovery on localhost: UDP on 127.0.0.1 only, see
-`ros_env`, so nothing leaves this machine), and dies with the launcher. Ctrl-C (SIGINT) or SIGTERM is forwarded to
-every process; the launcher waits for them, kills stragglers, and its exit code says how the run ended (see
-`EXIT_CODES`).
+`ros_env`, so nothing leaves this machine), and dies with the launcher. The launcher supervises them: a process that
+dies is started again after a back-off, within a limit, while the others go on (`restarts`, `RESTART_POLICY`); one
+that fails where a restart cannot help stops the launch at once. Ctrl-C (SIGINT) or SIGTERM is forwarded to every
+process; the launcher waits for them, kills stragglers, and its exit code says how the run ended (see `EXIT_CODES`).
 
 Agents on other hosts: start the same launch on every host with `--only` naming the processes of that host and
 `--discovery subnet` (or `--peers` with the other hosts' addresses for unicast discovery), with the same
@@ -39,6 +40,11 @@ EXIT_CODES = {
     143: "stopped by SIGTERM",
 }
 """Exit codes of `htlm launch`."""
+
+RESPAWN_DELAY = 1.0
+"""Default seconds before a process that died starts again (`--respawn-delay`)."""
+MAX_RESTARTS = 5
+"""Default restarts in a row of one process before the launcher gives up (`--max-restarts`)."""
 
 RECORD_NODE = "htlm_agent.ros.record_node"
 """The recorder's module (`htlm launch --record`)."""
@@ -108,6 +114,12 @@ class LaunchConfig:
     """Extra robot_node parameters (every simulated robot)."""
     record: bool = False
     """Start the recorder too: every topic of the team into a ROS 2 bag (MCAP storage) under run_dir/recording."""
+    respawn_delay: float = RESPAWN_DELAY
+    """Seconds before a process that died is started again (doubled at each restart in a row, at most
+    RESPAWN_DELAY_MAX; see `restarts`)."""
+    max_restarts: int = MAX_RESTARTS
+    """Restarts in a row of one process before the launcher gives up on the team (0: none; a process that stayed up
+    RESPAWN_STABLE seconds starts counting again)."""
 
 
 @dataclass
@@ -180,7 +192,14 @@ class ProcessSpec:
     params: dict[str, Any]
     """Its node parameters (written to parameters/NAME.yaml)."""
     respawn: bool
-    """Restart it whenever it exits (deploy: the team keeps stepping on its own clock while it is down)."""
+    """Restart it whenever it exits with an error or is killed (deploy: the team keeps stepping on its own clock
+    while it is down); else only when it was killed (`RESTART_POLICY`)."""
+    respawn_delay: float = RESPAWN_DELAY
+    """Seconds before it starts again (team.launch.py's `respawn_delay`; `htlm launch` doubles it at each restart in
+    a row)."""
+    max_restarts: int = MAX_RESTARTS
+    """Restarts before the launch gives up (team.launch.py's `respawn_max_retries`; `htlm launch` counts restarts in
+    a row)."""
 
     @property
     def package(self) -> str:
@@ -198,8 +217,18 @@ class ProcessSpec:
         return f"htlm_{self.name}"
 
 
-RESPAWN_DELAY = 1.0
-"""Seconds before a respawned process starts again (team.launch.py's `respawn_delay`)."""
+RESPAWN_DELAY_MAX = 30.0
+"""Longest back-off before a restart, seconds."""
+RESPAWN_STABLE = 30.0
+"""Seconds a restarted process must stay up to count as recovered: its back-off and restart count start again."""
+
+RESTART_POLICY = {
+    "deploy": "any process that exits with an error or is killed is started again; one that exits 0 has finished",
+    "train": "a process killed by a signal is started again; one that exits with an error stops the launch",
+    "evaluate": "a process killed by a signal is started again; one that exits with an error stops the launch",
+}
+"""What `htlm launch` does when a process dies before the run is over, per mode (exit code 2, a bad parameter or
+store, stops every mode's launch: a restart would fail the same way)."""
 
 
 def team_processes(cfg: LaunchConfig) -> list[ProcessSpec]:
@@ -207,7 +236,29 @@ def team_processes(cfg: LaunchConfig) -> list[ProcessSpec]:
 
     ROS-free; it writes the learner settings file (parameters/learner.json) the trainer's parameters name."""
     respawn = cfg.mode == "deploy"
-    return [ProcessSpec(name, module, params, respawn) for name, module, params in process_specs(cfg)]
+    return [
+        ProcessSpec(name, module, params, respawn, cfg.respawn_delay, cfg.max_restarts)
+        for name, module, params in process_specs(cfg)
+    ]
+
+
+def killed(rc: int) -> bool:
+    """Whether exit code `rc` (Popen's returncode) is a process killed or stopped by a signal it did not send itself:
+    negative (killed), or 128 + SIGINT / SIGTERM (a node stopped by a signal exits so)."""
+    return rc < 0 or rc in (128 + signal.SIGINT, 128 + signal.SIGTERM)
+
+
+def restarts(spec: ProcessSpec, rc: int) -> bool:
+    """Whether `htlm launch` starts process `spec` again after it exited with `rc` before the run was over.
+
+    Deploy (`respawn`): after any exit but 0 (finished) and 2 (bad parameters or store: it would fail again). Train
+    and evaluate: after a kill only (`killed`): the world continues its run at the first batch it had not logged, an
+    agent rejoins at the next begin, the trainer resumes from its checkpoint and store (the agents send again what it
+    had not acknowledged), the recorder writes the next recording; a process that exits with an error would fail
+    again, or (the trainer) train on from a state the error left, so the launch stops."""
+    if rc in (0, 2):
+        return False
+    return spec.respawn or killed(rc)
 
 
 def prepare(cfg: LaunchConfig) -> list[tuple[ProcessSpec, Path]]:
@@ -287,39 +338,96 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
         pass
 
 
+def spawn(spec: ProcessSpec, params_file: Path, log: Path, env: dict[str, str], note: str = "") -> Proc:
+    """Start one process of the launch, its output appended to `log` (after the line `note`, if given)."""
+    cmd = [
+        sys.executable,
+        "-m",
+        spec.module,
+        "--ros-args",
+        "-r",
+        f"__node:={spec.node}",
+        "--params-file",
+        str(params_file),
+    ]
+    with open(log, "ab") as out:
+        if note:
+            out.write(f"{note}\n".encode())
+            out.flush()
+        popen = subprocess.Popen(
+            cmd,
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,  # Ctrl-C reaches the launcher only; it forwards the signal in order
+            preexec_fn=_die_with_parent,
+        )
+    return Proc(spec.name, popen, log)
+
+
 def start(cfg: LaunchConfig) -> list[Proc]:
     """Start every process of the launch (world first); returns them."""
+    return [slot.proc for slot in _start_slots(cfg)]
+
+
+@dataclass
+class _Slot:
+    """A process of the launch under supervision: its current incarnation and its restarts."""
+
+    spec: ProcessSpec
+    params_file: Path
+    proc: Proc
+    started: float
+    """When the current incarnation started (monotonic)."""
+    in_a_row: int = 0
+    """Restarts since it last stayed up RESPAWN_STABLE seconds."""
+    total: int = 0
+    """Restarts in the launch."""
+    done: bool = False
+    """Its current incarnation exited and was dealt with."""
+    due: float | None = None
+    """When it starts again (monotonic), or None."""
+    last_rc: int = 0
+    """Exit code of the incarnation that ended last."""
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+
+def _start_slots(cfg: LaunchConfig) -> list[_Slot]:
     logs = cfg.run_dir / "logs"
     env = ros_env(cfg)
-    procs = []
+    slots = []
     # the recorder first, and the team once it is subscribed: a run's first messages are recorded too
     for spec, pfile in sorted(prepare(cfg), key=lambda sp: sp[0].name != "recorder"):
-        name = spec.name
-        cmd = [
-            sys.executable,
-            "-m",
-            spec.module,
-            "--ros-args",
-            "-r",
-            f"__node:={spec.node}",
-            "--params-file",
-            str(pfile),
-        ]
-        log = logs / f"{name}.log"
-        with open(log, "ab") as out:
-            popen = subprocess.Popen(
-                cmd,
-                stdin=subprocess.DEVNULL,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                env=env,
-                start_new_session=True,  # Ctrl-C reaches the launcher only; it forwards the signal in order
-                preexec_fn=_die_with_parent,
-            )
-        procs.append(Proc(name, popen, log))
-        if name == "recorder":
-            _wait_for_line(procs[-1], RECORDER_READY, RECORDER_START)
-    return procs
+        proc = spawn(spec, pfile, logs / f"{spec.name}.log", env)
+        slots.append(_Slot(spec, pfile, proc, time.monotonic()))
+        if spec.name == "recorder":
+            _wait_for_line(proc, RECORDER_READY, RECORDER_START)
+    return slots
+
+
+def last_error(log: Path, since: int = 0) -> str:
+    """The line of a process's log (from byte `since`) that says why it failed: the last line of its last Python
+    traceback, else its last ERROR line, else its last line."""
+    try:
+        with open(log, "rb") as f:
+            f.seek(max(since, f.seek(0, os.SEEK_END) - 65536))
+            raw = [x.rstrip() for x in f.read().decode(errors="replace").splitlines()]
+    except OSError:
+        return ""
+    lines = [x.strip() for x in raw if x.strip()]
+    if not lines:
+        return ""
+    for i in range(len(raw) - 1, -1, -1):
+        if raw[i].startswith("Traceback (most recent call last)"):
+            tail = [x for x in raw[i + 1 :] if x and not x[0].isspace()]
+            if tail:
+                return tail[0][:500]
+    errors = [x for x in lines if "[ERROR]" in x]
+    return (errors[-1].split("]: ", 1)[-1] if errors else lines[-1])[:500]
 
 
 RECORDER_READY = "]: recording "
@@ -448,18 +556,33 @@ class _ProgressTail(_Tail):
         self.bar.close()
 
 
+def _say(text: str) -> None:
+    print(f"htlm launch: {text}", flush=True, file=sys.stderr)
+
+
+def _backoff(cfg: LaunchConfig, in_a_row: int) -> float:
+    """Seconds before the restart that follows `in_a_row` restarts in a row."""
+    return float(min(cfg.respawn_delay * 2**in_a_row, max(RESPAWN_DELAY_MAX, cfg.respawn_delay)))
+
+
 def run_team(cfg: LaunchConfig) -> int:
-    """Start the team, wait for it to finish, stop it cleanly; returns the exit code (EXIT_CODES)."""
+    """Start the team, supervise it until it finishes, stop it cleanly; returns the exit code (EXIT_CODES).
+
+    A process that dies before the run is over is started again when `restarts` says so, after a back-off
+    (`_backoff`), at most `cfg.max_restarts` times in a row; every other process goes on meanwhile. A process that
+    exits 2 (bad parameters or store) stops the launch with 2; one that fails where a restart cannot help, or past
+    the limit, stops it with 1, naming the process, its exit code and the line of its log that says why."""
     got: list[int] = []
 
     def on_signal(signum: int, _frame: Any) -> None:
         got.append(signum)
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    procs: list[Proc] = []
+    slots: list[_Slot] = []
     try:
-        procs = start(cfg)
-        names = ", ".join(p.name for p in procs)
+        slots = _start_slots(cfg)
+        env = ros_env(cfg)
+        names = ", ".join(s.name for s in slots)
         print(
             f"htlm launch {cfg.mode}: {names} on ROS_DOMAIN_ID={cfg.domain_id} "
             f"(discovery {cfg.discovery}{', peers ' + cfg.peers if cfg.peers else ''}); logs in {cfg.run_dir / 'logs'}",
@@ -468,99 +591,130 @@ def run_team(cfg: LaunchConfig) -> int:
         )
         tails: list[_Tail] = []
         if cfg.echo:
-            for p in procs:
-                if p.name == "world" and cfg.mode == "train" and cfg.episodes:
-                    tails.append(_ProgressTail(p.log, cfg.episodes, cfg.first_episode))
-                elif p.name == "world":
-                    tails.append(_Tail(p.log, ("episode", "ERROR"), "[world] ", cfg.echo_to_stderr))
-                elif p.name == "trainer":
-                    tails.append(_Tail(p.log, ("ERROR", "resumed", "validation"), "[trainer] ", cfg.echo_to_stderr))
-        world = next((p for p in procs if p.name == "world"), None)
+            for s in slots:
+                if s.name == "world" and cfg.mode == "train" and cfg.episodes:
+                    tails.append(_ProgressTail(s.proc.log, cfg.episodes, cfg.first_episode))
+                elif s.name == "world":
+                    tails.append(_Tail(s.proc.log, ("episode", "ERROR"), "[world] ", cfg.echo_to_stderr))
+                elif s.name == "trainer":
+                    tails.append(
+                        _Tail(s.proc.log, ("ERROR", "resumed", "validation"), "[trainer] ", cfg.echo_to_stderr)
+                    )
+        world = next((s for s in slots if s.name == "world"), None)
         start_t = time.monotonic()
         ended_at: float | None = None
         code: int | None = None
         failed: list[str] = []
-        while True:
+
+        def procs() -> list[Proc]:
+            return [s.proc for s in slots]
+
+        while code is None:
             time.sleep(0.1)
             for t in tails:
                 t.poll()
             if got:
                 sig = got[0]
-                print(f"htlm launch: {signal.Signals(sig).name}: stopping the team", flush=True, file=sys.stderr)
-                world_first = [p for p in procs if p.name == "world"] + [p for p in procs if p.name != "world"]
+                _say(f"{signal.Signals(sig).name}: stopping the team")
+                world_first = [s.proc for s in slots if s.name == "world"] + [
+                    s.proc for s in slots if s.name != "world"
+                ]
                 stop(world_first, signal.SIGINT, wait=cfg.grace if cfg.mode == "train" else 10.0)
                 code = 128 + sig
                 break
-            bad_settings = False
-            for p in procs:
-                rc = p.popen.poll()
-                if rc not in (None, 0) and p.name not in failed and not (rc < 0 and ended_at is not None):
-                    failed.append(p.name)
-                    print(f"htlm launch: {p.name} exited with {rc}; see {p.log}", flush=True, file=sys.stderr)
-                    bad_settings = bad_settings or rc == 2
-            if bad_settings:  # a parameter, scenario or checkpoint that cannot work: the team cannot either
-                stop(procs, signal.SIGINT)
-                code = 2
+            now = time.monotonic()
+            for s in slots:
+                if s.done:
+                    continue
+                rc = s.proc.popen.poll()
+                if rc is None:
+                    if s.in_a_row and now - s.started >= RESPAWN_STABLE:
+                        s.in_a_row = 0  # recovered: the next death starts the back-off again
+                    continue
+                s.done, s.last_rc = True, rc
+                if rc == 0:
+                    if s is world and ended_at is None:
+                        ended_at = now  # the world finished its run
+                    continue
+                if ended_at is not None:  # the run is over: no restart; a kill while it ends is no failure
+                    if rc > 0:
+                        failed.append(s.name)
+                        _say(f"{s.name} exited with {rc}; see {s.proc.log}")
+                    continue
+                if rc == 2:
+                    _say(
+                        f"{s.name} exited with 2 (bad parameters or store): {last_error(s.proc.log)}; see {s.proc.log}"
+                    )
+                    code = 2
+                    break
+                if not restarts(s.spec, rc):
+                    why = last_error(s.proc.log)
+                    _say(
+                        f"{s.name} exited with {rc}: {why}; in {cfg.mode} a process that fails by itself is not "
+                        f"restarted: stopping the team (see {s.proc.log})"
+                    )
+                    code = 1
+                    break
+                if s.in_a_row >= cfg.max_restarts:
+                    _say(
+                        f"{s.name} exited with {rc} after {s.in_a_row} restarts in a row (--max-restarts "
+                        f"{cfg.max_restarts}): stopping the team (see {s.proc.log})"
+                    )
+                    code = 1
+                    break
+                delay = _backoff(cfg, s.in_a_row)
+                s.due = now + delay
+                _say(
+                    f"{s.name} exited with {rc}; restarting it in {delay:g} s "
+                    f"(restart {s.in_a_row + 1} in a row of at most {cfg.max_restarts}); see {s.proc.log}"
+                )
+            if code is not None:
+                stop(procs(), signal.SIGINT)
                 break
-            if world is not None:
-                wrc = world.popen.poll()
-                if wrc is not None and ended_at is None:
-                    ended_at = time.monotonic()
-                    if wrc != 0:
-                        stop(procs, signal.SIGINT)
-                        code = 1
-                        break
-            elif all(p.popen.poll() is not None for p in procs):
-                ended_at = time.monotonic()
+            for s in slots:
+                if s.due is None or now < s.due:
+                    continue
+                s.due = None
+                if ended_at is not None:
+                    continue
+                s.in_a_row += 1
+                s.total += 1
+                note = f"--- htlm launch: restart {s.total} after exit {s.last_rc} ---"
+                s.proc = spawn(s.spec, s.params_file, s.proc.log, env, note)
+                s.started, s.done = time.monotonic(), False
+                _say(f"{s.name} restarted (pid {s.proc.popen.pid}, restart {s.total} of the launch)")
+            if world is None and ended_at is None and all(s.done and s.due is None for s in slots):
+                ended_at = now  # no world on this host: the run is over when every process here finished
             if ended_at is not None:
-                if all(p.popen.poll() is not None for p in procs):
-                    lost = [name for name in failed if not _rejoined(cfg, name)]
-                    for name in sorted(set(failed) - set(lost)):
-                        print(
-                            f"htlm launch: {name} was restarted and rejoined: the run finished with it",
-                            flush=True,
-                            file=sys.stderr,
-                        )
-                    code = 1 if lost else 0
+                for s in slots:
+                    s.due = None  # the run is over: nothing starts again
+                if all(s.proc.popen.poll() is not None for s in slots):
+                    code = 1 if failed else 0
                     break
                 if time.monotonic() - ended_at > cfg.grace:
-                    late = [p.name for p in procs if p.popen.poll() is None]
-                    print(
-                        f"htlm launch: {', '.join(late)} still running {cfg.grace:.0f} s after the world; stopping",
-                        flush=True,
-                        file=sys.stderr,
-                    )
-                    stop(procs, signal.SIGINT)
+                    late = [s.name for s in slots if s.proc.popen.poll() is None]
+                    _say(f"{', '.join(late)} still running {cfg.grace:.0f} s after the world; stopping")
+                    stop(procs(), signal.SIGINT)
                     code = 1
                     break
             if cfg.timeout and time.monotonic() - start_t > cfg.timeout:
-                print(f"htlm launch: timeout after {cfg.timeout:.0f} s: stopping the team", flush=True, file=sys.stderr)
-                stop(procs, signal.SIGINT)
+                _say(f"timeout after {cfg.timeout:.0f} s: stopping the team")
+                stop(procs(), signal.SIGINT)
                 code = 124
                 break
         for t in tails:
             t.poll()
             if isinstance(t, _ProgressTail):
                 t.close()
+        restarted = {s.name: s.total for s in slots if s.total}
+        if restarted:
+            _say("restarts: " + ", ".join(f"{n} {k}" for n, k in restarted.items()))
+        assert code is not None
         return code
     finally:
-        stop(procs, signal.SIGKILL, wait=1.0)  # nothing survives the launcher
-        for s, h in old.items():
-            signal.signal(s, h)
-
-
-def _rejoined(cfg: LaunchConfig, name: str) -> bool:
-    """Whether agent `name`, whose process of this launch failed, played the run's last batch (a restarted
-    process of it rejoined): its absence count there is 0 in the world's log."""
-    names = [a.name for a in cfg.scenario.agents]
-    if name not in names:
-        return False
-    try:
-        lines = (cfg.run_dir / "world.jsonl").read_text().splitlines()
-        last = json.loads(lines[-1])["metrics"]
-    except (OSError, IndexError, ValueError, KeyError):
-        return False
-    return bool(last["absent"][names.index(name)] == 0)
+        stop([s.proc for s in slots], signal.SIGKILL, wait=1.0)  # nothing survives the launcher
+        for sig_, h in old.items():
+            signal.signal(sig_, h)
 
 
 def summarize(run_dir: Path) -> dict[str, Any]:
