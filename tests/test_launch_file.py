@@ -20,7 +20,15 @@ from typing import Any
 import pytest
 
 from htlm_agent.cli.launch import LaunchError, config
-from htlm_agent.ros.launch import LaunchConfig, prepare, process_specs, ros_env, team_processes
+from htlm_agent.ros.launch import (
+    MAX_RESTARTS,
+    RESPAWN_DELAY,
+    LaunchConfig,
+    prepare,
+    process_specs,
+    ros_env,
+    team_processes,
+)
 from htlm_world.scenario import builtin
 
 LAUNCH_FILE = Path(__file__).resolve().parents[1] / "src" / "htlm_agent" / "launch" / "team.launch.py"
@@ -109,6 +117,7 @@ def test_the_process_list_is_the_launchers_with_what_ros2_run_needs(tmp_path: Pa
     assert names[:2] == ["world", "trainer"] and names[-1] == "recorder" and "robot_agent3" in names
     for p in procs:
         assert p.node == f"htlm_{p.name}" and not p.respawn
+        assert (p.respawn_delay, p.max_restarts) == (cfg.respawn_delay, cfg.max_restarts)
         setup = (LAUNCH_FILE.parents[2] / p.package / "setup.py").read_text()
         assert f'"{p.executable} = {p.module}:main"' in setup, f"{p.package} installs no {p.executable}"
     recorder = procs[-1].params
@@ -158,7 +167,15 @@ def test_the_launch_file_starts_the_launchers_processes(tmp_path: Path, monkeypa
         (params_file,) = kw["parameters"]
         assert Path(params_file).read_text() == params  # the very file `htlm launch` writes
         assert kw["env"] == env and kw["env"]["ROS_DOMAIN_ID"] == "77"
-    assert not [a for a in actions if type(a).__name__ == "RegisterEventHandler"]
+    # lockstep: a process that fails (not one that finished or that the launch stopped) ends the launch, named
+    handlers = [a.args[0].kwargs for a in actions if type(a).__name__ == "RegisterEventHandler"]
+    assert [h["target_action"] for h in handlers] == nodes
+    trainer = next(h for h in handlers if h["target_action"].kwargs["name"] == "htlm_trainer")
+    for rc in (0, 130, 143, -2, -15):
+        assert trainer["on_exit"](types.SimpleNamespace(returncode=rc), None) is None, rc
+    for rc in (1, -9):
+        (ended,) = trainer["on_exit"](types.SimpleNamespace(returncode=rc), None)
+        assert ended.kwargs["event"].kwargs["reason"] == f"trainer exited with {rc}"
     assert module.command_line({"mode": "deploy", "record": "false", "args": "--agent-param belief_every=5"}) == [
         "deploy",
         "--agent-param",
@@ -171,7 +188,24 @@ def test_in_deploy_the_launch_file_respawns_and_ends_with_the_world(
 ) -> None:
     _, actions = _launch(monkeypatch, mode="deploy", policy="greedy", robots="sim", run_dir=str(tmp_path / "run"))
     nodes = [a for a in actions if type(a).__name__ == "Node"]
-    assert len(nodes) == 13 and all(n.kwargs["respawn"] and n.kwargs["respawn_delay"] > 0 for n in nodes)
+    assert len(nodes) == 13 and all(n.kwargs["respawn"] for n in nodes)
+    # the respawn parameters of `htlm launch`'s process list: its defaults, and its options given as arguments
+    assert {(n.kwargs["respawn_delay"], n.kwargs["respawn_max_retries"]) for n in nodes} == {
+        (RESPAWN_DELAY, MAX_RESTARTS)
+    }
+    _, actions = _launch(
+        monkeypatch,
+        mode="deploy",
+        policy="greedy",
+        respawn_delay="2.5",
+        max_restarts="7",
+        run_dir=str(tmp_path / "run2"),
+    )
+    assert {
+        (a.kwargs["respawn_delay"], a.kwargs["respawn_max_retries"]) for a in actions if type(a).__name__ == "Node"
+    } == {(2.5, 7)}
+    _, actions = _launch(monkeypatch, mode="deploy", policy="greedy", robots="sim", run_dir=str(tmp_path / "run"))
+    nodes = [a for a in actions if type(a).__name__ == "Node"]
     (handler,) = [a for a in actions if type(a).__name__ == "RegisterEventHandler"]
     on_exit = handler.args[0].kwargs
     assert on_exit["target_action"] is nodes[0] and nodes[0].kwargs["name"] == "htlm_world"
