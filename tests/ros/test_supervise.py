@@ -1,0 +1,210 @@
+"""The launcher supervises the team: kills through `htlm launch` itself, the entry point users run (real processes over
+real DDS, no fixture starting them). Each kind of process the launcher started is SIGKILLed in turn; the launcher
+must say so with the exit code, start it again, and the others must not notice: in a deployed team (`--robots sim
+--record`) the agents never killed act at every step; in a training launch the killed world, agent and trainer
+resume and the run ends with exit code 0. The launcher's choices per exit are tested without ROS in
+tests/test_supervise.py."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from htlm_world.clock import StepClock
+
+from .conftest import next_domain
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+HTLM = str(Path(sys.executable).parent / "htlm")
+PERIOD = 0.5
+STAMP = re.compile(r"\[(?:INFO|WARN|ERROR)\] \[(\d+\.\d+)\]")
+
+
+def _alive_with(marker: str) -> list[int]:
+    """PIDs of live processes whose command line mentions `marker`."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state = (d / "stat").read_text().split()[2]
+        except OSError:
+            continue
+        if marker in cmd and state != "Z":
+            out.append(int(d.name))
+    return out
+
+
+class Launcher:
+    """`htlm launch ...` as a user runs it, its stderr in a file."""
+
+    def __init__(self, tmp: Path, *args: str) -> None:
+        self.run = tmp / "run"
+        self.out = tmp / "launcher.err"
+        self.summary = tmp / "launcher.out"
+        with open(self.out, "wb") as err, open(self.summary, "wb") as out:
+            self.popen = subprocess.Popen(
+                [HTLM, "launch", *args, "--domain-id", str(next_domain()), "--run-dir", str(self.run), "--json"],
+                stdout=out,
+                stderr=err,
+                start_new_session=True,
+            )
+
+    def said(self) -> str:
+        return self.out.read_text(errors="replace")
+
+    def log(self, name: str) -> str:
+        f = self.run / "logs" / f"{name}.log"
+        return f.read_text(errors="replace") if f.exists() else ""
+
+    def pid(self, name: str) -> int:
+        """The live process of `name` (its parameters file is on its command line; one at a time)."""
+        pids = _alive_with(str(self.run / "parameters" / f"{name}.yaml"))
+        assert len(pids) == 1, f"{name}: processes {pids}"
+        return pids[0]
+
+    def wait_for(self, what: Callable[[], Any], timeout: float, why: str) -> Any:
+        """Wait for `what()` to be truthy; fail naming `why` (and what the launcher said) after `timeout` seconds."""
+        end = time.monotonic() + timeout
+        while True:
+            got = what()
+            if got:
+                return got
+            assert self.popen.poll() is None, (
+                f"the launcher exited ({self.popen.returncode}) before {why}:\n" + (self.said()[-3000:])
+            )
+            assert time.monotonic() < end, (
+                f"timed out after {timeout} s waiting for {why}; the launcher said:\n" + (self.said()[-3000:])
+            )
+            time.sleep(0.05)
+
+    def agent_episodes(self, name: str) -> list[dict[str, Any]]:
+        f = self.run / f"{name}.jsonl"
+        text = f.read_text() if f.exists() else ""
+        return [json.loads(x) for x in text[: text.rfind("\n") + 1].splitlines()]
+
+    def stop(self) -> None:
+        if self.popen.poll() is None:
+            os.killpg(self.popen.pid, signal.SIGKILL)
+            self.popen.wait()
+        for pid in _alive_with(str(self.run)):
+            os.kill(pid, signal.SIGKILL)
+
+
+@pytest.fixture
+def launcher(tmp_path: Path) -> Iterator[Callable[..., Launcher]]:
+    made: list[Launcher] = []
+
+    def make(*args: str) -> Launcher:
+        made.append(Launcher(tmp_path, *args))
+        return made[-1]
+
+    yield make
+    for x in made:
+        x.stop()
+
+
+def _after(team: Launcher, name: str, start: int, pattern: str, timeout: float, why: str) -> re.Match[str]:
+    """The first match of `pattern` in `name`'s log after byte `start`, waited for."""
+    found: re.Match[str] | None = team.wait_for(
+        lambda: re.search(pattern, team.log(name)[start:]), timeout, f"{name} to log {why} ({pattern!r})"
+    )
+    assert found is not None
+    return found
+
+
+@pytest.mark.timeout(420)
+def test_a_deployed_team_restarts_whatever_is_killed_and_the_others_miss_no_step(launcher: Any) -> None:
+    team = launcher(
+        *("deploy", "--robots", "sim", "--policy", "greedy", "--record", "--episodes", "0", "--period", str(PERIOD)),
+        *("--respawn-delay", "0.5", "--agent-param", "broadcast_timeout=0.2", "--world-param", "begin_deadline=5.0"),
+    )
+    run = team.run
+    f = run / "agent1.run.json"
+    team.wait_for(lambda: f.exists() and json.loads(f.read_text())["epoch"] > 0, 120, "the team's epoch (agent1)")
+    rec = json.loads(f.read_text())
+    horizon = rec["scenario"]["horizon"]
+    clock = StepClock(rec["epoch"], PERIOD, horizon, 0, 0)
+    now = lambda: clock.last(time.time())  # noqa: E731  # the step index in progress on the team's clock
+    # what each process logs once it is back; with the step it rejoined at (episode, step) where it says it
+    back = {
+        "world": r"observing the agents' clock from episode (\d+) step (\d+)",
+        "agent3": r"joined the team's clock at episode (\d+) step (\d+)",
+        "operation": r"joined the team's clock at episode (\d+) step (\d+)",
+        "robot_agent2": r"run \S+: robot of agent2 at",
+        "recorder": r"recording \d+ topics into \S+recording_1",
+        "trainer": r"run \S+: mode deploy",
+    }
+    report: dict[str, dict[str, Any]] = {}
+    i = now() + 2
+    for name, pattern in back.items():
+        team.wait_for(lambda i=i: now() >= i, 60 + i * PERIOD, f"step index {i} (before killing {name})")
+        pid, start, said = team.pid(name), len(team.log(name)), len(team.said())
+        os.kill(pid, signal.SIGKILL)
+        killed_at, t_kill = now(), time.time()
+        restarted = team.wait_for(
+            lambda said=said, name=name: re.search(rf"{name} restarted \(pid (\d+)", team.said()[said:]),
+            30,
+            f"the launcher to restart {name}",
+        )
+        assert f"{name} exited with -9; restarting it" in team.said()[said:]
+        assert int(restarted.group(1)) != pid
+        m = _after(team, name, start, pattern, 60, "that it is back")
+        text = team.log(name)[start:]
+        stamp = STAMP.search(text[text.rfind("\n", 0, m.start()) + 1 : m.start()])  # the ROS time of that line
+        assert stamp is not None, text[-2000:]
+        t_back = float(stamp.group(1))
+        joined = clock.index(int(m.group(1)), int(m.group(2))) if m.groups() else clock.last(t_back)
+        report[name] = {"killed": killed_at, "rejoined": joined, "seconds": round(t_back - t_kill, 2)}
+        i = max(now(), joined) + 2
+    # every agent logs the episode after the last rejoin: the steps they took around every kill are in their logs
+    last = max(r["rejoined"] for r in report.values()) // horizon
+    agents = [f"agent{k}" for k in range(1, 6)]
+    for a in agents:
+        team.wait_for(
+            lambda a=a: any(x["episode"] > last for x in team.agent_episodes(a)),
+            60 + 2 * horizon * PERIOD,
+            f"{a} to log episode {last + 1}",
+        )
+    os.kill(team.popen.pid, signal.SIGINT)  # Ctrl-C: the team stops cleanly
+    assert team.popen.wait(timeout=60) == 130, team.said()[-3000:]
+    assert _alive_with(str(run)) == [], "orphaned processes"
+    said = team.said()
+    assert "restarts: " in said and all(f"{n} 1" in said.rsplit("restarts: ", 1)[1] for n in back), said[-2000:]
+    # the agents never killed acted at every step of every episode, whoever was down
+    missed = {}
+    for a in agents:
+        acted = {
+            clock.index(x["episode"], t + 1)
+            for x in team.agent_episodes(a)
+            for t, yes in enumerate(x["acted"])
+            if yes and x["episode"] <= last + 1
+        }
+        missed[a] = sorted(set(range((last + 2) * horizon)) - acted)  # an episode it did not log: every step
+    assert all(not missed[a] for a in agents if a != "agent3"), missed
+    # the killed agent acted at every step from its rejoin on (its log counts the steps of the episode before its
+    # rejoin as missed, also those its first process took before the kill)
+    k3, gap = report["agent3"], missed["agent3"]
+    assert gap and max(gap) < k3["rejoined"], (k3, gap)
+    # the restarted recorder recorded into the next recording; the first one holds what came before the kill
+    assert (run / "recording_1" / "metadata.yaml").exists() and (run / "recording").is_dir()
+    print(
+        "killed (step index at the kill), rejoined (step index), seconds from the kill to the rejoin line: "
+        + json.dumps(report)
+    )
+    print(
+        f"agents never killed missed 0 steps in {last + 2} episodes; agent3 was down for "
+        f"{k3['rejoined'] - k3['killed']} steps and acted at every step from its rejoin on"
+    )
