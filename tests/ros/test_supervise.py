@@ -208,3 +208,69 @@ def test_a_deployed_team_restarts_whatever_is_killed_and_the_others_miss_no_step
         f"agents never killed missed 0 steps in {last + 2} episodes; agent3 was down for "
         f"{k3['rejoined'] - k3['killed']} steps and acted at every step from its rejoin on"
     )
+
+
+@pytest.mark.timeout(420)
+def test_a_training_launch_restarts_a_killed_world_agent_and_trainer_and_finishes(launcher: Any) -> None:
+    episodes, batch = 48, 4
+    team = launcher(
+        *("train", "--episodes", str(episodes), "--eval-episodes", "0", "--seed", "4", "--respawn-delay", "0.5"),
+        *("--set", f"envs={batch}", "--set", "learning_starts=60", "--set", "batch_size=32", "--set", "memory=5000"),
+        *("--trainer-param", "checkpoint_every=4", "--agent-param", "resend_period=0.5"),
+        *("--agent-param", "stop_timeout=20.0", "--agent-param", "broadcast_timeout=0.5"),
+        *("--world-param", "act_deadline=2.0", "--world-param", "begin_deadline=2.0"),
+        *("--world-param", "update_deadline=2.0"),
+    )
+    run = team.run
+
+    def logged() -> list[dict[str, Any]]:
+        f = run / "world.jsonl"
+        text = f.read_text() if f.exists() else ""
+        return [json.loads(x)["metrics"] for x in text[: text.rfind("\n") + 1].splitlines()]
+
+    back = {
+        "world": r"continuing at episode (\d+)",
+        "agent3": r"run \S+",
+        "trainer": r"resumed from",
+    }
+    at: dict[str, int] = {}
+    came: dict[str, re.Match[str]] = {}
+    for name, pattern in back.items():
+        n = len(logged()) + batch
+        team.wait_for(lambda n=n: len(logged()) >= n, 120, f"episode {n} (before killing {name})")
+        if name == "trainer":
+            meta = run / "trainer" / "checkpoint" / "meta.json"
+            team.wait_for(meta.exists, 60, "the trainer's first checkpoint")
+        pid, start, said = team.pid(name), len(team.log(name)), len(team.said())
+        os.kill(pid, signal.SIGKILL)
+        at[name] = len(logged())
+        team.wait_for(
+            lambda said=said, name=name: f"{name} restarted (pid" in team.said()[said:],
+            30,
+            f"the launcher to restart {name}",
+        )
+        assert f"{name} exited with -9; restarting it" in team.said()[said:]
+        came[name] = _after(team, name, start, pattern, 60, "that it is back")
+    assert team.popen.wait(timeout=300) == 0, team.said()[-3000:]
+    assert _alive_with(str(run)) == [], "orphaned processes"
+    summary = json.loads(team.summary.read_text())
+    assert summary["exit_code"] == 0 and summary["episodes"] == episodes, summary
+    said = team.said()
+    assert all(f"{n} 1" in said.rsplit("restarts: ", 1)[1] for n in back), said[-2000:]
+    eps = logged()
+    assert sorted(e["episode"] for e in eps) == list(range(episodes)), "every episode logged once"
+    assert int(came["world"].group(1)) == at["world"], "the restarted world continued at its first batch not logged"
+    # the restarted agent rejoins at the begin of a later batch: absent in the batch of its kill, then not
+    absent = {e["episode"]: e["absent"] for e in eps}
+    rejoined = next(e for e in sorted(absent) if e >= at["agent3"] and absent[e][2] == 0 and e % batch == 0)
+    assert all(absent[e][2] == 0 for e in absent if e >= rejoined), absent
+    # the others play on: a teammate waiting for the killed agent's last broadcast may miss a step, no more
+    others = {e: a[:2] + a[3:] for e, a in absent.items() if sum(a[:2] + a[3:])}
+    assert all(max(a) <= 2 for a in others.values()), others
+    meta = json.loads((run / "trainer" / "checkpoint" / "meta.json").read_text())
+    assert meta["episodes_done"] == episodes, meta
+    print(
+        f"killed after episodes {at}; the world continued at its first batch not logged, agent3 rejoined at episode "
+        f"{rejoined}; absences of the agents never killed (episode: absences) {others}; checkpoint after "
+        f"{meta['episodes_done']} episodes"
+    )
