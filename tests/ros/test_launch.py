@@ -1,5 +1,6 @@
 """The launcher (`launch_scripts/team.sh` = `htlm launch`): a team of 7 processes with a log file each, a summary,
-a clean stop on Ctrl-C with no orphaned process, and an exit code that says how the run ended."""
+a killed world started again, a clean stop on Ctrl-C with no orphaned process, and an exit code that says how the run
+ended."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -100,40 +102,62 @@ def test_json_is_the_only_output_on_stdout(tmp_path: Path) -> None:
     assert _alive_with(str(run)) == []
 
 
-def test_ctrl_c_stops_every_process(repo_root: Path, tmp_path: Path) -> None:
+def test_a_killed_world_is_restarted_and_ctrl_c_stops_every_process(repo_root: Path, tmp_path: Path) -> None:
+    """The team outlives its world: SIGKILLed, it is started again and the run goes on; then Ctrl-C stops it all."""
     run = tmp_path / "deploy"
-    launcher = subprocess.Popen(
-        [
-            str(repo_root / ".venv" / "bin" / "htlm"),
-            "launch",
-            "deploy",
-            "--policy",
-            "greedy",
-            "--domain-id",
-            str(next_domain()),
-            "--run-dir",
-            str(run),
-            "--quiet",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    try:
-        end = time.monotonic() + 60
-        while not (run / "world.jsonl").exists() or not (run / "world.jsonl").read_text().strip():
-            assert time.monotonic() < end, "no episode finished"
-            assert launcher.poll() is None, launcher.stdout.read().decode() if launcher.stdout else ""
+    said = tmp_path / "launcher.out"
+    with open(said, "wb") as out:
+        launcher = subprocess.Popen(
+            [
+                str(repo_root / ".venv" / "bin" / "htlm"),
+                "launch",
+                "deploy",
+                "--policy",
+                "greedy",
+                "--respawn-delay",
+                "0.2",
+                "--domain-id",
+                str(next_domain()),
+                "--run-dir",
+                str(run),
+                "--quiet",
+            ],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+
+    def episodes() -> int:
+        f = run / "world.jsonl"
+        return len(f.read_text().splitlines()) if f.exists() else 0
+
+    def wait_for(what: Callable[[], bool], timeout: float, why: str) -> None:
+        end = time.monotonic() + timeout
+        while not what():
+            assert launcher.poll() is None, f"the launcher exited before {why}:\n{said.read_text()}"
+            assert time.monotonic() < end, f"timed out waiting for {why}:\n{said.read_text()}"
             time.sleep(0.1)
+
+    try:
+        wait_for(lambda: episodes() >= 1, 60, "the first episode")
+        world = _alive_with(str(run / "parameters" / "world.yaml"))
+        assert len(world) == 1, world
+        os.kill(world[0], signal.SIGKILL)
+        killed_at = episodes()
+        wait_for(lambda: "world restarted" in said.read_text(), 30, "the launcher to restart the world")
+        wait_for(lambda: episodes() > killed_at, 60, "an episode of the restarted world")
+        assert "world exited with -9; restarting it" in said.read_text()
         children = [p for p in _alive_with(str(run)) if p != launcher.pid]
         assert len(children) == 7, children  # world, trainer, five agents (deploy runs until stopped)
         os.kill(launcher.pid, signal.SIGINT)  # what Ctrl-C in the terminal does
         rc = launcher.wait(timeout=30)
-        out = launcher.stdout.read().decode() if launcher.stdout else ""
-        assert rc == 130, out
-        assert "SIGINT" in out  # the launcher says why it stopped (stderr, merged here)
+        text = said.read_text()
+        assert rc == 130, text
+        assert "SIGINT" in text and "restarts: world 1" in text  # the launcher says why it stopped
         time.sleep(0.2)
         assert _alive_with(str(run)) == [], "orphaned processes"
+        log = (run / "logs" / "world.log").read_text()
+        assert f"continuing at episode {killed_at}" in log, log[-2000:]
     finally:
         if launcher.poll() is None:
             os.killpg(launcher.pid, signal.SIGKILL)
