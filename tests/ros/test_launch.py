@@ -161,3 +161,41 @@ def test_a_killed_world_is_restarted_and_ctrl_c_stops_every_process(repo_root: P
     finally:
         if launcher.poll() is None:
             os.killpg(launcher.pid, signal.SIGKILL)
+
+
+def test_a_trainer_that_fails_stops_a_training_launch_at_once_with_its_message(tmp_path: Path) -> None:
+    """A process that fails by itself in a lockstep run is not restarted: the launch stops and says why."""
+    run = tmp_path / "train"
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")  # the trainer cannot make its run directory under a file: it fails once it starts
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "htlm_agent.cli",
+            "launch",
+            "train",
+            "--episodes",
+            "8",
+            "--set",
+            "envs=4",
+            "--eval-episodes",
+            "0",
+            "--trainer-param",
+            f"run_dir={blocker / 'trainer'}",
+            "--domain-id",
+            str(next_domain()),
+            "--run-dir",
+            str(run),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=100,
+        check=False,
+    )
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "htlm launch: trainer exited with 1: NotADirectoryError:" in r.stderr, r.stderr
+    assert "in train a process that fails by itself is not restarted: stopping the team" in r.stderr, r.stderr
+    assert not (run / "world.jsonl").exists() or len((run / "world.jsonl").read_text().splitlines()) < 8
+    assert _alive_with(str(run)) == []
