@@ -154,7 +154,7 @@ def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> No
     # ... and rebuilds the steps it missed from what the agents say they did before (their `before`)
     before = [outside, -1, outside, outside]
     rec = {"agent": 0, "episode": 1, "step": 5, "actions": [outside], "before": before}
-    eff = again.on_action(S.decode(S.encode(S.ACTION, rec), S.ACTION, LIM), clock.at(1, 5) - 0.2)
+    eff = again.on_action(S.decode(S.encode(S.ACTION, {"run": "d1", **rec}), S.ACTION, LIM), clock.at(1, 5) - 0.2)
     assert any("3 missed steps of agent 0 rebuilt" in text for _lv, text in eff.log), eff.log
     assert again.ep is not None
     assert [row[0] for row in again.ep.trajectory()["actions"]] == [outside, SC.start_assignment, outside, outside]

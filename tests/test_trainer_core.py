@@ -190,7 +190,7 @@ def test_trainer_rounds_equal_the_in_process_learner(tmp_path: Path, wire: bool)
     sent = sorted(recs, key=lambda r: (r["seq"] // H, r["agent"], r["seq"]))
     if wire:
         lim = S.limits(SC.n_agents, SC.n_tasks, SC.n_actions, SC.levels, SC.horizon, batch)
-        sent = [S.decode(S.encode(S.TRANSITION, r), S.TRANSITION, lim) for r in sent]
+        sent = [S.decode(S.encode(S.TRANSITION, {"run": "r1", **r}), S.TRANSITION, lim) for r in sent]
         assert sent[0]["k"].dtype == np.float32 and not np.array_equal(sent[0]["k"], np.asarray(recs[0]["k"]))
     _feed(core, sent)
     assert core.trained == steps

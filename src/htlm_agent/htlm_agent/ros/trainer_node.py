@@ -105,6 +105,7 @@ class TrainerNode(Node):
         if rec["run"] == self.core.run or self.core.run is None:
             self.world.heard()
         self._apply(self.core.on_scenario(rec, time.monotonic()))
+        self.signer.run = self.core.run  # what we send carries it; records of other runs are rejected
         sc = self.core.scenario
         if sc is not None and self.lim is None:
             self.lim = limits(

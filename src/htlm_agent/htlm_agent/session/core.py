@@ -26,7 +26,7 @@ from htlm_agent.mind.external import ExternalObservations, Observed
 from htlm_agent.mind.policies import AgentPolicy
 from htlm_msgs_py import schema as S
 from htlm_msgs_py.payload import PayloadError, unseal
-from htlm_msgs_py.run_control import RunControl
+from htlm_msgs_py.run_control import REFUSED, RunControl
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import Signer
 from htlm_world.clock import StepClock
@@ -239,7 +239,7 @@ class AgentSession:
             out.heard_world = True
             return out
         verdict = self.control.take(rec)
-        if verdict in ("other_run", "replay"):  # nobody but our run's world stops or switches us
+        if verdict in REFUSED:  # nobody but our run's world stops or switches us
             out.rejects.append(("scenario", verdict, self.control.refused(rec)))
             return out
         out.heard_world = True
@@ -281,6 +281,7 @@ class AgentSession:
             self._fail(f"agent {self.name!r} is not in the scenario's team {names}", out)
             return out
         self.run = rec["run"]
+        self.signer.run = self.run  # what we send carries it; records of other runs are rejected
         self.mode = rec["mode"]
         self.seed = rec["seed"]
         self.first_episode = rec["first_episode"]

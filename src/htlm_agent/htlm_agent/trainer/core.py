@@ -26,7 +26,7 @@ import numpy as np
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
 from htlm_msgs_py.payload import seal
-from htlm_msgs_py.run_control import RunControl
+from htlm_msgs_py.run_control import REFUSED, RunControl
 from htlm_world.episode import global_step
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
@@ -207,7 +207,7 @@ class TrainerCore:
         """A decoded /htlm/scenario record: start on the first run, follow later announcements of the same layout."""
         out = TrainerEffects()
         verdict = self.control.take(rec)
-        if verdict in ("other_run", "replay"):  # nobody but our run's world stops or switches us
+        if verdict in REFUSED:  # nobody but our run's world stops or switches us
             out.rejects.append(("scenario", verdict, self.control.refused(rec)))
             return out
         if verdict == "stop":

@@ -13,7 +13,7 @@ from rclpy.node import Node
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import STATE_READER, Health, SettingsError, declare_settings, say_unsigned, subscribe_records
-from htlm_msgs_py.run_control import RunControl
+from htlm_msgs_py.run_control import REFUSED, RunControl
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
@@ -51,7 +51,7 @@ class RunFollower(Node):
         if rec is None:
             return
         verdict = self.control.take(rec)
-        if verdict in ("other_run", "replay"):
+        if verdict in REFUSED:
             self.health.reject("scenario", verdict, self.control.refused(rec))
             return
         if verdict != "join":
@@ -65,6 +65,7 @@ class RunFollower(Node):
             self.health.reject("scenario", e.reason, str(e))
             return
         self.run, self.seed, self.scenario, self.model = rec["run"], rec["seed"], sc, Model.build(sc)
+        self.signer.run = self.run  # what we send carries it; records of other runs are rejected
         self.lim = S.limits(
             sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, rec["batch"], sc.knowledge_size
         )

@@ -22,6 +22,7 @@ from rclpy.node import Node
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.files import write_atomic
+from htlm_msgs_py.run_control import unique_run_id
 from htlm_msgs_py.ros import (
     EVENTS,
     STATE,
@@ -76,7 +77,8 @@ class WorldNode(Node):
             raise SettingsError(str(e)) from None
         sc = self.scenario
         self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, s.batch, sc.knowledge_size)
-        self.run_id = s.run_id or f"run-{s.seed}-{int(time.time())}"
+        self.run_id = s.run_id or unique_run_id(f"run-{s.seed}-{int(time.time())}")
+        self.signer.run = self.run_id  # every record carries it; records of other runs are rejected
         self.health = Health(self, "htlm: world", self.signer)
         self.stop_signal = 0
         # publishers (QoS profiles from htlm_msgs_py)
