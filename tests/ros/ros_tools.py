@@ -21,6 +21,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import faulthandler
 import json
@@ -119,10 +120,8 @@ def team_run(node: Node, seconds: float = 30.0) -> str:
     got: list[str] = []
 
     def on_scenario(msg: String) -> None:
-        try:
+        with contextlib.suppress(ValueError, KeyError, TypeError):
             got.append(json.loads(msg.data)["run"])
-        except (ValueError, KeyError, TypeError):
-            pass
 
     sub = node.create_subscription(String, topics.SCENARIO, on_scenario, STATE_READER)
     end = time.monotonic() + seconds

@@ -781,8 +781,9 @@ def decode(
     Raises:
         WireError: naming the field and the bad value; `.reason` is one of size, signature, json, not_object,
             schema, version, missing_field, unknown_field, type, range, length, encoding (a binary array's data
-            that is not base64), other_run (a record bound to another run than the signer's, `Schema.bound`). For a binary array, type is a wrong dtype, length a shape beyond the limits or
-            bytes that do not fill the shape, range a value out of range (NaN, infinity).
+            that is not base64), other_run (a record bound to another run than the signer's, `Schema.bound`).
+            For a binary array, type is a wrong dtype, length a shape beyond the limits or bytes that do not fill
+            the shape, range a value out of range (NaN, infinity).
     """
     if type(text) is not str:
         raise WireError("type", None, type(text).__name__)

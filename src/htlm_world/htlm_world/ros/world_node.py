@@ -22,7 +22,6 @@ from rclpy.node import Node
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.files import write_atomic
-from htlm_msgs_py.run_control import unique_run_id
 from htlm_msgs_py.ros import (
     EVENTS,
     STATE,
@@ -35,6 +34,7 @@ from htlm_msgs_py.ros import (
     string,
     subscribe_records,
 )
+from htlm_msgs_py.run_control import unique_run_id
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
