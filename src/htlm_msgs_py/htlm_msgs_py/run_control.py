@@ -1,13 +1,12 @@
-"""Which run a node follows, from the world's announcements on /htlm/scenario (docs/ros.md, Run control).
-
-Every announcement carries the run id, the nonce of the world process that sent it (new at every start of the
-world) and a sequence number that only grows over the whole run, also across restarts of the world (it is kept in
-the run directory). A node joins the first run it hears (or only the run it was told to join) and from then on
-follows that run alone: an announcement of another run is rejected while its own run goes on (a stop or a switch
-from anybody else cannot touch it), and an announcement of its run that is not newer than the last one it took is a
-replay and is rejected too, and so is one more than `SEQ_AHEAD` ahead of it. Only once its run has stopped may a
-node that stays up join the next one. With a team key the announcements are signed, so nobody without the key can make a newer one; without a key any participant
-of the ROS domain can (README, threat model).
+"""Which run a node follows, from the world's announcements on /htlm/scenario (docs/ros.md, Run control). Every
+announcement carries the run id, the nonce of the world process that sent it (new at every start of the world) and a
+sequence number that only grows over the whole run, also across restarts of the world (it is kept in the run
+directory). A node joins the first run it hears (or only the run it was told to join) and from then on follows that
+run alone: an announcement of another run is rejected while its own run goes on (a stop or a switch from anybody
+else cannot touch it), and an announcement of its run that is not newer than the last one it took is a replay and is
+rejected too, and so is one more than `SEQ_AHEAD` ahead of it. Only once its run has stopped may a node that stays
+up join the next one. With a team key the announcements are signed, so nobody without the key can make a newer one;
+without a key any participant of the ROS domain can (README, threat model).
 """
 
 from __future__ import annotations
