@@ -87,7 +87,7 @@ class RobotNode(RunFollower):
 
     def _on_action(self, msg: bytes) -> None:
         rec = self.health.decode("action", msg, S.ACTION, self.lim)
-        if rec is None or rec["agent"] != self.index:
+        if rec is None or rec["agent"] != self.index or self.future("action", rec):
             return
         self.actions[(rec["episode"], rec["step"])] = int(rec["actions"][0])
         while len(self.actions) > 64:
