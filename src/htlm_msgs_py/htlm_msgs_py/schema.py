@@ -650,6 +650,22 @@ SEVERITY = Schema(
     "operation of the robot stand-ins, or a human operator's report); the world logs them and computes the metrics.",
 )
 
+GOAL = Schema(
+    "htlm/goal",
+    1,
+    {
+        "run": _RUN,
+        "agent": _AGENT,
+        "x": Float(-1e7, 1e7),
+        "y": Float(-1e7, 1e7),
+        "frame": Text(64, r"[A-Za-z0-9_/]+"),
+        "sent": Float(0.0, 1e11),
+    },
+    doc="The goal the agent's robot drives to (the site of its assignment, metres in `frame`): the signed twin of the "
+    "agent's geometry_msgs/PoseStamped goal pose, sent beside it whenever the site changes; `sent`, the agent's wall "
+    "clock when it sent it (Unix seconds): a robot takes a goal only if it is newer than the last one it took.",
+)
+
 SCHEMAS: dict[str, Schema] = {
     s.name: s
     for s in (
@@ -667,6 +683,7 @@ SCHEMAS: dict[str, Schema] = {
         GROUND_TRUTH,
         EPISODE_METRICS,
         SEVERITY,
+        GOAL,
     )
 }
 

@@ -105,7 +105,6 @@ class TrainerNode(Node):
         if rec["run"] == self.core.run or self.core.run is None:
             self.world.heard()
         self._apply(self.core.on_scenario(rec, time.monotonic()))
-        self.signer.run = self.core.run  # what we send carries it; records of other runs are rejected
         sc = self.core.scenario
         if sc is not None and self.lim is None:
             self.lim = limits(
@@ -138,6 +137,7 @@ class TrainerNode(Node):
 
     # ----- effects out ------------------------------------------------------------------------------------------
     def _apply(self, eff: TrainerEffects) -> None:
+        self.signer.run = self.core.run  # what we send carries it; records of other runs are rejected
         h = self.health
         h.take(eff.drops, eff.rejects, eff.counters)
         log = self.get_logger()
