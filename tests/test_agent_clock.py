@@ -154,7 +154,7 @@ def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> No
     # ... and rebuilds the steps it missed from what the agents say they did before (their `before`)
     before = [outside, -1, outside, outside]
     rec = {"agent": 0, "episode": 1, "step": 5, "actions": [outside], "before": before}
-    eff = again.on_action(S.decode(S.encode(S.ACTION, rec), S.ACTION, LIM), clock.at(1, 5) - 0.2)
+    eff = again.on_action(S.decode(S.encode(S.ACTION, {"run": "d1", **rec}), S.ACTION, LIM), clock.at(1, 5) - 0.2)
     assert any("3 missed steps of agent 0 rebuilt" in text for _lv, text in eff.log), eff.log
     assert again.ep is not None
     assert [row[0] for row in again.ep.trajectory()["actions"]] == [outside, SC.start_assignment, outside, outside]
@@ -222,3 +222,42 @@ def test_the_worlds_stop_in_mid_run_costs_at_most_the_step_in_progress() -> None
     for k, s in team.sessions.items():
         assert s.stopping, f"agent {k} did not stop"
         assert max(team.actions[k]) == (0, 11), "no action after the one for the step after the stop"
+
+
+def test_records_far_ahead_of_the_clock_take_no_place_in_the_tables() -> None:
+    """A well-formed record more than FUTURE_STEPS ahead of the receiver's own step clock is rejected (`future`):
+    65 of them, for any agent, leave the world's table of heard actions and an agent's table of robot
+    observations to the steps in progress, and the genuine records of the step are still taken."""
+    settings = LockstepSettings(
+        run_id="d1", mode="deploy", episodes=3, operation="external", clock="free", period=PERIOD, join_timeout=5.0
+    )
+    world = WorldProtocol(SC, settings)
+    world.start(0.0)
+    for k in range(SC.n_agents):
+        world.on_action({"agent": k, "episode": 0, "step": 1, "actions": [SC.start_assignment], "before": []}, 0.1)
+    clock = world.clock()
+    assert clock is not None
+    now = clock.at(0, 3) + 0.1
+    world.tick(now)
+    rejects = []
+    for i in range(65):
+        far = {"agent": i % SC.n_agents, "episode": 2, "step": 1 + i % SC.horizon, "actions": [0], "before": []}
+        rejects += world.on_action(far, now).rejects
+    assert [r[:2] for r in rejects] == [("action", "future")] * 65
+    assert all(e == 0 for e, _t in world.heard), world.heard.keys()
+    eff = world.on_action({"agent": 1, "episode": 0, "step": 4, "actions": [0], "before": []}, now)
+    assert not eff.rejects and (0, 4) in world.heard and 1 in world.heard[(0, 4)]
+    # an agent under its own clock: robot observations far ahead are rejected, the step in progress is taken
+    team = _Team(3)
+    team.start(0)
+    team.run_until(EPOCH + 2.5)
+    s = team.sessions[0]
+    assert s.own_clock is not None and s.external is not None
+    rejects = []
+    for i in range(65):
+        obs = {"agent": 0, "episode": 2, "step": 1 + i % SC.horizon, "tasks": [0], "levels": [1], "acted": [0]}
+        rejects += s.on_observation(obs, team.now).rejects
+    assert [r[:2] for r in rejects] == [("observation", "future")] * 65
+    assert s.external.robot == {}
+    ok = s.on_observation({"agent": 0, "episode": 0, "step": 3, "tasks": [0], "levels": [1], "acted": [0]}, team.now)
+    assert not ok.rejects

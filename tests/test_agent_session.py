@@ -113,7 +113,8 @@ class _Net:
         assert not eff.rejects, eff.rejects
         for kind, fields in eff.publish:
             if kind in ("scenario", "step", "observation"):
-                self.queue.append((kind, -1, S.encode(SCHEMA[kind], fields)))
+                run = {} if kind == "scenario" else {"run": self.world.settings.run_id}  # the world node's signer's
+                self.queue.append((kind, -1, S.encode(SCHEMA[kind], {**run, **fields})))
         self.world_log += eff.episode_log
 
     def from_agent(self, i: int, eff: SessionEffects) -> None:

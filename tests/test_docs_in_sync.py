@@ -29,3 +29,23 @@ def test_the_record_and_topic_tables_are_the_schemas(table: str) -> None:
     text = records_markdown() if table == "records" else topics_markdown()
     for part in text.strip().split("\n\n"):  # docs/ros.md has prose between the tables
         assert part in ROS_MD.read_text(), f"docs/ros.md: the {table} table beginning {part[:60]!r} is out of date"
+
+
+def test_every_record_version_the_documents_name_is_the_schemas() -> None:
+    """Wherever README.md or docs/ name a record's version (a table's `htlm/<name>` vN, an echoed record's
+    "schema":"htlm/<name>","v":N), it is the version of the schema in htlm_msgs_py.schema."""
+    import re
+
+    from htlm_msgs_py.schema import SCHEMAS
+
+    root = ROS_MD.parents[1]
+    wrong = []
+    for doc in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        text = doc.read_text()
+        for pattern in (r"`(htlm/[a-z_]+)` v(\d+)", r'"schema":"(htlm/[a-z_]+)","v":(\d+)'):
+            for m in re.finditer(pattern, text):
+                schema = SCHEMAS.get(m.group(1))
+                if schema is not None and int(m.group(2)) != schema.version:
+                    line = text.count("\n", 0, m.start()) + 1
+                    wrong.append(f"{doc.name}:{line}: {m.group(0)} (the schema is v{schema.version})")
+    assert not wrong, "\n".join(wrong)

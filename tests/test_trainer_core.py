@@ -199,10 +199,11 @@ def test_trainer_rounds_equal_the_in_process_learner(tmp_path: Path, wire: bool,
     batch, steps = 4, 2 * H + 5
     core = _core(tmp_path, batch=batch, learner=settings)
     recs = _steps(0, steps, batch, seed=2)
-    sent = sorted(recs, key=lambda r: (r["agent"], r["seq"]))
+    # each agent's records of a batch before the next agent's (a trainer takes at most two horizons ahead)
+    sent = sorted(recs, key=lambda r: (r["seq"] // H, r["agent"], r["seq"]))
     if wire:
         lim = S.limits(SC.n_agents, SC.n_tasks, SC.n_actions, SC.levels, SC.horizon, batch)
-        sent = [S.decode(S.encode(S.TRANSITION, r), S.TRANSITION, lim) for r in sent]
+        sent = [S.decode(S.encode(S.TRANSITION, {"run": "r1", **r}), S.TRANSITION, lim) for r in sent]
         assert sent[0]["k"].dtype == np.float32 and not np.array_equal(sent[0]["k"], np.asarray(recs[0]["k"]))
     _feed(core, sent)
     assert core.trained == steps
@@ -437,3 +438,56 @@ def test_learner_data_from_a_file_and_json(tmp_path: Path) -> None:
     bad = TrainerCore(tmp_path / "run2", SCHED, {"hidden": [16], "memory": 0}, str(f))
     eff = bad.on_scenario(_scenario(), 0.0)
     assert eff.fatal is not None and str(f) in eff.fatal and "memory" in eff.fatal
+
+
+def test_no_transition_record_can_break_a_round(tmp_path: Path) -> None:
+    """A well-formed record whose rows do not fit the batch it names, or that begins no batch, or lies far ahead of
+    the rounds done, or another session's record of a step the agent sent, is rejected or dropped and counted; the
+    rounds go on with the genuine records, as if it had never come."""
+    core = _core(tmp_path, episodes=8)
+    ref = _core(tmp_path / "ref", episodes=8)
+    one_row = {**_step(3)[1], "session": "ffffffffffffffff", "seq": 0}
+    one_row = {**one_row, **{k: one_row[k][:1] for k in ("k", "a", "r", "k2", "mask2")}}
+    reasons = []
+    for bad in (
+        one_row,  # one row for a later step of the current batch of 2: np.stack would meet rows of 2 and 1
+        {**_step(1)[0], "session": "eeeeeeeeeeeeeeee", "episode": 1},  # begins no batch
+        {**_step(H + 2)[0], "session": "dddddddddddddddd", "r": [1e6, 1e6], "episode": 6},  # 3 horizons ahead
+    ):
+        eff = _feed(core, [bad])
+        reasons += [r[:2] for r in eff.rejects] + eff.drops
+    assert reasons == [("transitions", "length"), ("transitions", "episode"), ("transitions", "future")]
+    first = _step(0)
+    _feed(core, first[:2])
+    eff = _feed(core, [{**first[1], "session": "cccccccccccccccc", "r": [1e6, 1e6]}])  # the step again, another session
+    assert eff.drops == [("transitions", "duplicate_step")]
+    for c in (core, ref):
+        _feed(c, [r for r in _steps(0, H + 4) if c is ref or r not in first[:2]])
+    assert core.trained == ref.trained == H + 4
+    assert _weights(core) == _weights(ref)
+    assert core.store is not None and ref.store is not None and core.store.count == ref.store.count
+
+
+def test_step_records_of_another_batch_size_or_far_ahead_are_rejected(tmp_path: Path) -> None:
+    core = _core(tmp_path, episodes=8)
+    eff = core.on_step({"episode": 2, "size": 1, "step": 1, "phase": "step", "acted": [0]}, 1.0)
+    assert [r[:2] for r in eff.rejects] == [("step", "length")]
+    eff = core.on_step({"episode": 6, "size": 2, "step": 1, "phase": "step", "acted": [0]}, 1.0)
+    assert [r[:2] for r in eff.rejects] == [("step", "future")]  # step 90: three horizons ahead of step 0
+    assert core.rounds == {}
+
+
+def test_future_episode_metrics_are_rejected_and_the_genuine_logged(tmp_path: Path) -> None:
+    """Metrics of an episode two batches beyond what the run has reached are rejected (`future`), so they cannot
+    make the genuine episodes look past."""
+    core = _core(tmp_path, mode="evaluate", episodes=0)
+    m = {"run": "r1", "completion": 30, "failed": True, "absent": [0] * N}
+    eff = core.on_metrics({**m, "episode": 1003})
+    assert [r[:2] for r in eff.rejects] == [("episode_metrics", "future")]
+    core.on_step({"episode": 2, "size": 2, "step": 0, "phase": "begin", "acted": []}, 1.0)
+    for e in (0, 1, 2, 3):
+        assert core.on_metrics({**m, "episode": e}).drops == [], e
+    assert core.logged_upto == 3
+    assert [r[:2] for r in core.on_metrics({**m, "episode": 8}).rejects] == [("episode_metrics", "future")]
+    eff = core.on_step({"episode": 1000, "size": 2, "step": 0, "phase": "begin", "acted": []}, 1.0)
+    assert [r[:2] for r in eff.rejects] == [("step", "future")]

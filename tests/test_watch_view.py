@@ -233,11 +233,11 @@ def test_episodes_of_unknown_severity_are_left_out_of_the_completion_statistics(
 
 
 @pytest.mark.skipif("run" not in S.EPISODE_METRICS.fields, reason="episode metrics without a run id")
-def test_metrics_of_another_run_are_dropped() -> None:
+def test_metrics_of_another_run_are_rejected() -> None:
     st = fed_state()
     st.on_metrics(encode(S.EPISODE_METRICS, {**S.decode(metrics(5, 3), S.EPISODE_METRICS, st.lim), "run": "old-run"}))
     out = text(st)
-    assert "2 episodes finished" in out and "dropped episode_metrics/other_run 1" in out
+    assert "2 episodes finished" in out and "rejected (episode_metrics/other_run 1)" in out
 
 
 def test_the_view_names_the_events_of_the_shown_episode() -> None:

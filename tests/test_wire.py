@@ -88,8 +88,12 @@ def test_action_rejections_name_the_field_and_value(changes: dict[str, object], 
 def test_record_text_is_compact_json_in_field_order() -> None:
     # the exact bytes on the wire (and so the signatures): schema, version, then the fields in order, no spaces
     fields = {"agent": 1, "episode": 2, "step": 3, "actions": [4, 0], "before": []}
-    text = S.encode(S.ACTION, fields)
-    assert text == '{"schema":"htlm/action","v":3,"agent":1,"episode":2,"step":3,"actions":[4,0],"before":[]}'
+    signer = Signer(None)
+    signer.run = "r1"  # a record bound to its run carries the run its sender follows, first
+    text = S.encode(S.ACTION, fields, signer)
+    assert (
+        text == '{"schema":"htlm/action","v":4,"run":"r1","agent":1,"episode":2,"step":3,"actions":[4,0],"before":[]}'
+    )
     fields = {"marginals": [0.1, 1e-07, 1.0, 0.25] + [0.0] * 16, "distance": 250000.0}
     text = S.encode(S.BELIEF, {**VALID["htlm/belief"], **fields})
     assert " " not in text and '"marginals":[0.1,1e-7,1.0,0.25,' in text  # msgspec: shortest round-trip floats
@@ -97,7 +101,7 @@ def test_record_text_is_compact_json_in_field_order() -> None:
     k = np.array([[0.1, 1e-07, 1.0, -2.5e5] + [0.0] * 22] * 2)
     rec = {**unpacked(VALID["htlm/transition"]), "k": k, "r": np.array([-1.25, 2.0])}
     text = S.encode(S.TRANSITION, rec)
-    assert json.loads(text) == {"schema": "htlm/transition", "v": 3, **plain(rec), "k": packed("<f4", k)}
+    assert json.loads(text) == {"schema": "htlm/transition", "v": 4, **plain(rec), "k": packed("<f4", k)}
     assert list(json.loads(text)) == ["schema", "v", *S.TRANSITION.fields]
     # the header of every binary array before its bytes, so a cut `ros2 topic echo` still says what it holds
     assert '"step":3,"k":{"shape":[2,26],"dtype":"<f4","data":"' in text
@@ -164,7 +168,11 @@ def test_levels_and_lists_are_range_checked() -> None:
 @pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity", "1e400"])
 def test_nan_and_infinity_are_rejected(literal: str) -> None:
     body = json.dumps(
-        {"schema": "htlm/belief", "v": 3, **{k: v for k, v in VALID["htlm/belief"].items() if k != "distance"}}
+        {
+            "schema": "htlm/belief",
+            "v": S.BELIEF.version,
+            **{k: v for k, v in VALID["htlm/belief"].items() if k != "distance"},
+        }
     )
     text = body[:-1] + f',"distance":{literal}}}'
     assert _reason(text, S.BELIEF)[0] in ("json", "range")
@@ -179,12 +187,12 @@ def test_nan_and_infinity_are_rejected(literal: str) -> None:
 
 def test_wrong_schema_version_and_shape() -> None:
     assert _reason(_with(S.ACTION).replace("htlm/action", "htlm/broadcast"), S.ACTION)[0] == "schema"
-    assert _reason(_with(S.ACTION).replace('"v":3', '"v":2'), S.ACTION)[0] == "version"  # v2: no before
+    assert _reason(_with(S.ACTION).replace('"v":4', '"v":3'), S.ACTION)[0] == "version"  # v3: no run
     assert _reason("[1, 2]", S.ACTION)[0] == "not_object"
     assert _reason("{not json", S.ACTION)[0] == "json"
     assert _reason("[" * 100_000, S.ACTION)[0] in ("json", "size")
     assert _reason("x" * (S.ACTION.max_bytes + 1), S.ACTION)[0] == "size"
-    missing = json.dumps({"schema": "htlm/action", "v": 3, "agent": 1})
+    missing = json.dumps({"schema": "htlm/action", "v": 4, "agent": 1})
     assert _reason(missing, S.ACTION)[0] == "missing_field"
 
 

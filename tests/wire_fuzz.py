@@ -125,6 +125,8 @@ VALID: dict[str, dict[str, Any]] = {
 }
 """A valid record of every schema for the paper scenario's limits (5 agents, 4 tasks, 6 actions, 5 levels, h 30);
 the per-step records are of a batch of B = 2 episodes (2 and 3)."""
+VALID = {name: {"run": "r1", **rec} if S.SCHEMAS[name].bound else rec for name, rec in VALID.items()}
+"""(Every record but the run announcement carries its run.)"""
 
 PAPER_LIMITS = S.limits(5, 4, 6, 5, 30)
 """The paper scenario's limits, with the default bound on the batch (4096 episodes per record)."""

@@ -32,7 +32,7 @@ def main() -> None:
         scenario=builtin(),
         episodes=8,
         batch=4,
-        run_dir=run / "capture-run",  # the run id
+        run_dir=run / "capture-run",  # the run id: this name and a random part
         domain_id=domain,
         echo=False,
         learner={"envs": 4},

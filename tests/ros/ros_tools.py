@@ -21,6 +21,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import faulthandler
 import json
@@ -40,7 +41,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
-from htlm_msgs_py.ros import EVENTS, STATE, String, string
+from htlm_msgs_py.ros import EVENTS, STATE, STATE_READER, String, string
 from htlm_msgs_py.signing import Signer
 
 AGENTS = [f"agent{i}" for i in range(1, 6)]
@@ -114,6 +115,24 @@ def diag(args: argparse.Namespace) -> None:
     out.write_text(json.dumps(latest))
 
 
+def team_run(node: Node, seconds: float = 30.0) -> str:
+    """The run id of the team's announcement on /htlm/scenario (what any participant of the domain can read)."""
+    got: list[str] = []
+
+    def on_scenario(msg: String) -> None:
+        with contextlib.suppress(ValueError, KeyError, TypeError):
+            got.append(json.loads(msg.data)["run"])
+
+    sub = node.create_subscription(String, topics.SCENARIO, on_scenario, STATE_READER)
+    end = time.monotonic() + seconds
+    while not got and time.monotonic() < end:
+        _spin_for(node, 0.05)
+    node.destroy_subscription(sub)
+    if not got:
+        raise SystemExit("no run announcement on /htlm/scenario")
+    return got[-1]
+
+
 def fuzz(args: argparse.Namespace) -> None:
     from wire_fuzz import malformed
 
@@ -142,11 +161,15 @@ def fuzz(args: argparse.Namespace) -> None:
     while time.monotonic() < end and any(p.get_subscription_count() < want[t] for t, p in pubs.items()):
         _spin_for(node, 0.1)
     unmatched = [t for t, p in pubs.items() if p.get_subscription_count() < want[t]]
+    run = team_run(node)
     rng = random.Random(args.seed)
     texts = {
         t: list(malformed(schema, rng, args.count, (args.first, args.first + args.episodes), lim))
         for t, (schema, _) in targets.items()
     }
+    for t, (schema, _) in targets.items():  # records bound to a run name the team's: judged by their episode
+        if schema.bound:
+            texts[t] = [x.replace('"run": "r1"', f'"run": "{run}"') for x in texts[t]]
     # flow control: after each batch, wait until every subscriber has read what was sent (its /diagnostics
     # counter arrived/<tag> grew by as much), so that no reader queue overflows however loaded the machine is;
     # a reader that makes no progress for 1 s is not waited for any longer (the end waits for repairs)
@@ -227,6 +250,7 @@ def rogue(args: argparse.Namespace) -> None:
     for a in AGENTS:
         node.create_subscription(String, topics.observation(a), on_record, EVENTS)
     kinds = set(args.kinds.split(","))
+    run = args.run or team_run(node)  # the team's own run unless told another
     rng = random.Random(args.seed)
     count = 0
     stop = []
@@ -285,7 +309,7 @@ def rogue(args: argparse.Namespace) -> None:
             for topic, schema, fields in recs:
                 if "all" not in kinds and schema.name.removeprefix("htlm/") not in kinds:
                     continue
-                pubs[topic].publish(string(S.encode(schema, fields, signer)))
+                pubs[topic].publish(string(S.encode(schema, {"run": run, **fields}, signer)))
                 count += 1
         _spin_for(node, args.pause)
     Path(args.out).write_text(json.dumps({"sent": count, "episodes": seen, "sizes": sizes}))
@@ -540,6 +564,7 @@ def main() -> None:
     r.add_argument("--kinds", default="all", help="all, or a comma-separated list of broadcast, action, observation")
     r.add_argument("--wrong-lengths", action="store_true", help="arrays one too short (actions) or long (levels)")
     r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--run", default="", help="the run the records name; empty: the team's, from its announcement")
     sp = sub.add_parser("setparam")
     sp.add_argument("--out", required=True)
     sp.add_argument("--node", default="/htlm_world")

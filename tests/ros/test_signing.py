@@ -19,7 +19,15 @@ pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 SEED, EPISODES, FIRST, BATCH = 8, 16, 0, 4
 
 
-def _run(ros_team: Any, key: bool, episodes: int = EPISODES, kinds: str = "all") -> tuple[Any, dict[str, Any]]:
+KEY = "a-team-key-only-the-team-knows-0123"
+
+
+def _run(
+    ros_team: Any, key: bool, episodes: int = EPISODES, kinds: str = "all", other_run: bool = False
+) -> tuple[Any, dict[str, Any]]:
+    """The team (with or without the key) beside two strangers forging records of the batch in progress: one
+    unsigned, one signed with a wrong key; with `other_run`, both sign with the team's key but name another run (as
+    the records of an earlier run under the same key, replayed, do)."""
     team = ros_team(
         policy="greedy",
         seed=SEED,
@@ -31,7 +39,7 @@ def _run(ros_team: Any, key: bool, episodes: int = EPISODES, kinds: str = "all")
     )
     if key:
         kf = team.tmp / "team.key"
-        kf.write_text("a-team-key-only-the-team-knows-0123\n")
+        kf.write_text(KEY + "\n")
         kf.chmod(0o600)
         team.cfg.key_file = str(kf)
     diag = team.tmp / f"diag-{key}.json"
@@ -39,8 +47,12 @@ def _run(ros_team: Any, key: bool, episodes: int = EPISODES, kinds: str = "all")
     out = team.tmp / f"rogue-{key}.json"
     # each stranger forges every step of the episode in progress five times a second (injection, not flooding)
     common = ("--seconds", "60", "--kinds", kinds, "--pause", "0.2")
+    if other_run:
+        common += ("--key", KEY, "--run", "an-earlier-run-0123456789ab")
     rogue = team.helper("rogue", "--out", str(out), *common)
-    rogue2 = team.helper("rogue", "--out", str(out) + "2", "--key", "a-guessed-wrong-key-0000", *common)
+    rogue2 = team.helper(
+        "rogue", "--out", str(out) + "2", *(common if other_run else (*common, "--key", "a-guessed-wrong-key-0000"))
+    )
     time.sleep(1.5)  # the strangers are up before the team starts
     team.start()
     assert team.wait("world", 90) == 0
@@ -73,3 +85,17 @@ def test_without_a_key_the_same_forgeries_do_change_the_run(ros_team: Any) -> No
     team, _info = _run(ros_team, key=False, kinds="broadcast")
     with pytest.raises(AssertionError):
         assert_same_as_in_process(team, SEED, "greedy")
+
+
+def test_signed_records_of_another_run_are_rejected_at_every_subscriber(ros_team: Any) -> None:
+    """Broadcasts, observations and assignments signed with the team's key but of another run (an earlier run's
+    records replayed at the matching episode and step) are rejected as other_run by the world and every agent; the
+    run is the in-process one."""
+    team, info = _run(ros_team, key=True, other_run=True)
+    assert assert_same_as_in_process(team, SEED, "greedy") == EPISODES
+    other = {
+        name: sum(int(v) for k, v in st.items() if k.startswith("rejected/") and k.endswith("/other_run"))
+        for name, st in info["diag"].items()
+    }
+    assert other["htlm: world"] > 0 and all(other[f"htlm: agent{i}"] > 0 for i in range(1, 6)), other
+    print(f"rogues sent {info['sent']} records of another run; rejected as other_run: {other}")

@@ -91,7 +91,7 @@ def test_watch_shows_what_the_world_logged_with_signed_records(ros_team: Any, tm
     assert code == 0, err
     assert "Traceback" not in err
     last = out.read_text().split(SEPARATOR)[-1]  # the snapshot printed at exit
-    run_id = team.run_dir.name
+    run_id = (team.run_dir / "run_id").read_text().strip()  # the launch keeps the unique run id there
     assert f"run {run_id}  scenario paper/heterogeneous  mode evaluate  seed 4  episodes 0..5  batch 2" in last, last
     assert "[stopped]" in last, last
     # the last batch: episodes 4..5, showing index 0

@@ -1,19 +1,54 @@
-"""Which run a node follows, from the world's announcements on /htlm/scenario (docs/ros.md, Run control).
-
-Every announcement carries the run id, the nonce of the world process that sent it (new at every start of the
-world) and a sequence number that only grows over the whole run, also across restarts of the world (it is kept in
-the run directory). A node joins the first run it hears (or only the run it was told to join) and from then on
-follows that run alone: an announcement of another run is rejected while its own run goes on (a stop or a switch
-from anybody else cannot touch it), and an announcement of its run that is not newer than the last one it took is a
-replay and is rejected too. Only once its run has stopped may a node that stays up join the next one. With a team
-key the announcements are signed, so nobody without the key can make a newer one; without a key any participant
-of the ROS domain can (README, threat model).
+"""Which run a node follows, from the world's announcements on /htlm/scenario (docs/ros.md, Run control). Every
+announcement carries the run id, the nonce of the world process that sent it (new at every start of the world) and a
+sequence number that only grows over the whole run, also across restarts of the world (it is kept in the run
+directory). A node joins the first run it hears (or only the run it was told to join) and from then on follows that
+run alone: an announcement of another run is rejected while its own run goes on (a stop or a switch from anybody
+else cannot touch it), and an announcement of its run that is not newer than the last one it took is a replay and is
+rejected too, and so is one more than `SEQ_AHEAD` ahead of it. Only once its run has stopped may a node that stays
+up join the next one. With a team key the announcements are signed, so nobody without the key can make a newer one;
+without a key any participant of the ROS domain can (README, threat model).
 """
 
 from __future__ import annotations
 
+import re
+import secrets
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
+
+from .files import write_atomic
+
+SEQ_AHEAD = 1000
+"""How far ahead of the last announcement a node took the next may be: a world announces a few times per run (its
+start, its epoch, a changed episode count, a restart, its stop), so a sequence number further ahead is not its
+(`future`), and a forged one cannot make every later announcement of the run look like a replay."""
+
+REFUSED = ("other_run", "replay", "future")
+"""The verdicts of `RunControl.take` that reject an announcement."""
+
+
+def unique_run_id(name: str) -> str:
+    """A run id unique to one run: `name` (e.g. the run directory's, cut to the id's letters) and 12 random hex
+    digits, so a signed record of an earlier run under the same name is never taken as this run's."""
+    base = re.sub(r"[^A-Za-z0-9_.:-]", "_", name)[:51] or "run"
+    return f"{base}-{secrets.token_hex(6)}"
+
+
+def run_id_of(run_dir: Path) -> str:
+    """The run id of the run in `run_dir`: the one kept in `run_dir/run_id`, or a new unique one (written there),
+    so a launch into the same directory continues its run and a launch into a new one starts another, whatever
+    its name."""
+    f = run_dir / "run_id"
+    try:
+        kept = f.read_text().strip()
+    except FileNotFoundError:
+        kept = ""
+    if re.fullmatch(r"[A-Za-z0-9_.:-]{1,64}", kept):
+        return kept
+    run = unique_run_id(run_dir.name)
+    write_atomic(f, run + "\n", durable=True)
+    return run
 
 
 @dataclass
@@ -34,7 +69,8 @@ class RunControl:
         - "update": a newer announcement of the node's run (the same world);
         - "restart": a newer announcement of the node's run from a restarted world (another nonce);
         - "stop": the node's run stopped;
-        - "other_run" or "replay": rejected (another run while ours goes on; not newer than the last taken).
+        - "other_run", "replay" or "future": rejected (another run while ours goes on; not newer than the last
+          taken; more than SEQ_AHEAD ahead of it).
         """
         run, nonce, seq = rec["run"], rec["nonce"], rec["seq"]
         if self.run is None or (run != self.run and self.stopped and not self.wanted):
@@ -46,6 +82,8 @@ class RunControl:
             return "other_run"
         if seq <= self.seq:
             return "replay"
+        if seq > self.seq + SEQ_AHEAD:
+            return "future"
         restarted = nonce != self.nonce
         self.nonce, self.seq = nonce, seq
         if rec["state"] == "stopped":

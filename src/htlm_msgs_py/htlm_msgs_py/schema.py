@@ -376,6 +376,13 @@ class Schema:
         return msgspec.defstruct(title, spec, forbid_unknown_fields=True, module=__name__)
 
     @functools.cached_property
+    def bound(self) -> bool:
+        """Whether a record of this schema is bound to its run: it carries the run id (`run`, filled in by `encode`
+        from the signer's run), and a receiver that follows a run rejects a record of another (`other_run`). The
+        run announcement itself is judged by `htlm_msgs_py.run_control.RunControl` instead."""
+        return "run" in self.fields and self.name != "htlm/scenario"
+
+    @functools.cached_property
     def unique(self) -> tuple[str, ...]:
         """The fields whose entries must be distinct (msgspec has no such constraint)."""
         return tuple(k for k, f in self.fields.items() if isinstance(f, IntList) and f.unique)
@@ -416,6 +423,8 @@ class _Compiled(NamedTuple):
 
 # ----- the records ------------------------------------------------------------------------------------------------
 
+_RUN = Text(64, r"[A-Za-z0-9_.:-]+")
+"""A run id: unique per run (`htlm launch` makes one from the run directory's name and a random part)."""
 _AGENT = Int(0, "agent")
 _EPISODE = Int(0, EPISODE_MAX)
 _HEX16 = Text(32, r"[0-9a-f]{16}")
@@ -427,7 +436,7 @@ SCENARIO = Schema(
     "htlm/scenario",
     5,
     {
-        "run": Text(64, r"[A-Za-z0-9_.:-]+"),
+        "run": _RUN,
         "nonce": _HEX16,
         "seq": Int(0, SEQ_MAX),
         "seed": Int(0, 2**63 - 1),
@@ -456,8 +465,9 @@ SCENARIO = Schema(
 )
 STEP = Schema(
     "htlm/step",
-    2,
+    3,
     {
+        "run": _RUN,
         "episode": _EPISODE,
         "size": _BATCH_SIZE,
         "step": Int(0, "step"),
@@ -470,8 +480,9 @@ STEP = Schema(
 )
 ACTION = Schema(
     "htlm/action",
-    3,
+    4,
     {
+        "run": _RUN,
         "agent": _AGENT,
         "episode": _EPISODE,
         "step": Int(1, "step"),
@@ -485,8 +496,9 @@ ACTION = Schema(
 )
 OBSERVATION = Schema(
     "htlm/observation",
-    2,
+    3,
     {
+        "run": _RUN,
         "agent": _AGENT,
         "episode": _EPISODE,
         "step": Int(1, "step"),
@@ -499,8 +511,9 @@ OBSERVATION = Schema(
 )
 BROADCAST = Schema(
     "htlm/broadcast",
-    3,
+    4,
     {
+        "run": _RUN,
         "agent": _AGENT,
         "episode": _EPISODE,
         "step": Int(1, "step"),
@@ -514,14 +527,15 @@ BROADCAST = Schema(
 )
 READY = Schema(
     "htlm/ready",
-    1,
-    {"agent": _AGENT, "episode": _EPISODE, "step": Int(0, "step")},
+    2,
+    {"run": _RUN, "agent": _AGENT, "episode": _EPISODE, "step": Int(0, "step")},
     doc="The agent finished its update of the last step t = h of the episode.",
 )
 TRANSITION = Schema(
     "htlm/transition",
-    3,
+    4,
     {
+        "run": _RUN,
         "agent": _AGENT,
         "session": _HEX16,
         "seq": Int(0, SEQ_MAX),
@@ -542,14 +556,15 @@ TRANSITION = Schema(
 )
 TRANSITION_ACK = Schema(
     "htlm/transition_ack",
-    1,
-    {"agent": _AGENT, "session": _HEX16, "upto": Int(-1, SEQ_MAX)},
+    2,
+    {"run": _RUN, "agent": _AGENT, "session": _HEX16, "upto": Int(-1, SEQ_MAX)},
     doc="Every transition of this agent session with seq <= upto is on disk (fsynced) in the trainer's store.",
 )
 WEIGHTS = Schema(
     "htlm/weights",
-    2,
+    3,
     {
+        "run": _RUN,
         "agent": _AGENT,
         "version": Int(0, SEQ_MAX),
         "episode": Int(-1, EPISODE_MAX),
@@ -569,14 +584,15 @@ WEIGHTS = Schema(
 TRAINER_PROGRESS = Schema(
     "htlm/trainer_progress",
     1,
-    {"run": Text(64, r"[A-Za-z0-9_.:-]+"), "trained": Int(0, SEQ_MAX), "updates": Int(0, SEQ_MAX)},
+    {"run": _RUN, "trained": Int(0, SEQ_MAX), "updates": Int(0, SEQ_MAX)},
     doc="The trainer has done the gradient updates of every step whose global index (batch index x h + t - 1) is "
     "below `trained`; the world paces its steps by it.",
 )
 BELIEF = Schema(
     "htlm/belief",
-    3,
+    4,
     {
+        "run": _RUN,
         "agent": _AGENT,
         "episode": _EPISODE,
         "step": Int(0, "step"),
@@ -591,8 +607,9 @@ BELIEF = Schema(
 )
 GROUND_TRUTH = Schema(
     "htlm/ground_truth",
-    3,
+    4,
     {
+        "run": _RUN,
         "episode": _EPISODE,
         "step": Int(0, "step"),
         "levels": Rows(IntList(0, "level", length="tasks")),
@@ -608,7 +625,7 @@ EPISODE_METRICS = Schema(
     "htlm/episode_metrics",
     2,
     {
-        "run": Text(64, r"[A-Za-z0-9_.:-]+"),
+        "run": _RUN,
         "episode": _EPISODE,
         "severity": OneOf(("simulated", "reported", "unknown")),
         "completion": Int(-1, "step"),
@@ -627,10 +644,26 @@ EPISODE_METRICS = Schema(
 )
 SEVERITY = Schema(
     "htlm/severity",
-    1,
-    {"episode": _EPISODE, "step": Int(0, "step"), "levels": Rows(IntList(0, "level", length="tasks"))},
+    2,
+    {"run": _RUN, "episode": _EPISODE, "step": Int(0, "step"), "levels": Rows(IntList(0, "level", length="tasks"))},
     doc="External operation: the true levels of every task after step t (an outside source, e.g. the simulated "
     "operation of the robot stand-ins, or a human operator's report); the world logs them and computes the metrics.",
+)
+
+GOAL = Schema(
+    "htlm/goal",
+    1,
+    {
+        "run": _RUN,
+        "agent": _AGENT,
+        "x": Float(-1e7, 1e7),
+        "y": Float(-1e7, 1e7),
+        "frame": Text(64, r"[A-Za-z0-9_/]+"),
+        "sent": Float(0.0, 1e11),
+    },
+    doc="The goal the agent's robot drives to (the site of its assignment, metres in `frame`): the signed twin of the "
+    "agent's geometry_msgs/PoseStamped goal pose, sent beside it whenever the site changes; `sent`, the agent's wall "
+    "clock when it sent it (Unix seconds): a robot takes a goal only if it is newer than the last one it took.",
 )
 
 SCHEMAS: dict[str, Schema] = {
@@ -650,6 +683,7 @@ SCHEMAS: dict[str, Schema] = {
         GROUND_TRUTH,
         EPISODE_METRICS,
         SEVERITY,
+        GOAL,
     )
 }
 
@@ -666,13 +700,19 @@ def encode(schema: Schema, fields: Mapping[str, Any], signer: Signer | None = No
     The sender is trusted: values are not validated here (tests check round trips), only JSON-encoded, by msgspec
     (compact, shortest round-trip floats, about 10x faster than the standard library's encoder on the arrays of a
     batch). A NaN or an infinity is written as null, which every receiver rejects; a value JSON cannot hold raises
-    ValueError. The value of an `Array` field is any array-like, cast to the field's dtype (`Array.pack`: a float64
+    ValueError. A record bound to its run (`Schema.bound`) gets the signer's run unless `fields` give one. The
+    value of an `Array` field is any array-like, cast to the field's dtype (`Array.pack`: a float64
     array to "<f4" rounds to nearest) and written in binary, NaN and infinities included (receivers reject them).
     """
     body_fields: Mapping[str, Any] = fields
+    if schema.bound and "run" not in fields:
+        run = signer.run if signer is not None else None
+        if run is None:
+            raise ValueError(f"{schema.name}: cannot encode: no run (the record is bound to its run)")
+        body_fields = {"run": run, **fields}
     try:
         if schema.arrays:
-            body_fields = {**fields, **{k: f.pack(fields[k]) for k, f in schema.arrays}}
+            body_fields = {**body_fields, **{k: f.pack(fields[k]) for k, f in schema.arrays}}
         body = _ENCODER.encode({"schema": schema.name, "v": schema.version, **body_fields}).decode()
     except (TypeError, ValueError, msgspec.EncodeError) as e:
         raise ValueError(f"{schema.name}: cannot encode: {e}") from None
@@ -758,8 +798,9 @@ def decode(
     Raises:
         WireError: naming the field and the bad value; `.reason` is one of size, signature, json, not_object,
             schema, version, missing_field, unknown_field, type, range, length, encoding (a binary array's data
-            that is not base64). For a binary array, type is a wrong dtype, length a shape beyond the limits or
-            bytes that do not fill the shape, range a value out of range (NaN, infinity).
+            that is not base64), other_run (a record bound to another run than the signer's, `Schema.bound`).
+            For a binary array, type is a wrong dtype, length a shape beyond the limits or bytes that do not fill
+            the shape, range a value out of range (NaN, infinity).
     """
     if type(text) is not str:
         raise WireError("type", None, type(text).__name__)
@@ -776,4 +817,6 @@ def decode(
         raise _wire_error(str(e), text) from None
     except (msgspec.DecodeError, UnicodeError, RecursionError) as e:
         raise WireError("json", None, str(e)) from None
+    if schema.bound and signer is not None and signer.run is not None and rec.run != signer.run:
+        raise WireError("other_run", "run", rec.run, detail=f"this node follows run {signer.run}")
     return _fields(schema, rec, compiled.arrays)

@@ -8,9 +8,11 @@ inject nor alter observations, assignments, transitions or weights. The key come
 - `HTLM_TEAM_KEY`: the key itself (at least 16 characters), or
 - `HTLM_TEAM_KEY_FILE`: a file holding it (trailing whitespace stripped; at least 16 bytes).
 
-The signature covers the exact bytes sent, so no canonical re-serialisation is needed on receipt. It does not
-stop the replay of a recorded message within its step; the lockstep protocol drops every record of a past step
-or a past episode and every duplicate.
+The signature covers the exact bytes sent, so no canonical re-serialisation is needed on receipt. Every record
+but the run announcement also carries the run id (`run`, unique per run) under the signature: the signer knows the
+run its node follows (`run`, set once the node joined it), `schema.encode` writes it and `schema.decode` rejects a
+record of another run (`other_run`), so a record captured in one run is refused in every other. Within its run, the
+protocol drops every record of a past step or a past episode and every duplicate.
 """
 
 from __future__ import annotations
@@ -41,6 +43,9 @@ class Signer:
         if key is not None and len(key) < MIN_KEY_BYTES:
             raise SigningError(f"team key too short: {len(key)} bytes, need at least {MIN_KEY_BYTES}")
         self._key = key
+        self.run: str | None = None
+        """The run the node follows: records it sends carry it, records of another run are rejected (None: not
+        joined yet, every run is taken)."""
 
     @property
     def enabled(self) -> bool:

@@ -49,6 +49,12 @@ def goal_pose(agent: str) -> str:
     return f"{NAMESPACE}/{agent}/goal_pose"
 
 
+def goal(agent: str) -> str:
+    """Agent -> its robot: the goal pose as a record (`htlm/goal`), signed with the team key; the twin a robot
+    stack verifies before it follows the goal."""
+    return f"{NAMESPACE}/{agent}/goal"
+
+
 def odometry(agent: str) -> str:
     """Simulated robot -> that agent (arrival): nav_msgs/Odometry of the robot in the frame `map`."""
     return f"{NAMESPACE}/{agent}/odom"
@@ -101,6 +107,7 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(TRAINER_PROGRESS, "std_msgs/msg/String", "EVENTS", "htlm/trainer_progress", "trainer", "world"),
     TopicSpec(belief("<agent>"), "std_msgs/msg/String", "STATE", "htlm/belief", "<agent>", "monitoring"),
     TopicSpec(goal_pose("<agent>"), "geometry_msgs/msg/PoseStamped", "STATE", None, "<agent>", "navigation"),
+    TopicSpec(goal("<agent>"), "std_msgs/msg/String", "STATE", "htlm/goal", "<agent>", "robot"),
     TopicSpec(GROUND_TRUTH, "std_msgs/msg/String", "EVENTS", "htlm/ground_truth", "world", "monitoring"),
     TopicSpec(EPISODE_METRICS, "std_msgs/msg/String", "EVENTS", "htlm/episode_metrics", "world", "trainer"),
     TopicSpec(MARKERS, "visualization_msgs/msg/MarkerArray", "STATE", None, "world", "RViz2, Foxglove"),

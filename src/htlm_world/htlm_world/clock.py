@@ -16,6 +16,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+FUTURE_STEPS = 3
+"""How many steps ahead of a receiver's own clock a per-step record may name: an action for step t is sent before
+its instant (one step ahead), and the hosts' clocks may differ by a quarter period. A record further ahead is
+rejected and counted (`future`) before it takes a place in any per-step table, so no sender can fill a table with
+steps far ahead and push out the records of the steps in progress."""
+
 
 @dataclass(frozen=True)
 class StepClock:
@@ -50,6 +56,10 @@ class StepClock:
         if wall < self.epoch:
             return -1
         return math.floor((wall - self.epoch) / self.period + 1e-9)
+
+    def ahead(self, episode: int, t: int, wall: float) -> int:
+        """How many steps step t of `episode` lies ahead of the newest instant at or before `wall`."""
+        return self.index(episode, t) - self.last(wall)
 
     def in_run(self, i: int) -> bool:
         """Whether index i is a step of the run."""

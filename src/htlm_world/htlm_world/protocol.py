@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from htlm_world.clock import StepClock
+from htlm_world.clock import FUTURE_STEPS, StepClock
 from htlm_world.episode import ExternalEpisode, WorldEpisode, batch_index, global_step
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
@@ -321,6 +321,10 @@ class WorldProtocol:
             key = (rec["episode"], rec["step"])
             if key <= (self.episode, self.t - 1) or (self.phase != "act" and key <= (self.episode, self.t)):
                 out.drops.append(("action", "past"))
+                return out
+            clock = self.clock()
+            if clock is not None and clock.ahead(*key, now + self.wall_offset) > FUTURE_STEPS:
+                out.rejects.append(("action", "future", f"agent {rec['agent']}: episode {key[0]} step {key[1]}"))
                 return out
             self.heard.setdefault(key, {})[rec["agent"]] = np.asarray(rec["actions"], dtype=np.int64)
             while len(self.heard) > 64:

@@ -10,6 +10,7 @@ that: a robot that has not arrived adds no capability to its task and publishes 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -102,3 +103,10 @@ class Sensing:
             self.rng.random(1),
         )
         return int(z[0])
+
+
+def map_bounds(sites: Sequence[tuple[float, float]], margin: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """((x_lo, y_lo), (x_hi, y_hi)): the bounding box of the sites' positions widened by `margin` metres, the map a
+    robot takes goals in."""
+    xs, ys = [float(p[0]) for p in sites], [float(p[1]) for p in sites]
+    return (min(xs) - margin, min(ys) - margin), (max(xs) + margin, max(ys) + margin)

@@ -168,7 +168,7 @@ def wire_costs(batch: int, seconds: float, sc: Scenario | None = None) -> dict[s
     a = pol.act(team.context())
     k2, r, _ = team.step(a)
     arrays = {"k": k[:, 0], "a": a[:, 0], "r": r[:, 0], "k2": k2[:, 0], "mask2": team.mask()[:, 0]}
-    head = {"agent": 0, "session": "0123456789abcdef", "seq": 4, "episode": 0, "step": 5}
+    head = {"run": "bench", "agent": 0, "session": "0123456789abcdef", "seq": 4, "episode": 0, "step": 5}
     lim = S.limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, batch, sc.knowledge_size)
     old = json_transition()
 

@@ -170,7 +170,7 @@ class WatchState:
             stale_after: seconds without /diagnostics after which a node is shown silent.
         """
         self.episode_in_batch = episode_in_batch
-        self.signer = signer
+        self.signer = signer if signer is not None else Signer(None)
         self.stale_after = stale_after
         self.rejected: Counter[str] = Counter()
         """The watch's own rejections, by "<topic>/<reason>"."""
@@ -236,6 +236,7 @@ class WatchState:
             self.rejected[f"scenario/{e.reason}"] += 1
             return
         self.scenario, self.run = sc, rec
+        self.signer.run = rec["run"]  # records of other runs are rejected from now on
         self._reset()
 
     def on_step(self, text: Any) -> None:

@@ -78,6 +78,7 @@ class AgentNode(Node):
         self.pub_ready = self.create_publisher(String, topics.READY, EVENTS)
         self.pub_transition = self.create_publisher(String, topics.TRANSITIONS, EVENTS)
         self.pub_goal = self.create_publisher(PoseStamped, topics.goal_pose(self.name), STATE)
+        self.pub_goal_record = self.create_publisher(String, topics.goal(self.name), STATE)  # its signed twin
         self.pub_belief = self.create_publisher(String, topics.belief(self.name), STATE)
         self.publishers_by_kind = {
             "action": self.pub_action,
@@ -197,6 +198,8 @@ class AgentNode(Node):
             self.log_file.flush()
         for x, y in eff.goals:
             self.pub_goal.publish(pose(x, y, self.settings.frame_id, self.get_clock().now().to_msg()))
+            fields = {"agent": self.session.index, "x": x, "y": y, "frame": self.settings.frame_id, "sent": time.time()}
+            self.pub_goal_record.publish(string(S.encode(S.GOAL, fields, self.signer)))
 
     def _publish_health(self) -> None:
         h = self.health

@@ -29,6 +29,7 @@ from typing import Any
 from htlm_agent.learning.settings import Settings
 from htlm_msgs_py.files import write_atomic
 from htlm_msgs_py.qos import FASTDDS_LOOPBACK_PROFILE, FASTDDS_PROFILE
+from htlm_msgs_py.run_control import run_id_of
 from htlm_world.scenario import Scenario
 
 EXIT_CODES = {
@@ -285,7 +286,7 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         "first_episode": cfg.first_episode,
         "batch": cfg.batch,
         "run_dir": str(run),
-        "run_id": f"{run.name}"[:64].replace(" ", "_"),
+        "run_id": run_id_of(run),
         **({"operation": "external", "clock": "free", "period": cfg.period} if external(cfg) else {}),
         # the agents act with the networks the learner's trainer_lag says, and the world paces its steps by it
         **({"trainer_lag": learner.get("trainer_lag", Settings().trainer_lag)} if cfg.mode == "train" else {}),

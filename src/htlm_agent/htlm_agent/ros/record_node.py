@@ -31,7 +31,7 @@ from htlm_agent.experiments.recording import (
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import Health, SettingsError, declare_settings, qos_profile, run_node
-from htlm_msgs_py.run_control import RunControl
+from htlm_msgs_py.run_control import REFUSED, RunControl
 from htlm_msgs_py.signing import SigningError, signer_from_env
 
 SIGNAL_LIMIT = 5.0
@@ -93,7 +93,7 @@ class RecordNode(Node):
         if rec is None:
             return
         verdict = self.control.take(rec)
-        if verdict in ("other_run", "replay"):
+        if verdict in REFUSED:
             self.health.reject("scenario", verdict, self.control.refused(rec))
             return
         if verdict == "join":

@@ -125,6 +125,7 @@ class TrainerNode(Node):
             return
         if self.core.learner is None:  # no scenario yet, or a run that trains nothing: the steps pace nothing here
             self.health.drop("step", "not_training" if self.core.store is not None else "no_scenario")
+            self._apply(self.core.on_step(rec, time.monotonic()))  # how far the run is, for the episode metrics
             return
         self.world.heard()
         self._apply(self.core.on_step(rec, time.monotonic()))
@@ -136,6 +137,7 @@ class TrainerNode(Node):
 
     # ----- effects out ------------------------------------------------------------------------------------------
     def _apply(self, eff: TrainerEffects) -> None:
+        self.signer.run = self.core.run  # what we send carries it; records of other runs are rejected
         h = self.health
         h.take(eff.drops, eff.rejects, eff.counters)
         log = self.get_logger()

@@ -26,10 +26,10 @@ from htlm_agent.mind.external import ExternalObservations, Observed
 from htlm_agent.mind.policies import AgentPolicy
 from htlm_msgs_py import schema as S
 from htlm_msgs_py.payload import PayloadError, unseal
-from htlm_msgs_py.run_control import RunControl
+from htlm_msgs_py.run_control import REFUSED, RunControl
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import Signer
-from htlm_world.clock import StepClock
+from htlm_world.clock import FUTURE_STEPS, StepClock
 from htlm_world.episode import acting_weights, global_step
 from htlm_world.model import Model
 from htlm_world.robots import site_distance
@@ -241,7 +241,7 @@ class AgentSession:
             out.heard_world = True
             return out
         verdict = self.control.take(rec)
-        if verdict in ("other_run", "replay"):  # nobody but our run's world stops or switches us
+        if verdict in REFUSED:  # nobody but our run's world stops or switches us
             out.rejects.append(("scenario", verdict, self.control.refused(rec)))
             return out
         out.heard_world = True
@@ -283,6 +283,7 @@ class AgentSession:
             self._fail(f"agent {self.name!r} is not in the scenario's team {names}", out)
             return out
         self.run = rec["run"]
+        self.signer.run = self.run  # what we send carries it; records of other runs are rejected
         self.mode = rec["mode"]
         self.seed = rec["seed"]
         self.first_episode = rec["first_episode"]
@@ -533,6 +534,9 @@ class AgentSession:
             self.world_ahead = max(self.world_ahead, (e, t))
             if phase == "step":
                 if self.external is not None:  # the step was applied: pair it with the robot's observation
+                    if self._future(e, t, now):
+                        out.rejects.append(("step", "future", f"episode {e} step {t}"))
+                        return out
                     ready = self.external.on_step(e, t, rec["acted"], now, self._wait())
                     self._observe_external(ready, now, out)
                 return out
@@ -565,6 +569,9 @@ class AgentSession:
             if len(rec["levels"]) != self.mind.size:
                 out.rejects.append(("observation", "length", f"{len(rec['levels'])} levels for {self.mind.size}"))
                 return out
+            if self._future(rec["episode"], rec["step"], now):
+                out.rejects.append(("observation", "future", f"episode {rec['episode']} step {rec['step']}"))
+                return out
             self._observe_external(self.external.on_robot(rec["episode"], rec["step"], rec["levels"]), now, out)
             self._run_clock(now, out)
             return out
@@ -573,6 +580,23 @@ class AgentSession:
             self.last_accept = now
         self._carry("observation", eff, out)
         return out
+
+    def _future(self, e: int, t: int, now: float) -> bool:
+        """Whether step t of episode e lies more than FUTURE_STEPS ahead of our own step clock (external operation;
+        before it runs: of the run's first step), so its record must not take a place in the table of steps."""
+        c = self.own_clock
+        if c is not None:
+            return c.ahead(e, t, now + self.wall_offset) > FUTURE_STEPS
+        if self.scenario is None:
+            return False
+        return (e - self.first_episode) * self.scenario.horizon + t - 1 >= FUTURE_STEPS + self._joined_index()
+
+    def _joined_index(self) -> int:
+        """Without our clock yet, how far the run may be: the step the mind is in (0 before a begin)."""
+        m = self.mind
+        if m is None or m.episode is None or self.scenario is None:
+            return 0
+        return (m.episode - self.first_episode) * self.scenario.horizon + max(m.current, 0)
 
     def on_broadcast(self, rec: dict[str, Any], now: float) -> SessionEffects:
         """A teammate's broadcast (our own, looped back, is ignored)."""

@@ -27,7 +27,7 @@ from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
 from htlm_agent.mind.knowledge import previous
 from htlm_msgs_py.payload import seal
-from htlm_msgs_py.run_control import RunControl
+from htlm_msgs_py.run_control import REFUSED, RunControl
 from htlm_world.episode import global_step
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
@@ -182,6 +182,8 @@ class TrainerCore:
         self.published_trained = -1
         self.version = 0
         self._settings_dict: dict[str, Any] | None = None
+        self.world_episode = -1
+        """The first episode of the latest batch the world's step records announced (-1: none yet in this run)."""
 
     def _next_epoch(self) -> int:
         """A counter of trainer starts in this run directory, so weight versions grow across restarts."""
@@ -208,7 +210,7 @@ class TrainerCore:
         """A decoded /htlm/scenario record: start on the first run, follow later announcements of the same layout."""
         out = TrainerEffects()
         verdict = self.control.take(rec)
-        if verdict in ("other_run", "replay"):  # nobody but our run's world stops or switches us
+        if verdict in REFUSED:  # nobody but our run's world stops or switches us
             out.rejects.append(("scenario", verdict, self.control.refused(rec)))
             return out
         if verdict == "stop":
@@ -224,6 +226,7 @@ class TrainerCore:
             self.stopping = False
             return out
         self.logged_upto = -1  # a run joined: its episodes are logged from its first on
+        self.world_episode = -1
         try:
             sc = from_record(rec)
         except ScenarioRecordError as e:
@@ -370,9 +373,28 @@ class TrainerCore:
         return now - max(self.stop_at, self.last_transition_at)
 
     # ----- messages in --------------------------------------------------------------------------------------------
+    def batch_rows(self, episode: int) -> int:
+        """Episodes (rows) of the run's batch whose first episode is `episode`; 0 when no batch starts there."""
+        lo, n = self.run_range
+        if not self.in_run(episode) or (episode - lo) % self.batch:
+            return 0
+        return self.batch if n == 0 else min(self.batch, lo + n - episode)
+
+    def step_window(self) -> int:
+        """How many global steps ahead of the rounds done a transition or a step record may be: the agents act at
+        most the run's trainer_lag steps ahead of the trainer; two horizons leave room for a world that went on
+        without the trainer for a while (their records come again once it caught up)."""
+        assert self.scenario is not None
+        return 2 * self.scenario.horizon + self.run_lag + 1
+
     def on_transition(self, rec: dict[str, Any], now: float) -> TrainerEffects:
         """A decoded transition record (one agent, one step, B episodes): store it (acknowledged at the next flush)
-        and gather it for the round of its step."""
+        and gather it for the round of its step.
+
+        Every record is checked against the batch it names before anything is stored: its episode must begin a
+        batch of the run, its arrays hold one row per episode of that batch (and of the round gathered for its
+        step), and its step lie at most `step_window` steps ahead of the rounds done (`future`: the agent sends it
+        again until it is acknowledged). A record that cannot be used is rejected and counted; none raises."""
         out = TrainerEffects()
         if self.store is None:  # no scenario yet: the agents send it again until acknowledged
             out.counters["ignored/transitions/no_scenario"] += 1
@@ -385,14 +407,32 @@ class TrainerCore:
             out.drops.append(("transitions", "outside_run"))
             return out
         n = len(rec["a"])
-        if not (len(rec["k"]) == len(rec["r"]) == len(rec["k2"]) == len(rec["mask2"]) == n) or n > self.batch:
+        want = self.batch_rows(rec["episode"])
+        if want == 0:
+            out.rejects.append(
+                ("transitions", "episode", f"episode {rec['episode']} begins no batch of {self.batch} of the run")
+            )
+            return out
+        if not (len(rec["k"]) == len(rec["r"]) == len(rec["k2"]) == len(rec["mask2"]) == n == want):
             out.rejects.append(
                 (
                     "transitions",
                     "length",
                     f"arrays of {len(rec['k'])}, {n}, {len(rec['r'])}, {len(rec['k2'])}, "
-                    f"{len(rec['mask2'])} entries (batch {self.batch})",
+                    f"{len(rec['mask2'])} rows (the batch from episode {rec['episode']} has {want})",
                 )
+            )
+            return out
+        g = self.global_step(rec["episode"], rec["step"])
+        if self.learner is not None and g >= self.trained + self.step_window():
+            out.rejects.append(
+                ("transitions", "future", f"step {g} of the run, {g - self.trained} ahead of the rounds done")
+            )
+            return out
+        rnd = self.rounds.get(g)
+        if rnd is not None and (rnd.size != n or rnd.episode != rec["episode"]):
+            out.rejects.append(
+                ("transitions", "length", f"{n} rows from episode {rec['episode']} for a round of {rnd.size}")
             )
             return out
         rec = {
@@ -407,13 +447,15 @@ class TrainerCore:
             out.rejects.append(("transitions", "range", "mask2 allows no action"))
             return out
         agent, session = rec["agent"], rec["session"]
+        if rnd is not None and agent in rnd.records and rnd.records[agent]["session"] != session:
+            out.drops.append(("transitions", "duplicate_step"))  # another session's record of a step it sent
+            return out
         if not self.store.append(rec):
             out.drops.append(("transitions", "duplicate"))
             self.reack.add((agent, session))
             return out
         if self.learner is None:
             return out
-        g = self.global_step(rec["episode"], rec["step"])
         if g < self.trained:  # its round is over (a late or resent record): it joins the memories now
             out.counters["late_transitions"] += 1
             self._store_one(rec)
@@ -426,13 +468,36 @@ class TrainerCore:
         return out
 
     def on_step(self, rec: dict[str, Any], now: float) -> TrainerEffects:
-        """A decoded step record of the world: which agents acted in step t (their transitions make the round)."""
+        """A decoded step record of the world: which agents acted in step t (their transitions make the round), and
+        how far the world is (episode metrics of later batches are `future`)."""
         out = TrainerEffects()
-        if self.learner is None or rec["phase"] != "step" or not self.in_run(rec["episode"]):
+        if self.store is None or not self.in_run(rec["episode"]):
+            return out
+        want = self.batch_rows(rec["episode"])
+        if want != rec["size"]:
+            out.rejects.append(("step", "length", f"a batch of {rec['size']} from episode {rec['episode']}"))
+            return out
+        if self.learner is None:  # recording only: the world's steps say how far the run is
+            if self.world_episode >= 0 and rec["episode"] > self.world_episode + 2 * self.batch:
+                out.rejects.append(
+                    ("step", "future", f"episode {rec['episode']}, the world was at {self.world_episode}")
+                )
+                return out
+            self.world_episode = max(self.world_episode, rec["episode"])
+            return out
+        if rec["phase"] != "step":
             return out
         g = self.global_step(rec["episode"], rec["step"])
         if g < self.trained:
             return out
+        if g >= self.trained + self.step_window():
+            out.rejects.append(("step", "future", f"step {g} of the run, {g - self.trained} ahead of the rounds done"))
+            return out
+        rnd = self.rounds.get(g)
+        if rnd is not None and (rnd.size != rec["size"] or rnd.episode != rec["episode"]):
+            out.rejects.append(("step", "length", f"a batch of {rec['size']} for a round of {rnd.size}"))
+            return out
+        self.world_episode = max(self.world_episode, rec["episode"])
         rnd = self.rounds.setdefault(g, _Round(episode=rec["episode"], step=rec["step"], size=rec["size"]))
         rnd.acted = set(rec["acted"])
         if rnd.since is None:
@@ -571,11 +636,23 @@ class TrainerCore:
         if rec["episode"] <= self.logged_upto:  # a repeat (a replay, or a restarted world's): logged once
             out.drops.append(("episode_metrics", "past"))
             return out
+        frontier = self.frontier_episode()
+        if rec["episode"] >= frontier:  # no batch the run has reached: logging it would drop the genuine as past
+            out.rejects.append(("episode_metrics", "future", f"episode {rec['episode']}, at most {frontier - 1} yet"))
+            return out
         self.logged_upto = rec["episode"]
         if self.learner is None:
             self.episodes_seen += 1
         self._write_log({"updates": self.updates, **rec})
         return out
+
+    def frontier_episode(self) -> int:
+        """The first episode whose metrics cannot have come yet: two batches beyond the furthest the run is known to
+        have reached (the rounds done, the world's step records, the episodes logged, the run's first)."""
+        reached = max(self.run_range[0], self.logged_upto + 1, self.world_episode)
+        if self.learner is not None and self.scenario is not None:
+            reached = max(reached, self.trained // self.scenario.horizon * self.batch)
+        return reached + 2 * self.batch
 
     def _write_log(self, line: dict[str, Any]) -> None:
         if self.log_file is not None:

@@ -6,6 +6,8 @@ and run of the first valid one, and finishes when that run stops (`exit_on_stop`
 
 from __future__ import annotations
 
+import math
+import time
 from typing import Any
 
 from rclpy.node import Node
@@ -13,8 +15,9 @@ from rclpy.node import Node
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import STATE_READER, Health, SettingsError, declare_settings, say_unsigned, subscribe_records
-from htlm_msgs_py.run_control import RunControl
+from htlm_msgs_py.run_control import REFUSED, RunControl
 from htlm_msgs_py.signing import SigningError, signer_from_env
+from htlm_world.clock import FUTURE_STEPS, StepClock
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
@@ -41,6 +44,7 @@ class RunFollower(Node):
         self.stopped = False
         self.epoch = 0.0
         """The run's step clock epoch (external operation; 0 until announced)."""
+        self.period, self.first_episode, self.episodes = 0.5, 0, 0
         self.control = RunControl()
         subscribe_records(self, topics.SCENARIO, STATE_READER, self._on_scenario)
         self.create_timer(self.settings.diagnostics_period, self._publish_health)
@@ -51,7 +55,7 @@ class RunFollower(Node):
         if rec is None:
             return
         verdict = self.control.take(rec)
-        if verdict in ("other_run", "replay"):
+        if verdict in REFUSED:
             self.health.reject("scenario", verdict, self.control.refused(rec))
             return
         if verdict != "join":
@@ -65,12 +69,34 @@ class RunFollower(Node):
             self.health.reject("scenario", e.reason, str(e))
             return
         self.run, self.seed, self.scenario, self.model = rec["run"], rec["seed"], sc, Model.build(sc)
+        self.signer.run = self.run  # what we send carries it; records of other runs are rejected
         self.lim = S.limits(
             sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, rec["batch"], sc.knowledge_size
         )
         self.epoch = rec["epoch"]
+        self.period, self.first_episode, self.episodes = rec["period"], rec["first_episode"], rec["episodes"]
         self.on_run(rec)
         self.stopped = rec["state"] == "stopped"
+
+    def clock(self) -> StepClock | None:
+        """The run's step clock (its epoch may still be 0: then every step lies ahead of it)."""
+        if self.scenario is None:
+            return None
+        return StepClock(self.epoch, self.period, self.scenario.horizon, self.first_episode, self.episodes)
+
+    def future(self, topic: str, rec: dict[str, Any]) -> bool:
+        """Whether the per-step record `rec` names a step more than FUTURE_STEPS ahead of the run's clock (before
+        the epoch is fixed: of the run's first step); such a record is rejected and counted (`future`), so no
+        sender can fill a table of steps with far ones and push out the steps in progress."""
+        c = self.clock()
+        if c is None:
+            return False
+        wall = time.time() if self.epoch > 0.0 else -math.inf
+        ahead = c.index(rec["episode"], rec["step"]) - (c.last(wall) if self.epoch > 0.0 else -1)
+        if ahead <= FUTURE_STEPS:
+            return False
+        self.health.reject(topic, "future", f"episode {rec['episode']} step {rec['step']}: {ahead} steps ahead")
+        return True
 
     def on_run(self, rec: dict[str, Any]) -> None:
         """The run `rec` (a scenario record) was announced: `scenario`, `model`, `seed`, `run` are set."""

@@ -52,7 +52,6 @@ class OperationNode(RunFollower):
         """Parameters, the severity publisher, the world's records; the robots' poses once the run is known."""
         super().__init__("htlm_operation", OperationSettings, _validate, "htlm: operation")
         self.op: StandInOperation | None = None
-        self.period, self.first_episode, self.episodes = 0.5, 0, 0
         self.positions: dict[int, tuple[float, float]] = {}
         self.actions: dict[tuple[int, int], dict[int, int]] = {}  # (episode, step) -> agent -> action
         self.applied = -1
@@ -72,7 +71,6 @@ class OperationNode(RunFollower):
             self.create_subscription(
                 Odometry, topics.odometry(a.name), functools.partial(self._on_odom, k), POSE_READER
             )
-        self.period, self.first_episode, self.episodes = rec["period"], rec["first_episode"], rec["episodes"]
         self.get_logger().info(f"run {self.run}: the stand-in operation of {len(self.scenario.agents)} robots")
 
     def _on_odom(self, k: int, msg: Odometry) -> None:
@@ -80,7 +78,7 @@ class OperationNode(RunFollower):
 
     def _on_action(self, msg: bytes) -> None:
         rec = self.health.decode("action", msg, S.ACTION, self.lim)
-        if rec is None:
+        if rec is None or self.future("action", rec):
             return
         self.actions.setdefault((rec["episode"], rec["step"]), {})[rec["agent"]] = int(rec["actions"][0])
         while len(self.actions) > 64:

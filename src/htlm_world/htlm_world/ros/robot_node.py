@@ -10,6 +10,7 @@ level drawn from the model's O (its own stream) from the true level the stand-in
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from typing import Any
@@ -31,7 +32,7 @@ from htlm_msgs_py.ros import (
     subscribe_records,
 )
 from htlm_msgs_py.schema import encode
-from htlm_world.robots import Drive, Sensing, action_distance
+from htlm_world.robots import Drive, Sensing, action_distance, map_bounds
 from htlm_world.ros.follower import RunFollower
 from htlm_world.ros.robot_settings import RobotSettings, start_position, validate_robot_settings
 
@@ -61,6 +62,9 @@ class RobotNode(RunFollower):
         self.pub_odom = self.create_publisher(Odometry, s.odom_topic or topics.odometry(self.name), ODOMETRY)
         self.pub_obs = self.create_publisher(String, s.observation_topic or topics.observation(self.name), EVENTS)
         self.create_subscription(PoseStamped, s.goal_topic or topics.goal_pose(self.name), self._on_goal, STATE_READER)
+        subscribe_records(self, topics.goal(self.name), STATE_READER, self._on_goal_record)
+        self.goal_sent = -math.inf
+        """When the agent sent the last goal record taken (its wall clock): an older one is a replay."""
         subscribe_records(self, topics.ACTION, EVENTS, self._on_action)
         subscribe_records(self, topics.SEVERITY, EVENTS, self._on_severity)
         self.create_timer(1.0 / s.rate, self._move)
@@ -79,15 +83,49 @@ class RobotNode(RunFollower):
         self.get_logger().info(f"run {self.run}: robot of {self.name} at ({x:g}, {y:g}), {self.settings.speed:g} m/s")
 
     def _on_goal(self, msg: PoseStamped) -> None:
+        """A goal pose. With a team key it is not followed (anybody on the domain could have sent it): the signed
+        twin on /htlm/<agent>/goal is (`_on_goal_record`)."""
+        if self.signer.enabled:
+            self.health.counters["ignored/goal_pose/unsigned"] += 1
+            return
         if msg.header.frame_id != self.settings.frame_id:
             self.health.reject("goal_pose", "frame", f"frame {msg.header.frame_id!r}, not {self.settings.frame_id!r}")
             return
-        if self.drive is not None:
-            self.drive.goal = (float(msg.pose.position.x), float(msg.pose.position.y))
+        self._drive_to("goal_pose", float(msg.pose.position.x), float(msg.pose.position.y))
+
+    def _on_goal_record(self, msg: bytes) -> None:
+        """The goal as a record (signed with the team key): followed when it is its agent's, newer than the last
+        one taken, and in the map."""
+        rec = self.health.decode("goal", msg, S.GOAL, self.lim)
+        if rec is None or self.drive is None:
+            return
+        if rec["agent"] != self.index:
+            self.health.reject("goal", "agent", f"goal for agent {rec['agent']} on {self.name}'s topic")
+            return
+        if rec["frame"] != self.settings.frame_id:
+            self.health.reject("goal", "frame", f"frame {rec['frame']!r}, not {self.settings.frame_id!r}")
+            return
+        if rec["sent"] <= self.goal_sent:
+            self.health.drop("goal", "past")
+            return
+        if self._drive_to("goal", rec["x"], rec["y"]):
+            self.goal_sent = rec["sent"]
+
+    def _drive_to(self, topic: str, x: float, y: float) -> bool:
+        """Drive to (x, y) if it is a finite point in the map (within `map_margin` of the scenario's sites), else
+        reject and count it (`range`); returns whether the goal was taken."""
+        if self.drive is None or self.scenario is None:
+            return False
+        lo, hi = map_bounds(self.scenario.site_positions, self.settings.map_margin)
+        if not (math.isfinite(x) and math.isfinite(y) and lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1]):
+            self.health.reject(topic, "range", f"goal ({x}, {y}) outside the map [{lo}, {hi}]")
+            return False
+        self.drive.goal = (x, y)
+        return True
 
     def _on_action(self, msg: bytes) -> None:
         rec = self.health.decode("action", msg, S.ACTION, self.lim)
-        if rec is None or rec["agent"] != self.index:
+        if rec is None or rec["agent"] != self.index or self.future("action", rec):
             return
         self.actions[(rec["episode"], rec["step"])] = int(rec["actions"][0])
         while len(self.actions) > 64:

@@ -34,6 +34,9 @@ class RobotSettings:
     """Where the robot publishes its observations; empty: /htlm/<agent>/observation."""
     frame_id: str = setting("map")
     """Frame of the odometry's pose (the goal poses' frame)."""
+    map_margin: float = setting(100.0, lo=0.0, hi=1e6)
+    """Metres around the scenario's sites (their bounding box) within which the robot takes a goal; a goal beyond,
+    or not finite, is rejected and counted."""
     diagnostics_period: float = setting(1.0, lo=SECONDS[0], hi=SECONDS[1])
     """Seconds between /diagnostics messages."""
     exit_on_stop: bool = setting(True)

@@ -34,6 +34,7 @@ from htlm_msgs_py.ros import (
     string,
     subscribe_records,
 )
+from htlm_msgs_py.run_control import unique_run_id
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
@@ -76,7 +77,8 @@ class WorldNode(Node):
             raise SettingsError(str(e)) from None
         sc = self.scenario
         self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, s.batch, sc.knowledge_size)
-        self.run_id = s.run_id or f"run-{s.seed}-{int(time.time())}"
+        self.run_id = s.run_id or unique_run_id(f"run-{s.seed}-{int(time.time())}")
+        self.signer.run = self.run_id  # every record carries it; records of other runs are rejected
         self.health = Health(self, "htlm: world", self.signer)
         self.stop_signal = 0
         # publishers (QoS profiles from htlm_msgs_py)
