@@ -122,6 +122,7 @@ VALID: dict[str, dict[str, Any]] = {
         "seconds": 0.3,
     },
     "htlm/severity": {"episode": 2, "step": 3, "levels": [[1, 2, 3, 4], [0, 1, 2, 4]]},
+    "htlm/goal": {"agent": 1, "x": 15.0, "y": -3.5, "frame": "map", "sent": 1.7e9},
 }
 """A valid record of every schema for the paper scenario's limits (5 agents, 4 tasks, 6 actions, 5 levels, h 30);
 the per-step records are of a batch of B = 2 episodes (2 and 3)."""

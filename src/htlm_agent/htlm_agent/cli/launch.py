@@ -189,7 +189,7 @@ def config(argv: list[str]) -> LaunchConfig:
 
 def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     """The launch of parsed `htlm launch` options and every problem of its input (empty: it can start)."""
-    from htlm_agent.learning.settings import Settings
+    from htlm_agent.learning.settings import DEFAULT_LEARNER, Settings
     from htlm_agent.ros.launch import LaunchConfig
     from htlm_agent.ros.launch_check import check_launch
 
@@ -203,7 +203,7 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     if args.mode in ("evaluate", "deploy") and args.policy in ("auto", "checkpoint") and not args.checkpoint:
         bad.append(f"{args.mode}: needs --checkpoint DIR (or --policy greedy / auction / random)")
     try:
-        learner = Settings.from_dict(Settings.with_preset(dict(args.learner)), "--set")  # for the defaults
+        learner = Settings.from_dict(Settings.for_users(dict(args.learner)), "--set")  # for the defaults
     except ValueError:  # check_launch reports every bad key
         learner = Settings()
     if args.mode == "train" and learner.dropout > 0:
@@ -248,7 +248,7 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         discovery=args.discovery,
         peers=args.peers,
         key_file=args.key_file,
-        learner=dict(args.learner),
+        learner={"learner": DEFAULT_LEARNER, **dict(args.learner)} if args.mode == "train" else dict(args.learner),
         world_params=dict(args.world_param),
         agent_params=dict(args.agent_param),
         trainer_params=dict(args.trainer_param),

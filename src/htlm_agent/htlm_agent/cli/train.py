@@ -26,17 +26,18 @@ def _flag(name: str) -> str:
 
 def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     """One option per field of `learner.Settings` (default None: keep the Settings default)."""
-    from htlm_agent.learning.settings import Settings
+    from htlm_agent.learning.settings import DEFAULT_LEARNER, Settings
     from htlm_msgs_py.params import field_docs
 
     docs = field_docs(Settings)
     g = p.add_argument_group(
-        "learner settings (defaults: htlm_agent.learning.settings.Settings; with --learner tokens, TOKENS_PRESET first)"
+        "learner settings (defaults: the token learner, TOKENS_PRESET over htlm_agent.learning.settings.Settings)"
     )
     for f in dataclasses.fields(Settings):
         if f.name in EXPLICIT:
             continue
-        help_text = f"{docs.get(f.name, '')} (default: {f.default})".replace("%", "%%")
+        default = DEFAULT_LEARNER if f.name == "learner" else f.default
+        help_text = f"{docs.get(f.name, '')} (default: {default})".replace("%", "%%")
         if f.name == "hidden":
             g.add_argument(_flag(f.name), type=_int_list, default=None, metavar="H1,H2", help=help_text)
         elif isinstance(f.default, bool):
@@ -107,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
             sc = ck.scenario
         else:
             sc = scenario_from_args(args)
-            settings = Settings.for_learner(**changes)
+            settings = Settings(**Settings.for_users(changes))
             out = Path(args.out) if args.out else Path("runs") / run_name(experiment_name(sc), settings.seed)
         if not args.no_progress:
             print(

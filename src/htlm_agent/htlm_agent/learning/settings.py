@@ -19,6 +19,12 @@ IMITATE = ("none", "auction", "greedy")
 """The baselines a warm start can imitate (`Settings.imitate`)."""
 
 
+DEFAULT_LEARNER = "tokens"
+"""The learner `htlm train` and `htlm launch train` (and so `make run` and `ros2 launch`) train unless told otherwise
+(`--learner`, `--set learner=...`; `Settings.for_users`): the token learner, measured better than the paper's on every
+shipped scenario (docs/results/market.md). `Settings()` itself is the paper's learner, which `htlm reproduce`, the
+benchmarks and the pinned digests use."""
+
 TOKENS_PRESET: dict[str, Any] = {
     "learner": "tokens",
     "hidden": (32, 32),
@@ -199,6 +205,12 @@ class Settings:
         if isinstance(changes.get("episodes"), int):
             base["imitate_episodes"] = min(base["imitate_episodes"], max(changes["episodes"], 0) // 2)
         return {**base, **changes}
+
+    @staticmethod
+    def for_users(changes: dict[str, Any]) -> dict[str, Any]:
+        """The changes of a user's command (`htlm train`, `htlm launch train`): `DEFAULT_LEARNER` unless they choose
+        a learner, then `with_preset`."""
+        return Settings.with_preset({"learner": DEFAULT_LEARNER, **changes})
 
     @staticmethod
     def for_learner(**changes: Any) -> Settings:
