@@ -19,8 +19,11 @@
 - odometry: record how many odometry messages of each agent came, how many held a value that is not finite, and
   the last position, into a JSON file rewritten every 0.3 s;
 - flood: publish records that every receiver of one topic rejects (cut JSON, unknown schema, wrong version, a
-  value out of range, bytes that are not UTF-8), as fast as it can (or at --rate) from a start signal until stopped,
-  and write how many went out; --hog burns as much CPU without publishing.
+  value out of range, bytes that are not UTF-8; or well-formed records signed with a wrong key), as fast as it can
+  (or at --rate) from a start signal until stopped, and write how many went out; --hog burns as much CPU without
+  publishing;
+- listen: read one topic with the team's QoS for records as a node does (serialized), --cost seconds of work per
+  record, and count what came and what the reader's message_lost QoS event reported lost.
 """
 
 from __future__ import annotations
@@ -585,6 +588,44 @@ def odometry(args: argparse.Namespace) -> None:
     out.write_text(json.dumps(got))
 
 
+def listen(args: argparse.Namespace) -> None:
+    from rclpy.event_handler import SubscriptionEventCallbacks
+
+    node = Node("test_listener")
+    got = {"received": 0, "lost_events": 0, "lost_total": 0}
+
+    def on_lost(status: Any) -> None:
+        got["lost_events"] += 1
+        got["lost_total"] = int(status.total_count)
+
+    def on_message(_msg: bytes) -> None:
+        got["received"] += 1
+        if args.cost:
+            end = time.perf_counter() + args.cost
+            while time.perf_counter() < end:
+                pass
+
+    node.create_subscription(
+        String,
+        args.topic,
+        on_message,
+        EVENTS,
+        raw=True,
+        event_callbacks=SubscriptionEventCallbacks(message_lost=on_lost),
+    )
+    out = Path(args.out)
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    last = 0.0
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        if time.monotonic() - last > 0.3:
+            out.with_suffix(".tmp").write_text(json.dumps(got))
+            out.with_suffix(".tmp").replace(out)
+            last = time.monotonic()
+    out.write_text(json.dumps(got))
+
+
 def flood(args: argparse.Namespace) -> None:
     """Publish records every receiver of one topic rejects, as fast as one Python process can, from the moment the
     --go file exists until SIGTERM (or --seconds), then write how many went out."""
@@ -607,6 +648,9 @@ def flood(args: argparse.Namespace) -> None:
     # and a String whose bytes are not UTF-8, serialized by hand (rclpy's String cannot hold it): encoding
     raw = b'{"schema":"\xff\xfe"}\0'
     msgs: list[Any] = [string(t) for t in texts] + [bytes([0, 1, 0, 0]) + len(raw).to_bytes(4, "little") + raw]
+    if args.wrong_key:  # well-formed records signed with a key that is not the team's: rejected for the signature
+        wrong = Signer(args.wrong_key.encode())
+        msgs = [string(S.encode(schema, {**VALID[schema.name], "step": 1 + i}, wrong)) for i in range(5)]
     end = time.monotonic() + 30
     while time.monotonic() < end and pub.get_subscription_count() < args.subscribers:
         _spin_for(node, 0.1)
@@ -714,6 +758,10 @@ def main() -> None:
     gp.add_argument("--subscribers", type=int, default=1)
     od = sub.add_parser("odometry")
     od.add_argument("--out", required=True)
+    ls = sub.add_parser("listen")
+    ls.add_argument("--out", required=True)
+    ls.add_argument("--topic", default=topics.BROADCAST)
+    ls.add_argument("--cost", type=float, default=0.0, help="seconds of busy work per record")
     fl = sub.add_parser("flood")
     fl.add_argument("--out", required=True)
     fl.add_argument("--topic", default=topics.ACTION, help="the full topic name, e.g. /htlm/action")
@@ -723,6 +771,7 @@ def main() -> None:
     fl.add_argument("--nice", type=int, default=0, help="lower the flooder's CPU priority by this much once it floods")
     fl.add_argument("--rate", type=float, default=0.0, help="records per second at most (0: as fast as it can)")
     fl.add_argument("--hog", action="store_true", help="burn the CPU as the flood would, publishing nothing")
+    fl.add_argument("--wrong-key", default="", help="flood well-formed records signed with this (wrong) key instead")
     args = p.parse_args()
     faulthandler.register(signal.SIGUSR1)
     rclpy.init()
@@ -738,6 +787,7 @@ def main() -> None:
             "send": send,
             "goal_pose": goal_pose,
             "odometry": odometry,
+            "listen": listen,
             "record": record,
             "record_all": record_all,
             "publish": publish,
