@@ -147,6 +147,7 @@ def step_rate(ros_team: Any, kind: str, topic: str = topics.BROADCAST) -> dict[s
         "flood", "--out", str(out), "--topic", topic, "--go", str(go), "--seconds", str(WINDOW),
         "--subscribers", str(readers), *wrong,
     )  # fmt: skip
+    load = os.getloadavg()[0]
     team.start()
     team.wait_for(lambda: len(team.world_episodes()) >= 2, 120, "the first two episodes")
     tag = topic.rsplit("/", 1)[-1]
@@ -170,10 +171,18 @@ def step_rate(ros_team: Any, kind: str, topic: str = topics.BROADCAST) -> dict[s
         return time.monotonic() - seen[1] >= 2.0
 
     team.wait_for(still, 60, "the readers' counts of rejected records to stand still")
-    counted = {n: c for n, c in _counters(diag, f"rejected/{tag}/").items() if c}
+    counted = _counters(diag, f"rejected/{tag}/")
+    lost = {n: c for n, c in _counters(diag, f"lost/{tag}").items() if c}
+    # the team steps again once its deadlines passed (a broadcast lost in the flood is waited for until the agents'
+    # broadcast_timeout, an action until the world's act_deadline)
+    stalled = _step_index(diag)
+    team.wait_for(lambda: _step_index(diag) > stalled, 90, "the team to step again after the flood")
+    recovered = round(time.monotonic() - s1, 1)
     a0, ta = _step_index(diag), time.monotonic()
-    time.sleep(WINDOW / 2)
+    time.sleep(WINDOW)
     a1, tb = _step_index(diag), time.monotonic()
+    logged = len(team.world_episodes())
+    team.wait_for(lambda: len(team.world_episodes()) > logged, 90, "an episode begun after the flood to be logged")
     absent = sum(sum(w["metrics"]["absent"]) for w in team.world_episodes())
     team.cleanup()
     row = {
@@ -185,10 +194,12 @@ def step_rate(ros_team: Any, kind: str, topic: str = topics.BROADCAST) -> dict[s
         "steps_per_s_flooded": round((f1 - f0) / (s1 - s0), 2),
         "steps_per_s_after": round((a1 - a0) / (tb - ta), 2),
         "flooded_seconds": round(s1 - s0, 1),
+        "seconds_to_step_again": recovered,
         "counted_per_reader": counted,
         "counted_share": round(min(counted.values(), default=0) / max(sent["sent"], 1), 3),
+        "lost_reported": lost,
         "absent_agent_steps": absent,
-        "load_before": os.getloadavg()[0],
+        "load_before": load,
     }
     print("STEP_RATE", json.dumps(row), flush=True)
     return row
@@ -198,12 +209,16 @@ def test_step_rate_under_a_full_speed_flood(ros_team: Any) -> None:
     """Malformed records (an unsigned team) and wrongly signed ones (a signed team) on /htlm/broadcast, which every
     agent reads, as fast as one process can send them: the step rate flooded and unflooded, and what the agents
     counted; written to docs/results/flood_step_rate.csv."""
-    rows = [step_rate(ros_team, kind) for kind in ("malformed", "wrong_key")]
+    rows = []
+    for kind in ("malformed", "wrong_key"):
+        while os.getloadavg()[0] >= 2.0:  # the machine to itself (the flood before leaves load behind)
+            time.sleep(5)
+        rows.append(step_rate(ros_team, kind))
     out = ROOT / "docs" / "results" / "flood_step_rate.csv"
     with out.open("w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
-        w.writerows({**r, "counted_per_reader": json.dumps(r["counted_per_reader"])} for r in rows)
+        w.writerows({**r, **{k: json.dumps(r[k]) for k in ("counted_per_reader", "lost_reported")}} for r in rows)
 
 
 def test_the_readers_queue_losses_are_not_reported(ros_team: Any) -> None:

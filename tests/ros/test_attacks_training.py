@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,7 +69,11 @@ def _launch(where: Path, key: Path, attack: bool) -> Run:
         sent: dict[str, Any] = {}
         if attack:
             sent = _attack(team, rec, where)
-        assert team.popen.wait(timeout=300) == 0, team.said()[-3000:]
+        try:
+            code = team.popen.wait(timeout=240)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"the training run did not end within 240 s; the launcher said:\n{team.said()[-3000:]}")
+        assert code == 0, f"the training run exited with {code}:\n{team.said()[-3000:]}"
         summary = json.loads(team.summary.read_text())
         assert summary["exit_code"] == 0 and summary["episodes"] == EPISODES, summary
         assert alive_with(str(team.run)) == [], "orphaned processes"
