@@ -28,7 +28,6 @@ from rcl_interfaces.msg import (
     ParameterType,
     SetParametersResult,
 )
-from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -263,18 +262,7 @@ def subscribe_records(
     Records are taken serialized, skipping the conversion to a Python message, and each call of the executor drains
     up to `drain` more from the reader's queue, so a flood of bad records costs the node little beyond what Fast DDS
     and the executor spend on each (docs/ros.md, Flooding). The text is decoded from the bytes by `Health.decode`,
-    which rejects (and counts) a payload that is not a String of UTF-8.
-
-    Records DDS reports lost to this reader (its message_lost QoS event: a reliable writer's history that moved on
-    before the reader got them) are counted on the node's /diagnostics as `lost/<topic>` (the topic's last part).
-    Records a full reader queue replaces unread are not reported by Fast DDS, so no node can count them."""
-
-    tag = topic.rsplit("/", 1)[-1]
-
-    def on_lost(status: Any) -> None:
-        health = getattr(node, "health", None)
-        if health is not None and status.total_count_change > 0:
-            health.counters[f"lost/{tag}"] += int(status.total_count_change)
+    which rejects (and counts) a payload that is not a String of UTF-8."""
 
     def on_message(first: bytes) -> None:
         callback(first)
@@ -285,8 +273,7 @@ def subscribe_records(
                     return
                 callback(got[0])
 
-    events = SubscriptionEventCallbacks(message_lost=on_lost)
-    sub = node.create_subscription(String, topic, on_message, qos, raw=True, event_callbacks=events)
+    sub = node.create_subscription(String, topic, on_message, qos, raw=True)
     return sub
 
 
