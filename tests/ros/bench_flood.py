@@ -172,7 +172,7 @@ def step_rate(ros_team: Any, kind: str, topic: str = topics.BROADCAST) -> dict[s
         return time.monotonic() - seen[1] >= 2.0
 
     team.wait_for(still, 60, "the readers' counts of rejected records to stand still")
-    counted = _counters(diag, f"rejected/{tag}/")
+    counted = dict(sorted((n, c) for n, c in _counters(diag, f"rejected/{tag}/").items() if n.startswith("agent")))
     # the team steps again once its deadlines passed (a broadcast lost in the flood is waited for until the agents'
     # broadcast_timeout, an action until the world's act_deadline)
     stalled = _step_index(diag)
@@ -185,6 +185,7 @@ def step_rate(ros_team: Any, kind: str, topic: str = topics.BROADCAST) -> dict[s
     team.wait_for(lambda: len(team.world_episodes()) > logged, 90, "an episode begun after the flood to be logged")
     absent = sum(sum(w["metrics"]["absent"]) for w in team.world_episodes())
     team.cleanup()
+    shares = (min(counted.values(), default=0), max(counted.values(), default=0))
     row = {
         "kind": kind,
         "topic": topic,
@@ -196,9 +197,9 @@ def step_rate(ros_team: Any, kind: str, topic: str = topics.BROADCAST) -> dict[s
         "flooded_seconds": round(s1 - s0, 1),
         "seconds_to_step_again": recovered,
         "counted_per_reader": counted,
-        "counted_share": round(min(counted.values(), default=0) / max(sent["sent"], 1), 3),
+        "counted_share": [round(c / max(sent["sent"], 1), 3) for c in shares],
         "absent_agent_steps": absent,
-        "load_before": load,
+        "load_before": round(load, 2),
     }
     print("STEP_RATE", json.dumps(row), flush=True)
     return row
