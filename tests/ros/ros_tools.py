@@ -520,7 +520,8 @@ def send(args: argparse.Namespace) -> None:
         return node.create_publisher(String, topic, qos)
 
     pubs = {t: writer(t) for t in names}
-    matched = {t: _wait_matched(node, [p], args.subscribers) for t, p in pubs.items()}
+    want = json.loads(args.subscribers)  # readers to wait for: one number for every topic, or {topic: number}
+    matched = {t: _wait_matched(node, [p], want[t] if isinstance(want, dict) else want) for t, p in pubs.items()}
     Path(args.out + ".ready").write_text(json.dumps(matched))
     while args.go and not Path(args.go).exists():
         _spin_for(node, 0.05)
@@ -745,7 +746,7 @@ def main() -> None:
     sd.add_argument("--source", required=True, help="JSON list of record texts, or object {topic: [texts]}")
     sd.add_argument("--depth", type=int, default=2000, help="records each writer keeps (reliable delivery)")
     sd.add_argument("--qos", choices=("state", "events"), default="events")
-    sd.add_argument("--subscribers", type=int, default=1, help="subscribers to wait for (at most 30 s)")
+    sd.add_argument("--subscribers", default="1", help='readers to wait for (at most 30 s): N or {"topic": N}')
     sd.add_argument("--go", default="", help="publish once this file exists (empty: at once)")
     sd.add_argument("--pause", type=float, default=0.01, help="seconds of spinning after every 20 records")
     sd.add_argument("--linger", type=float, default=0.5, help="seconds to stay up after the acknowledgements")

@@ -93,19 +93,22 @@ def _start(where: Path, *extra: str) -> Launcher:
     return team
 
 
-def _send(team: Launcher, name: str, source: dict[str, list[str]], subscribers: int, qos: str = "events") -> Any:
-    """Publish the records of `source` ({topic: [texts]}) with the `send` helper, every topic matched with
-    `subscribers` readers first; returns its report once every reader acknowledged them."""
+def _send(
+    team: Launcher, name: str, source: dict[str, list[str]], subscribers: dict[str, int], qos: str = "events"
+) -> Any:
+    """Publish the records of `source` ({topic: [texts]}) with the `send` helper, every topic matched with all its
+    readers first (`subscribers`, per topic: a record published before a reader matched would never reach it);
+    returns its report once every reader acknowledged them."""
     src = team.tmp / f"{name}.json"
     src.write_text(json.dumps(source))
     out = team.tmp / f"{name}-sent.json"
     h = team.helper(
         "send", "--out", str(out), "--topics", ",".join(source), "--source", str(src), "--qos", qos,
-        "--subscribers", str(subscribers),
+        "--subscribers", json.dumps(subscribers),
     )  # fmt: skip
     assert h.wait(timeout=90) == 0, (team.tmp / f"helper-{len(team.helpers) - 1}-send.log").read_text()[-2000:]
     got = read_json(out)
-    assert all(got["matched"][t] >= subscribers for t in source), f"{name}: readers not matched: {got}"
+    assert all(got["matched"][t] >= subscribers[t] for t in source), f"{name}: readers not matched: {got}"
     assert got["acked"] == dict.fromkeys(source, True), f"{name}: not every reader acknowledged every record: {got}"
     assert got["sent"] == {t: len(v) for t, v in source.items()}, got
     return got
@@ -192,7 +195,10 @@ def unkeyed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Attacked]:
     team = _start(where)
     try:
         attacked_in = _episodes_logged(team)
-        sent = {"ahead": _send(team, "ahead", _far_ahead(team.run_id()), subscribers=1)}
+        ahead = _far_ahead(team.run_id())
+        # /htlm/action: the world, the operation and five robots; a robot topic: its agent and the world
+        readers = {t: 7 if t == topics.ACTION else 2 for t in ahead}
+        sent = {"ahead": _send(team, "ahead", ahead, readers)}
         _goal_poses(team, "agent1", [["nan", 0.0], [1e6, 0.0], ["inf", "-inf"]])
         sent["goal_pose"] = 3
         yield _finish(team, attacked_in, sent)
@@ -279,7 +285,8 @@ def keyed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Attacked]:
         signer = Signer(KEY.encode())
         forged = S.encode(S.SCENARIO, {**ours, "seq": S.SEQ_MAX, "state": "stopped"}, signer)
         attacked_in = _episodes_logged(team)
-        sent = {"scenario": _send(team, "scenario", {topics.SCENARIO: [stop, forged]}, len(SCENARIO_READERS), "state")}
+        readers = {topics.SCENARIO: len(SCENARIO_READERS)}
+        sent = {"scenario": _send(team, "scenario", {topics.SCENARIO: [stop, forged]}, readers, "state")}
         _goal_poses(team, "agent2", [list(FORGED_GOAL), ["nan", "nan"]])
         sent["goal_pose"] = 2
         # the agent's own goal poses are unsigned too (a robot stack without the key follows them): the robot ignores

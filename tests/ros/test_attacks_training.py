@@ -104,8 +104,12 @@ def _attack(team: Launcher, rec: Path, where: Path) -> dict[str, Any]:
     go = where / "go"
     src = {n: where / f"{n}.json" for n in out}
     topic = {"replay": topics.TRANSITIONS, "one_row": topics.TRANSITIONS, "metrics": topics.EPISODE_METRICS}
+    readers = {topics.TRANSITIONS: 2, topics.EPISODE_METRICS: 1}  # the trainer; on transitions also the recorder
     for n in out:
-        team.helper("send", "--out", str(out[n]), "--topics", topic[n], "--source", str(src[n]), "--go", str(go))
+        team.helper(
+            "send", "--out", str(out[n]), "--topics", topic[n], "--source", str(src[n]), "--go", str(go),
+            "--subscribers", str(readers[topic[n]]),
+        )  # fmt: skip
     for n in out:
         team.wait_for(lambda n=n: Path(str(out[n]) + ".ready").exists(), 60, f"the {n} sender matched")
     src["replay"].write_text(json.dumps({topics.TRANSITIONS: earlier}))
@@ -144,7 +148,7 @@ def _attack(team: Launcher, rec: Path, where: Path) -> dict[str, Any]:
     for n in out:
         team.wait_for(lambda n=n: out[n].exists(), 120, f"the {n} sender to finish")
         got = read_json(out[n])
-        assert got["acked"] == {topic[n]: True} and got["matched"][topic[n]] >= 1, f"{n}: {got}"
+        assert got["acked"] == {topic[n]: True} and got["matched"][topic[n]] >= readers[topic[n]], f"{n}: {got}"
         sent[n] = got["sent"][topic[n]]
     sent["one_row_of"] = (genuine["episode"], genuine["step"], len(genuine["a"]))
     sent["at_episode"] = at
