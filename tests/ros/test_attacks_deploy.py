@@ -128,7 +128,11 @@ def _goal_poses(team: Launcher, agent: str, goals: list[list[Any]]) -> None:
     h = team.helper("goal_pose", "--out", str(out), "--agent", agent, "--goals", json.dumps(goals))
     assert h.wait(timeout=60) == 0
     got = read_json(out)
-    assert got == {"sent": len(goals), "matched": got["matched"]} and got["matched"] >= 1, got
+    running = "running" if team.popen.poll() is None else f"exited with {team.popen.returncode}"
+    assert got["matched"] >= 1, (
+        f"no robot of {agent} read the goal poses (the launch {running}); the launcher said:\n{team.said()[-3000:]}"
+    )
+    assert got["sent"] == len(goals), got
 
 
 def _finish(team: Launcher, attacked_in: int, sent: dict[str, Any]) -> Attacked:
