@@ -148,6 +148,122 @@ def ros_team(tmp_path: Path) -> Iterator[Callable[..., RosTeam]]:
         t.cleanup()
 
 
+HTLM = str(Path(sys.executable).parent / "htlm")
+
+
+def alive_with(marker: str) -> list[int]:
+    """PIDs of live processes whose command line mentions `marker`."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state = (d / "stat").read_text().split()[2]
+        except OSError:
+            continue
+        if marker in cmd and state != "Z":
+            out.append(int(d.name))
+    return out
+
+
+class Launcher:
+    """`htlm launch ...` as a user runs it, into `where`/run (its stderr in where/launcher.err, its --json summary in
+    where/launcher.out), on a ROS domain of its own; helper processes (tests/ros/ros_tools.py) join that domain."""
+
+    def __init__(self, where: Path, *args: str) -> None:
+        where.mkdir(parents=True, exist_ok=True)
+        self.tmp = where
+        self.run = where / "run"
+        self.out = where / "launcher.err"
+        self.summary = where / "launcher.out"
+        self.domain = next_domain()
+        self.helpers: list[subprocess.Popen[bytes]] = []
+        with open(self.out, "wb") as err, open(self.summary, "wb") as out:
+            self.popen = subprocess.Popen(
+                [HTLM, "launch", *args, "--domain-id", str(self.domain), "--run-dir", str(self.run), "--json"],
+                stdout=out,
+                stderr=err,
+                start_new_session=True,
+            )
+
+    def said(self) -> str:
+        return self.out.read_text(errors="replace")
+
+    def log(self, name: str) -> str:
+        f = self.run / "logs" / f"{name}.log"
+        return f.read_text(errors="replace") if f.exists() else ""
+
+    def pid(self, name: str) -> int:
+        """The live process of `name` (its parameters file is on its command line; one at a time)."""
+        pids = alive_with(str(self.run / "parameters" / f"{name}.yaml"))
+        assert len(pids) == 1, f"{name}: processes {pids}"
+        return pids[0]
+
+    def run_id(self) -> str:
+        """The run id the launch keeps in RUN/run_id (waited for)."""
+        f = self.run / "run_id"
+        self.wait_for(lambda: f.exists() and f.read_text().strip(), 60, "the launch's run id (RUN/run_id)")
+        return f.read_text().strip()
+
+    def wait_for(self, what: Callable[[], Any], timeout: float, why: str) -> Any:
+        """Wait for `what()` to be truthy; fail naming `why` (and what the launcher said) after `timeout` seconds."""
+        end = time.monotonic() + timeout
+        while True:
+            got = what()
+            if got:
+                return got
+            assert self.popen.poll() is None, (
+                f"the launcher exited ({self.popen.returncode}) before {why}:\n" + (self.said()[-3000:])
+            )
+            assert time.monotonic() < end, (
+                f"timed out after {timeout} s waiting for {why}; the launcher said:\n" + (self.said()[-3000:])
+            )
+            time.sleep(0.05)
+
+    def helper(self, *args: str) -> subprocess.Popen[bytes]:
+        """Start tests/ros/ros_tools.py with these arguments on the launch's domain (its output in where/)."""
+        from htlm_agent.ros.launch import LaunchConfig, ros_env
+
+        env = ros_env(LaunchConfig(mode="deploy", scenario=builtin(), domain_id=self.domain))
+        log = open(self.tmp / f"helper-{len(self.helpers)}-{args[0]}.log", "wb")  # noqa: SIM115
+        p = subprocess.Popen([sys.executable, str(TOOLS), *args], env=env, stdout=log, stderr=subprocess.STDOUT)
+        self.helpers.append(p)
+        return p
+
+    def jsonl(self, name: str) -> list[dict[str, Any]]:
+        """The complete lines of RUN/<name>.jsonl (world, agent1, ...)."""
+        return _jsonl(self.run / f"{name}.jsonl")
+
+    def agent_episodes(self, name: str) -> list[dict[str, Any]]:
+        return self.jsonl(name)
+
+    def stop(self) -> None:
+        if self.popen.poll() is None:
+            os.killpg(self.popen.pid, signal.SIGKILL)
+            self.popen.wait()
+        for pid in alive_with(str(self.run)):
+            os.kill(pid, signal.SIGKILL)
+        for h in self.helpers:
+            if h.poll() is None:
+                h.kill()
+            h.wait()
+
+
+@pytest.fixture
+def launcher(tmp_path: Path) -> Iterator[Callable[..., Launcher]]:
+    """Factory: launcher(*args of htlm launch, where=tmp_path) -> a started Launcher, stopped after the test."""
+    made: list[Launcher] = []
+
+    def make(*args: str, where: Path | None = None) -> Launcher:
+        made.append(Launcher(where or tmp_path, *args))
+        return made[-1]
+
+    yield make
+    for x in made:
+        x.stop()
+
+
 @pytest.fixture
 def links() -> Iterator[Callable[..., LinkEmulator]]:
     """Factory: links(hosts, seed=0, mtu=65000) -> a started LinkEmulator (tests/ros/links.py: a namespace per host

@@ -13,9 +13,17 @@
   and encoded anew (a forgery, signed with --key if given), once every expected subscriber is matched;
 - markers: record every visualization_msgs/MarkerArray of /htlm/markers (frames, stamps, lifetimes, plain markers)
   into a JSON file, rewritten every 0.3 s while new ones arrive.
+- send: publish a list of record texts (recorded earlier, or made by the test) on one topic, each once, every
+  subscriber matched first and every record acknowledged before it exits;
+- goal_pose: publish geometry_msgs/PoseStamped goals (NaN, out of the map, ...) on one agent's goal_pose topic;
+- odometry: record how many odometry messages of each agent came, how many held a value that is not finite, and
+  the last position, into a JSON file rewritten every 0.3 s;
 - flood: publish records that every receiver of one topic rejects (cut JSON, unknown schema, wrong version, a
-  value out of range, bytes that are not UTF-8), as fast as it can (or at --rate) from a start signal until stopped,
-  and write how many went out; --hog burns as much CPU without publishing.
+  value out of range, bytes that are not UTF-8; or well-formed records signed with a wrong key), as fast as it can
+  (or at --rate) from a start signal until stopped, and write how many went out; --hog burns as much CPU without
+  publishing;
+- listen: read one topic with the team's QoS for records as a node does (serialized), --cost seconds of work per
+  record, and count what came and what the reader's message_lost QoS event reported lost.
 """
 
 from __future__ import annotations
@@ -483,6 +491,142 @@ def publish(args: argparse.Namespace) -> None:
     Path(args.out).write_text(json.dumps({"sent": 1, "matched": matched, "text": text}))
 
 
+def _wait_matched(node: Node, pubs: list[Any], subscribers: int, seconds: float = 30.0) -> int:
+    """Spin until every publisher of `pubs` is matched with `subscribers` subscriptions (at most `seconds`); returns
+    the fewest matched."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and min(p.get_subscription_count() for p in pubs) < subscribers:
+        _spin_for(node, 0.1)
+    return min(p.get_subscription_count() for p in pubs)
+
+
+def send(args: argparse.Namespace) -> None:
+    """Publish record texts once each, in order: --source is a JSON object {topic: [texts]} (or a list of texts for
+    --topic), read once --go exists. Each topic's writer is deep enough to keep them all (reliable, transient-local
+    with --qos state as the team's state topics are) and is matched with --subscribers readers first (the file
+    <out>.ready tells the test so); then every reader's acknowledgement is waited for."""
+    from rclpy.duration import Duration
+
+    node = Node("test_sender")
+    names = args.topics.split(",") if args.topics else [args.topic]
+
+    def writer(topic: str) -> Any:
+        qos = QoSProfile(
+            depth=args.depth,
+            reliability=ReliabilityPolicy.RELIABLE,
+            history=HistoryPolicy.KEEP_LAST,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if args.qos == "state" else DurabilityPolicy.VOLATILE,
+        )
+        return node.create_publisher(String, topic, qos)
+
+    pubs = {t: writer(t) for t in names}
+    want = json.loads(args.subscribers)  # readers to wait for: one number for every topic, or {topic: number}
+    matched = {t: _wait_matched(node, [p], want[t] if isinstance(want, dict) else want) for t, p in pubs.items()}
+    Path(args.out + ".ready").write_text(json.dumps(matched))
+    while args.go and not Path(args.go).exists():
+        _spin_for(node, 0.05)
+    source = json.loads(Path(args.source).read_text())
+    texts: dict[str, list[str]] = source if isinstance(source, dict) else {args.topic: source}
+    sent = dict.fromkeys(texts, 0)
+    for t, items in texts.items():
+        for text in items:
+            pubs[t].publish(string(text))
+            sent[t] += 1
+            if sent[t] % 20 == 0:
+                _spin_for(node, args.pause)
+    acked = {t: pubs[t].wait_for_all_acked(Duration(seconds=30)) for t in texts}
+    _spin_for(node, args.linger)
+    Path(args.out).write_text(json.dumps({"sent": sent, "matched": matched, "acked": acked}))
+
+
+def goal_pose(args: argparse.Namespace) -> None:
+    """Publish the goals of --goals (a JSON list of [x, y]; "nan" and "inf" stand for those values) as
+    PoseStamped on --agent's goal_pose topic, --every seconds apart, with the team's QoS for it (a late joiner's
+    state topic), once the agent's robot is matched."""
+    from htlm_msgs_py.ros import STATE, PoseStamped, pose
+
+    node = Node("test_goal_pose")
+    pub = node.create_publisher(PoseStamped, topics.goal_pose(args.agent), STATE)
+    matched = _wait_matched(node, [pub], args.subscribers)
+    goals = [[float(v) for v in g] for g in json.loads(args.goals)]
+    for x, y in goals:
+        pub.publish(pose(x, y, args.frame, node.get_clock().now().to_msg()))
+        _spin_for(node, args.every)
+    Path(args.out).write_text(json.dumps({"sent": len(goals), "matched": matched}))
+
+
+def odometry(args: argparse.Namespace) -> None:
+    from nav_msgs.msg import Odometry
+
+    from htlm_msgs_py.ros import ODOMETRY
+
+    node = Node("test_odometry")
+    got: dict[str, dict[str, Any]] = {a: {"count": 0, "nonfinite": 0, "last": None} for a in AGENTS}
+
+    def on_odom(a: str, msg: Odometry) -> None:
+        p = msg.pose.pose.position
+        g = got[a]
+        g["count"] += 1
+        values = (p.x, p.y, p.z, msg.twist.twist.linear.x, msg.twist.twist.linear.y)
+        if not all(v == v and abs(v) != float("inf") for v in values):
+            g["nonfinite"] += 1
+        g["last"] = [p.x, p.y] if all(v == v for v in (p.x, p.y)) else [str(p.x), str(p.y)]
+
+    for a in AGENTS:
+        node.create_subscription(Odometry, topics.odometry(a), lambda m, a=a: on_odom(a, m), ODOMETRY)
+    out = Path(args.out)
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    last = 0.0
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        if time.monotonic() - last > 0.3:
+            tmp = out.with_suffix(".tmp")
+            tmp.write_text(json.dumps(got))
+            tmp.replace(out)
+            last = time.monotonic()
+    out.write_text(json.dumps(got))
+
+
+def listen(args: argparse.Namespace) -> None:
+    from rclpy.event_handler import SubscriptionEventCallbacks
+
+    node = Node("test_listener")
+    got = {"received": 0, "lost_events": 0, "lost_total": 0}
+
+    def on_lost(status: Any) -> None:
+        got["lost_events"] += 1
+        got["lost_total"] = int(status.total_count)
+
+    def on_message(_msg: bytes) -> None:
+        got["received"] += 1
+        if args.cost:
+            end = time.perf_counter() + args.cost
+            while time.perf_counter() < end:
+                pass
+
+    node.create_subscription(
+        String,
+        args.topic,
+        on_message,
+        EVENTS,
+        raw=True,
+        event_callbacks=SubscriptionEventCallbacks(message_lost=on_lost),
+    )
+    out = Path(args.out)
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    last = 0.0
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        if time.monotonic() - last > 0.3:
+            out.with_suffix(".tmp").write_text(json.dumps(got))
+            out.with_suffix(".tmp").replace(out)
+            last = time.monotonic()
+    out.write_text(json.dumps(got))
+
+
 def flood(args: argparse.Namespace) -> None:
     """Publish records every receiver of one topic rejects, as fast as one Python process can, from the moment the
     --go file exists until SIGTERM (or --seconds), then write how many went out."""
@@ -505,6 +649,9 @@ def flood(args: argparse.Namespace) -> None:
     # and a String whose bytes are not UTF-8, serialized by hand (rclpy's String cannot hold it): encoding
     raw = b'{"schema":"\xff\xfe"}\0'
     msgs: list[Any] = [string(t) for t in texts] + [bytes([0, 1, 0, 0]) + len(raw).to_bytes(4, "little") + raw]
+    if args.wrong_key:  # well-formed records signed with a key that is not the team's: rejected for the signature
+        wrong = Signer(args.wrong_key.encode())
+        msgs = [string(S.encode(schema, {**VALID[schema.name], "step": 1 + i}, wrong)) for i in range(5)]
     end = time.monotonic() + 30
     while time.monotonic() < end and pub.get_subscription_count() < args.subscribers:
         _spin_for(node, 0.1)
@@ -592,6 +739,30 @@ def main() -> None:
     pb.add_argument("--subscribers", type=int, default=1, help="subscribers to wait for (at most 30 s)")
     pb.add_argument("--linger", type=float, default=1.0, help="seconds to stay up after publishing")
     pb.add_argument("--go", default="", help="publish once this file exists (empty: at once)")
+    sd = sub.add_parser("send")
+    sd.add_argument("--out", required=True)
+    sd.add_argument("--topic", default="", help="the full topic name, e.g. /htlm/action")
+    sd.add_argument("--topics", default="", help="comma-separated full topic names (--source an object of them)")
+    sd.add_argument("--source", required=True, help="JSON list of record texts, or object {topic: [texts]}")
+    sd.add_argument("--depth", type=int, default=2000, help="records each writer keeps (reliable delivery)")
+    sd.add_argument("--qos", choices=("state", "events"), default="events")
+    sd.add_argument("--subscribers", default="1", help='readers to wait for (at most 30 s): N or {"topic": N}')
+    sd.add_argument("--go", default="", help="publish once this file exists (empty: at once)")
+    sd.add_argument("--pause", type=float, default=0.01, help="seconds of spinning after every 20 records")
+    sd.add_argument("--linger", type=float, default=0.5, help="seconds to stay up after the acknowledgements")
+    gp = sub.add_parser("goal_pose")
+    gp.add_argument("--out", required=True)
+    gp.add_argument("--agent", required=True)
+    gp.add_argument("--goals", required=True, help='JSON list of [x, y], e.g. [["nan", 0], [1e6, 0]]')
+    gp.add_argument("--frame", default="map")
+    gp.add_argument("--every", type=float, default=0.5)
+    gp.add_argument("--subscribers", type=int, default=1)
+    od = sub.add_parser("odometry")
+    od.add_argument("--out", required=True)
+    ls = sub.add_parser("listen")
+    ls.add_argument("--out", required=True)
+    ls.add_argument("--topic", default=topics.BROADCAST)
+    ls.add_argument("--cost", type=float, default=0.0, help="seconds of busy work per record")
     fl = sub.add_parser("flood")
     fl.add_argument("--out", required=True)
     fl.add_argument("--topic", default=topics.ACTION, help="the full topic name, e.g. /htlm/action")
@@ -601,6 +772,7 @@ def main() -> None:
     fl.add_argument("--nice", type=int, default=0, help="lower the flooder's CPU priority by this much once it floods")
     fl.add_argument("--rate", type=float, default=0.0, help="records per second at most (0: as fast as it can)")
     fl.add_argument("--hog", action="store_true", help="burn the CPU as the flood would, publishing nothing")
+    fl.add_argument("--wrong-key", default="", help="flood well-formed records signed with this (wrong) key instead")
     args = p.parse_args()
     faulthandler.register(signal.SIGUSR1)
     rclpy.init()
@@ -613,6 +785,10 @@ def main() -> None:
             "describe": describe,
             "markers": markers,
             "flood": flood,
+            "send": send,
+            "goal_pose": goal_pose,
+            "odometry": odometry,
+            "listen": listen,
             "record": record,
             "record_all": record_all,
             "publish": publish,

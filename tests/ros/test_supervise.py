@@ -11,109 +11,19 @@ import json
 import os
 import re
 import signal
-import subprocess
-import sys
 import time
-from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
 
 from htlm_world.clock import StepClock
 
-from .conftest import next_domain
+from .conftest import Launcher, alive_with
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
-HTLM = str(Path(sys.executable).parent / "htlm")
 PERIOD = 0.5
 STAMP = re.compile(r"\[(?:INFO|WARN|ERROR)\] \[(\d+\.\d+)\]")
-
-
-def _alive_with(marker: str) -> list[int]:
-    """PIDs of live processes whose command line mentions `marker`."""
-    out = []
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            state = (d / "stat").read_text().split()[2]
-        except OSError:
-            continue
-        if marker in cmd and state != "Z":
-            out.append(int(d.name))
-    return out
-
-
-class Launcher:
-    """`htlm launch ...` as a user runs it, its stderr in a file."""
-
-    def __init__(self, tmp: Path, *args: str) -> None:
-        self.run = tmp / "run"
-        self.out = tmp / "launcher.err"
-        self.summary = tmp / "launcher.out"
-        with open(self.out, "wb") as err, open(self.summary, "wb") as out:
-            self.popen = subprocess.Popen(
-                [HTLM, "launch", *args, "--domain-id", str(next_domain()), "--run-dir", str(self.run), "--json"],
-                stdout=out,
-                stderr=err,
-                start_new_session=True,
-            )
-
-    def said(self) -> str:
-        return self.out.read_text(errors="replace")
-
-    def log(self, name: str) -> str:
-        f = self.run / "logs" / f"{name}.log"
-        return f.read_text(errors="replace") if f.exists() else ""
-
-    def pid(self, name: str) -> int:
-        """The live process of `name` (its parameters file is on its command line; one at a time)."""
-        pids = _alive_with(str(self.run / "parameters" / f"{name}.yaml"))
-        assert len(pids) == 1, f"{name}: processes {pids}"
-        return pids[0]
-
-    def wait_for(self, what: Callable[[], Any], timeout: float, why: str) -> Any:
-        """Wait for `what()` to be truthy; fail naming `why` (and what the launcher said) after `timeout` seconds."""
-        end = time.monotonic() + timeout
-        while True:
-            got = what()
-            if got:
-                return got
-            assert self.popen.poll() is None, (
-                f"the launcher exited ({self.popen.returncode}) before {why}:\n" + (self.said()[-3000:])
-            )
-            assert time.monotonic() < end, (
-                f"timed out after {timeout} s waiting for {why}; the launcher said:\n" + (self.said()[-3000:])
-            )
-            time.sleep(0.05)
-
-    def agent_episodes(self, name: str) -> list[dict[str, Any]]:
-        f = self.run / f"{name}.jsonl"
-        text = f.read_text() if f.exists() else ""
-        return [json.loads(x) for x in text[: text.rfind("\n") + 1].splitlines()]
-
-    def stop(self) -> None:
-        if self.popen.poll() is None:
-            os.killpg(self.popen.pid, signal.SIGKILL)
-            self.popen.wait()
-        for pid in _alive_with(str(self.run)):
-            os.kill(pid, signal.SIGKILL)
-
-
-@pytest.fixture
-def launcher(tmp_path: Path) -> Iterator[Callable[..., Launcher]]:
-    made: list[Launcher] = []
-
-    def make(*args: str) -> Launcher:
-        made.append(Launcher(tmp_path, *args))
-        return made[-1]
-
-    yield make
-    for x in made:
-        x.stop()
 
 
 def _after(team: Launcher, name: str, start: int, pattern: str, timeout: float, why: str) -> re.Match[str]:
@@ -180,7 +90,7 @@ def test_a_deployed_team_restarts_whatever_is_killed_and_the_others_miss_no_step
         )
     os.kill(team.popen.pid, signal.SIGINT)  # Ctrl-C: the team stops cleanly
     assert team.popen.wait(timeout=60) == 130, team.said()[-3000:]
-    assert _alive_with(str(run)) == [], "orphaned processes"
+    assert alive_with(str(run)) == [], "orphaned processes"
     said = team.said()
     assert "restarts: " in said and all(f"{n} 1" in said.rsplit("restarts: ", 1)[1] for n in back), said[-2000:]
     # the agents never killed acted at every step of every episode, whoever was down
@@ -252,7 +162,7 @@ def test_a_training_launch_restarts_a_killed_world_agent_and_trainer_and_finishe
         assert f"{name} exited with -9; restarting it" in team.said()[said:]
         came[name] = _after(team, name, start, pattern, 60, "that it is back")
     assert team.popen.wait(timeout=300) == 0, team.said()[-3000:]
-    assert _alive_with(str(run)) == [], "orphaned processes"
+    assert alive_with(str(run)) == [], "orphaned processes"
     summary = json.loads(team.summary.read_text())
     assert summary["exit_code"] == 0 and summary["episodes"] == episodes, summary
     said = team.said()
