@@ -4,6 +4,7 @@ shown."""
 from __future__ import annotations
 
 import io
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -273,3 +274,14 @@ def test_under_the_agents_own_clock_each_agent_shows_how_far_its_clock_is_ahead_
     assert st.clock_offset("agent5") == (0.3, True)  # beyond the tolerance 0.125
     assert st.clock_offset("agent4") == (0.1, False)  # although agent5 sees it 0.2 s behind
     assert st.clock_offset("agent1") == (0.0, False)
+
+
+def test_replay_names_a_missing_recording_and_a_bad_speed(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from htlm_agent.cli import main
+
+    assert main(["watch", "--replay", str(tmp_path), "--once"]) == 2
+    assert f"--replay {tmp_path}: no recording there" in capsys.readouterr().err
+    (tmp_path / "recording").mkdir()
+    (tmp_path / "recording" / "metadata.yaml").write_text("{}\n")
+    assert main(["watch", "--replay", str(tmp_path), "--speed", "-1", "--once"]) == 2
+    assert "--speed: -1.0 must be a number >= 0" in capsys.readouterr().err

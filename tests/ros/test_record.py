@@ -75,6 +75,20 @@ def _world_counter(run: Path, name: str) -> int:
     return int(m.group(1))
 
 
+def _watch_replay(run: Path) -> str:
+    """The final snapshot of `htlm watch --replay RUN --speed 0 --once` (no ROS involved)."""
+    r = subprocess.run(
+        [sys.executable, "-m", "htlm_agent.cli", "watch", "--replay", str(run), "--speed", "0", "--once"]
+        + ["--width", "200"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    return r.stdout
+
+
 def test_a_recorded_evaluation_holds_every_message_the_team_published(tmp_path: Path) -> None:
     run = tmp_path / "run"
     episodes, h, n = 3, SC.horizon, len(AGENTS)
@@ -118,6 +132,12 @@ def test_a_recorded_evaluation_holds_every_message_the_team_published(tmp_path: 
         mine = sorted(e for (a, e) in readies if a == k)
         assert mine == list(range(mine[0], episodes)) and mine[0] <= 1, (k, mine)
     assert _records(msgs, "/htlm/scenario")[-1]["state"] == "stopped"
+    # `htlm watch --replay` shows the recording as the live view shows the team: the finished episodes' metrics
+    view = _watch_replay(run)
+    mean = sum(w["metrics"]["completion"] for w in world) / episodes
+    assert f"{episodes} episodes finished  completion {mean:.2f}" in view, view
+    assert "[stopped]" in view and f"episode {episodes - 1}  step {h}/{h}" in view, view
+    assert re.search(r"watch: \d+ records received, 0 rejected", view), view
     markers = [m for m, _ in msgs["/htlm/markers"]]
     assert markers and all(mk.header.frame_id == "map" for m in markers for mk in m.markers)
     shown = read_episode(run / "recording", 1)  # `htlm show RUN/recording`

@@ -3,6 +3,7 @@
 The options are the fields of `WatchSettings` (their docstrings are the help) plus where to find the team: the ROS
 domain and discovery range default to the environment's ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE, else to
 those `htlm launch` uses (42, localhost), so a plain `htlm watch` finds a team started by `htlm launch` or `make run`.
+`--replay RUN` shows a recording (`htlm launch --record`) the same way, without ROS.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib
+import math
 import os
 import sys
 
@@ -49,6 +51,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--peers", default="", help="ROS_STATIC_PEERS: 'host1;host2' to find a team on other hosts")
     p.add_argument("--key-file", default="", help="the team key file, when the team signs its records")
+    p.add_argument(
+        "--replay",
+        default="",
+        metavar="RUN",
+        help="watch a recording instead of a live team: a run directory of `htlm launch --record` or its bag "
+        "(RUN/recording); no ROS needed",
+    )
+    p.add_argument(
+        "--speed", type=float, default=1.0, help="--replay: times the recorded pace (0: as fast as it reads; default 1)"
+    )
 
 
 def _fail(text: str) -> int:
@@ -84,6 +96,20 @@ def run(args: argparse.Namespace) -> int:
         signer = signer_from_env()
     except SigningError as e:
         return _fail(str(e))
+    if args.replay:
+        from pathlib import Path
+
+        from htlm_agent.experiments.recording import find_bag
+        from htlm_agent.experiments.watch_view import replay
+
+        if not (math.isfinite(args.speed) and args.speed >= 0.0):
+            return _fail(f"--speed: {args.speed!r} must be a number >= 0")
+        bag = find_bag(Path(args.replay))
+        if bag is None:
+            return _fail(
+                f"--replay {args.replay}: no recording there (a bag directory with metadata.yaml, or RUN/recording)"
+            )
+        return replay(bag, settings, signer, sys.stdout, args.speed)
     # by name: the node is glue around untyped rclpy, outside the strictly typed core (pyproject's mypy excludes ros/)
     node = importlib.import_module("htlm_agent.ros.watch_node")
     code: int = node.main(settings, signer, sys.stdout)

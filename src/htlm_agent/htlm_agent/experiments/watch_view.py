@@ -5,25 +5,31 @@
 record is decoded and validated with the wire contract (`htlm_msgs_py.schema.decode`, the scenario's limits, the
 team key when one is set); a record that fails is counted under `rejected` and changes nothing. `render` builds a
 rich renderable of the state (what the terminal shows), `snapshot` the same as plain text (pipes, logs, tests).
-The ROS node `htlm_agent.ros.watch_node` only moves messages into the state and redraws.
+The ROS node `htlm_agent.ros.watch_node` only moves messages into the state (`feed`) and draws it with `show`, the
+drawing loop `replay` uses too (`htlm watch --replay`: a recording of `htlm launch --record` fed to the same state
+at the pace it was recorded).
 """
 
 from __future__ import annotations
 
 import math
 import statistics
+import time
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from io import StringIO
-from typing import Any
+from pathlib import Path
+from typing import IO, Any
 
 from rich import box
 from rich.console import Console, Group, RenderableType
+from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
 from htlm_msgs_py import schema as S
+from htlm_msgs_py import topics
 from htlm_msgs_py.params import setting
 from htlm_msgs_py.schema import WireError, decode, limits
 from htlm_msgs_py.signing import Signer
@@ -572,3 +578,118 @@ def snapshot(state: WatchState, now: float, width: int = 120) -> str:
     console = Console(file=buf, width=width, color_system=None, force_terminal=False, legacy_windows=False)
     console.print(render(state, now))
     return buf.getvalue()
+
+
+def show(
+    state: WatchState,
+    settings: WatchSettings,
+    out: IO[str],
+    pump: Callable[[float], bool],
+    state_time: Callable[[], float] = time.monotonic,
+) -> int:
+    """Draw `state` until `settings.duration` elapses or `pump` says to stop: in place with rich on a terminal, else a
+    plain snapshot every `every` seconds and one at the end (`once`: that one only). `pump(timeout)` feeds the state
+    for at most `timeout` seconds and returns whether to go on; `state_time()` is the time the view is drawn at (for
+    how old each node's last status is). Returns 0."""
+    s = settings
+    console = Console(file=out)
+    interactive = not (s.plain or s.once) and console.is_terminal
+    start = time.monotonic()
+    end = start + s.duration if s.duration > 0 else math.inf
+    next_print = start + s.every
+
+    def plain() -> None:
+        out.write(f"--- htlm watch, {time.monotonic() - start:.1f} s ---\n")
+        out.write(snapshot(state, state_time(), s.width))
+        out.flush()
+
+    live = Live(render(state, state_time()), console=console, auto_refresh=False) if interactive else None
+    if live is not None:
+        live.start()
+    next_draw = start
+    try:
+        while True:
+            now = time.monotonic()
+            if now >= end or not pump(min(1.0 / s.refresh, end - now, 0.25)):
+                break
+            now = time.monotonic()
+            if live is not None and now >= next_draw:
+                live.update(render(state, state_time()), refresh=True)
+                next_draw = now + 1.0 / s.refresh
+            elif live is None and not s.once and now >= next_print:
+                plain()
+                next_print = now + s.every
+    finally:
+        if live is not None:
+            live.update(render(state, state_time()), refresh=True)
+            live.stop()
+        else:
+            plain()
+    return 0
+
+
+def feed(state: WatchState, topic: str, msg: Any, now: float) -> bool:
+    """Hand one message of the monitoring topics to the state, received at `now`: the text of a std_msgs/String, or
+    a diagnostic_msgs/DiagnosticArray (its statuses). Returns whether the topic is one the view reads."""
+    handlers: dict[str, Callable[[Any], None]] = {
+        topics.SCENARIO: state.on_scenario,
+        topics.STEP: state.on_step,
+        topics.GROUND_TRUTH: state.on_ground_truth,
+        topics.EPISODE_METRICS: state.on_metrics,
+    }
+    if topic in handlers:
+        handlers[topic](msg.data)
+        return True
+    if topic == topics.DIAGNOSTICS:
+        statuses = [
+            (st.name, _status_level(st.level), st.message, {kv.key: kv.value for kv in st.values}) for st in msg.status
+        ]
+        state.on_diagnostics(statuses, now)
+        return True
+    for name in state.agent_names:
+        if topic == topics.belief(name):
+            state.on_belief(name, msg.data)
+            return True
+    return False
+
+
+def _status_level(raw: Any) -> int:
+    """A DiagnosticStatus level (one byte in rclpy, an int in a recording)."""
+    if isinstance(raw, bytes | bytearray):
+        return raw[0] if raw else 0
+    return int(raw)
+
+
+def replay(bag: Path, settings: WatchSettings, signer: Signer, out: IO[str], speed: float = 1.0) -> int:
+    """`htlm watch --replay`: the messages of a recording (`htlm launch --record`) fed to a WatchState in the order
+    they were received, at `speed` times the pace they were recorded at (0: as fast as they are read), and drawn as
+    the live view draws them (`show`); the view's time is the recording's. Returns 0 (after the last message, or
+    `duration`)."""
+    from htlm_agent.experiments.recording import messages
+
+    state = WatchState(settings.episode_in_batch, signer, settings.stale_after)
+    stream = iter(messages(bag))
+    pending = next(stream, None)
+    first = pending.stamp_ns / 1e9 if pending is not None else 0.0
+    started = time.monotonic()
+    clock = [first]  # the recording's time the view has reached
+
+    def pump(timeout: float) -> bool:
+        nonlocal pending
+        until = time.monotonic() + timeout
+        while pending is not None:
+            stamp = pending.stamp_ns / 1e9
+            due = started + (stamp - first) / speed if speed > 0 else 0.0
+            if due > until:
+                time.sleep(max(0.0, until - time.monotonic()))
+                clock[0] = first + (until - started) * speed
+                return True
+            time.sleep(max(0.0, due - time.monotonic()))
+            feed(state, pending.topic, pending.msg, stamp)
+            clock[0] = stamp
+            pending = next(stream, None)
+            if time.monotonic() >= until:
+                return True
+        return False
+
+    return show(state, settings, out, pump, lambda: clock[0])

@@ -3,8 +3,8 @@
 A thin node: it subscribes to the monitoring topics (/htlm/scenario, /htlm/step, /htlm/ground_truth, every agent's
 /htlm/<agent>/belief once the scenario names them, /htlm/episode_metrics, /diagnostics), hands every record to the
 ROS-free `htlm_agent.experiments.watch_view.WatchState` (which decodes and validates it, counting rejects) and
-redraws `watch_view.render` in place with rich, or prints plain snapshots (`plain`, `once`, or when stdout is not a
-terminal). Its subscriptions are what make the world publish the ground truth and the agents their beliefs.
+draws it with `watch_view.show` (in place with rich, or plain snapshots with `plain`, `once`, or when stdout is not
+a terminal). Its subscriptions are what make the world publish the ground truth and the agents their beliefs.
 """
 
 from __future__ import annotations
@@ -15,20 +15,11 @@ from typing import IO, Any
 
 from rclpy.executors import Executor
 from rclpy.node import Node
-from rich.console import Console
-from rich.live import Live
 
-from htlm_agent.experiments.watch_view import WatchSettings, WatchState, render, snapshot
+from htlm_agent.experiments.watch_view import WatchSettings, WatchState, feed, show
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import DIAGNOSTICS, EVENTS, STATE_READER, DiagnosticArray, String, run_node
 from htlm_msgs_py.signing import Signer
-
-
-def _level(raw: Any) -> int:
-    """A DiagnosticStatus level (rclpy gives it as one byte)."""
-    if isinstance(raw, bytes | bytearray):
-        return raw[0] if raw else 0
-    return int(raw)
 
 
 class WatchNode(Node):
@@ -68,49 +59,17 @@ class WatchNode(Node):
         self.state.on_belief(name, msg.data)
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
-        statuses = [(s.name, _level(s.level), s.message, {kv.key: kv.value for kv in s.values}) for s in msg.status]
-        self.state.on_diagnostics(statuses, time.monotonic())
+        feed(self.state, topics.DIAGNOSTICS, msg, time.monotonic())
 
 
 def watch(node: WatchNode, executor: Executor, out: IO[str]) -> int:
     """Spin and show the state until `duration` elapses or a signal arrives; returns 0."""
-    s = node.settings
-    console = Console(file=out)
-    interactive = not (s.plain or s.once) and console.is_terminal
-    start = time.monotonic()
-    end = start + s.duration if s.duration > 0 else float("inf")
-    next_print = start + s.every
 
-    def plain(now: float) -> None:
-        out.write(f"--- htlm watch, {now - start:.1f} s ---\n")
-        out.write(snapshot(node.state, now, s.width))
-        out.flush()
+    def pump(timeout: float) -> bool:
+        executor.spin_once(timeout_sec=timeout)
+        return not node.stop_signal
 
-    live = Live(render(node.state, start), console=console, auto_refresh=False) if interactive else None
-    if live is not None:
-        live.start()
-    next_draw = start
-    try:
-        while not node.stop_signal:
-            now = time.monotonic()
-            if now >= end:
-                break
-            executor.spin_once(timeout_sec=min(1.0 / s.refresh, end - now, 0.25))
-            now = time.monotonic()
-            if live is not None and now >= next_draw:
-                live.update(render(node.state, now), refresh=True)
-                next_draw = now + 1.0 / s.refresh
-            elif live is None and not s.once and now >= next_print:
-                plain(now)
-                next_print = now + s.every
-    finally:
-        now = time.monotonic()
-        if live is not None:
-            live.update(render(node.state, now), refresh=True)
-            live.stop()
-        else:
-            plain(now)
-    return 0
+    return show(node.state, node.settings, out, pump)
 
 
 def main(settings: WatchSettings, signer: Signer, out: IO[str]) -> int:
