@@ -1,6 +1,6 @@
 """The paper's scenario pinned bit for bit: simulator, beliefs, rewards, a fixed-seed training run's networks, the
 lockstep protocol's records and logs, markers. The digests in tests/data/paper_pinned.json were taken from the code
-before task kinds became data (issue 18); the scenario file `paper` must keep reproducing them exactly.
+before task kinds became data; the scenario file `paper` must keep reproducing them exactly.
 
 To take the digests anew after a change that is meant to change the numbers: `python tests/test_paper_pinned.py`
 (prints the JSON to store), and say why in the commit.
@@ -78,10 +78,10 @@ def digests(tmp: Path) -> dict[str, str]:
     ck = load_checkpoint(tmp / "train")
     out["train/weights"] = _digest(*[w for ws in ck.weights for w in ws])
     metrics = json.loads(json.dumps(run.metrics))
-    for a in metrics.get("agents", []):  # how capabilities are named changed with task kinds as data (issue 18)
+    for a in metrics.get("agents", []):  # how capabilities are named changed with task kinds as data
         for key in ("fire", "rescue", "capabilities"):
             a.pop(key, None)
-    for key in ("events", "unused_fraction_open"):  # added with events (issue 21): new keys, the others unchanged
+    for key in ("events", "unused_fraction_open"):  # added with events: new keys, the others unchanged
         metrics.pop(key, None)
     out["train/metrics"] = _digest(metrics)
     return out

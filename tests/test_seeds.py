@@ -57,7 +57,7 @@ def test_no_two_streams_of_a_run_coincide(seed: int) -> None:
 
 
 def test_network_initialisation_and_episode_0_exploration_are_different_streams() -> None:
-    """The collision of issue 8: SeedSequence([s, 2, i]) (weights) equalled SeedSequence([s, 2, i, 0]) (exploration
+    """A collision once found: SeedSequence([s, 2, i]) (weights) equalled SeedSequence([s, 2, i, 0]) (exploration
     of episode 0)."""
     for i in range(5):
         init = seeds.sequence(3, seeds.Stream.NETWORK_INIT, i).generate_state(4).tolist()

@@ -1,4 +1,4 @@
-"""Hosts whose clocks differ (issue 20, clock offsets): a deployed team (greedy agents, simulated robots, 0.5 s
+"""Hosts whose clocks differ: a deployed team (greedy agents, simulated robots, 0.5 s
 period) where agent4's process runs 0.1 s ahead of everyone's wall clock and agent5's 0.3 s ahead (libfaketime,
 which shifts what the process reads of the clock, and only that). A fifth of the period is within the tolerance
 (a quarter): every agent acts at every step. Beyond it the teammates report it: on /diagnostics each agent shows

@@ -1,4 +1,4 @@
-"""A deployed team keeps its own step clock (issue 20): real processes over real DDS (`--robots sim`, greedy
+"""A deployed team keeps its own step clock: real processes over real DDS (`--robots sim`, greedy
 agents, a 0.5 s period). One process at a time is SIGKILLed and started again: the observing world, an agent, the
 robots' stand-in operation, the trainer (in deployment it only records). The others miss no step (every agent that
 was not killed acted at every step of every episode, by its own log) and the restarted one rejoins at the step in

@@ -1,4 +1,4 @@
-"""A deployed team over a network that fails it (issue 20): split in two, and over bad links.
+"""A deployed team over a network that fails it: split in two, and over bad links.
 
 **Split in two** (partition): every agent with its simulated robot on a host of its own
 (a network namespace joined by the user-space switch of tests/ros/links.py), the observing world, the trainer and
