@@ -1,4 +1,4 @@
-"""Lockstep training over bad links gives the networks of `htlm train` bit for bit over bad links: the world,
+"""Lockstep training over bad links gives the networks of `htlm train` bit for bit: the world,
 the trainer and every agent in a network namespace of its own, joined by the user-space switch of tests/ros/links.py
 (this kernel has no netem), each started as the README says for several hosts (`team.sh train --only NAME
 --discovery subnet`, DDS on UDP). Every agent's link loses 5 % of the frames it sends and delays them by 100 ms; the
