@@ -38,7 +38,14 @@ pytestmark = [pytest.mark.ros, pytest.mark.timeout(600)]
 HOSTS = ["world", "trainer", "agent1", "agent2", "agent3", "agent4", "agent5"]
 AGENTS = HOSTS[2:]
 LOSS, DELAY = 0.05, 0.1
-LEARNER = {"envs": 4, "learning_starts": 60, "batch_size": 16, "validate_every": 0, "select_best": False}
+LEARNER = {
+    "learner": "paper",
+    "envs": 4,
+    "learning_starts": 60,
+    "batch_size": 16,
+    "validate_every": 0,
+    "select_best": False,
+}
 EPISODES, SEED = 8, 0
 """The benchmark's budget: two batches of four episodes, 60 lockstep steps, the learner updating from step 15 on (the
 test trains one batch)."""
