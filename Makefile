@@ -15,7 +15,7 @@ test: setup
 
 # the tests marked slow: the fault and attack tests of the ROS runtime (kills, restarts, network cut, flood), the
 # batch-1 variants of the equivalence tests, the network tests (partition, bad links, clock offsets) and the install
-# test of the packages in a fresh venv (about 12 min)
+# test of the packages in a fresh venv (about 14 min)
 test-slow: setup
 	$(VENV)/python -m pytest -q -m slow
 
