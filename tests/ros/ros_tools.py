@@ -55,6 +55,22 @@ from htlm_msgs_py.signing import Signer
 AGENTS = [f"agent{i}" for i in range(1, 6)]
 
 
+def _spin_and_dump(node: Any, out: Path, data: Any) -> None:
+    """Spin until SIGTERM or SIGINT, writing `data` as JSON to `out` (atomically) about every 0.3 s and at the end."""
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    last = 0.0
+    while not stop:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        if time.monotonic() - last > 0.3:
+            tmp = out.with_suffix(".tmp")
+            tmp.write_text(json.dumps(data))
+            tmp.replace(out)
+            last = time.monotonic()
+    out.write_text(json.dumps(data))
+
+
 def subscribed_topics(mode: str) -> dict[str, tuple[S.Schema, Any]]:
     """Every topic some node of a 5-agent team subscribes to in `mode`, with its schema and QoS."""
     out: dict[str, tuple[S.Schema, Any]] = {
@@ -108,19 +124,7 @@ def diag(args: argparse.Namespace) -> None:
             }
 
     node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diag, 50)
-    out = Path(args.out)
-    stop = []
-    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
-    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
-    last = 0.0
-    while not stop:
-        rclpy.spin_once(node, timeout_sec=0.1)
-        if time.monotonic() - last > 0.3:
-            tmp = out.with_suffix(".tmp")
-            tmp.write_text(json.dumps(latest))
-            tmp.replace(out)
-            last = time.monotonic()
-    out.write_text(json.dumps(latest))
+    _spin_and_dump(node, Path(args.out), latest)
 
 
 def team_run(node: Node, seconds: float = 30.0) -> str:
@@ -574,19 +578,7 @@ def odometry(args: argparse.Namespace) -> None:
 
     for a in AGENTS:
         node.create_subscription(Odometry, topics.odometry(a), lambda m, a=a: on_odom(a, m), ODOMETRY)
-    out = Path(args.out)
-    stop = []
-    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
-    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
-    last = 0.0
-    while not stop:
-        rclpy.spin_once(node, timeout_sec=0.1)
-        if time.monotonic() - last > 0.3:
-            tmp = out.with_suffix(".tmp")
-            tmp.write_text(json.dumps(got))
-            tmp.replace(out)
-            last = time.monotonic()
-    out.write_text(json.dumps(got))
+    _spin_and_dump(node, Path(args.out), got)
 
 
 def listen(args: argparse.Namespace) -> None:

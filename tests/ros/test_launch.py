@@ -15,25 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import next_domain
+from .conftest import alive_with, next_domain
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
-
-
-def _alive_with(marker: str) -> list[int]:
-    """PIDs of live processes whose command line mentions `marker`."""
-    out = []
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            state = (d / "stat").read_text().split()[2]
-        except OSError:
-            continue
-        if marker in cmd and state != "Z":
-            out.append(int(d.name))
-    return out
 
 
 def test_team_script_runs_an_evaluation(repo_root: Path, tmp_path: Path) -> None:
@@ -64,7 +48,7 @@ def test_team_script_runs_an_evaluation(repo_root: Path, tmp_path: Path) -> None
     logs = sorted(p.name for p in (run / "logs").iterdir())
     assert logs == ["agent1.log", "agent2.log", "agent3.log", "agent4.log", "agent5.log", "trainer.log", "world.log"]
     assert "episodes 0..1:" in (run / "logs" / "world.log").read_text()  # one batch of the two episodes
-    assert _alive_with(str(run)) == []
+    assert alive_with(str(run)) == []
 
 
 def test_json_is_the_only_output_on_stdout(tmp_path: Path) -> None:
@@ -99,7 +83,7 @@ def test_json_is_the_only_output_on_stdout(tmp_path: Path) -> None:
     assert {"mode", "run_dir", "exit_code", "episodes", "completion_mean", "failure_rate"} <= summary.keys()
     assert summary["mode"] == "evaluate" and summary["episodes"] == 2 and summary["exit_code"] == 0
     assert "[world] episodes 0..1:" in r.stderr and "htlm launch evaluate:" in r.stderr
-    assert _alive_with(str(run)) == []
+    assert alive_with(str(run)) == []
 
 
 def test_a_killed_world_is_restarted_and_ctrl_c_stops_every_process(repo_root: Path, tmp_path: Path) -> None:
@@ -140,14 +124,14 @@ def test_a_killed_world_is_restarted_and_ctrl_c_stops_every_process(repo_root: P
 
     try:
         wait_for(lambda: episodes() >= 1, 60, "the first episode")
-        world = _alive_with(str(run / "parameters" / "world.yaml"))
+        world = alive_with(str(run / "parameters" / "world.yaml"))
         assert len(world) == 1, world
         os.kill(world[0], signal.SIGKILL)
         killed_at = episodes()
         wait_for(lambda: "world restarted" in said.read_text(), 30, "the launcher to restart the world")
         wait_for(lambda: episodes() > killed_at, 60, "an episode of the restarted world")
         assert "world exited with -9; restarting it" in said.read_text()
-        children = [p for p in _alive_with(str(run)) if p != launcher.pid]
+        children = [p for p in alive_with(str(run)) if p != launcher.pid]
         assert len(children) == 7, children  # world, trainer, five agents (deploy runs until stopped)
         os.kill(launcher.pid, signal.SIGINT)  # what Ctrl-C in the terminal does
         rc = launcher.wait(timeout=30)
@@ -155,7 +139,7 @@ def test_a_killed_world_is_restarted_and_ctrl_c_stops_every_process(repo_root: P
         assert rc == 130, text
         assert "SIGINT" in text and "restarts: world 1" in text  # the launcher says why it stopped
         time.sleep(0.2)
-        assert _alive_with(str(run)) == [], "orphaned processes"
+        assert alive_with(str(run)) == [], "orphaned processes"
         log = (run / "logs" / "world.log").read_text()
         assert f"continuing at episode {killed_at}" in log, log[-2000:]
     finally:
@@ -198,4 +182,4 @@ def test_a_trainer_that_fails_stops_a_training_launch_at_once_with_its_message(t
     assert "htlm launch: trainer exited with 1: NotADirectoryError:" in r.stderr, r.stderr
     assert "in train a process that fails by itself is not restarted: stopping the team" in r.stderr, r.stderr
     assert not (run / "world.jsonl").exists() or len((run / "world.jsonl").read_text().splitlines()) < 8
-    assert _alive_with(str(run)) == []
+    assert alive_with(str(run)) == []
