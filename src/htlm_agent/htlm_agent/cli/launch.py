@@ -93,7 +93,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="learner setting (htlm_agent.learning.settings.Settings), e.g. --set learning_starts=500",
+        help="learner setting (htlm_agent.learning.settings.Settings), e.g. --set learning_starts=500; train: the "
+        "token learner unless --set learner=paper",
     )
     p.add_argument(
         "--world-param",
