@@ -28,6 +28,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from htlm_agent.experiments.recording import messages
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.params import setting
@@ -665,8 +666,6 @@ def replay(bag: Path, settings: WatchSettings, signer: Signer, out: IO[str], spe
     they were received, at `speed` times the pace they were recorded at (0: as fast as they are read), and drawn as
     the live view draws them (`show`); the view's time is the recording's. Returns 0 (after the last message, or
     `duration`)."""
-    from htlm_agent.experiments.recording import messages
-
     state = WatchState(settings.episode_in_batch, signer, settings.stale_after)
     stream = iter(messages(bag))
     pending = next(stream, None)
