@@ -18,7 +18,6 @@ import pytest
 
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.settings import Settings
-from htlm_agent.mind.knowledge import previous
 from htlm_agent.trainer.core import Schedule, TrainerCore, TrainerEffects, load_learner_data
 from htlm_msgs_py import schema as S
 from htlm_world.model import Model
@@ -217,7 +216,7 @@ def test_trainer_rounds_equal_the_in_process_learner(tmp_path: Path, wire: bool,
             return np.stack([np.asarray(r[f]) for r in step], axis=1)  # (B, N, ...)
 
         if expert is not None and learner.settings.warm_start(learner.episodes_done):
-            imitate_step(learner, expert, col("k"), MODEL.action_mask(previous(col("k"), SC)))
+            imitate_step(learner, expert, col("k"))
         learner.store_batch(col("k"), col("a"), col("r"), col("k2"), col("mask2").astype(bool), bool(step[0]["done"]))
         learner.train_steps(LEARNER["updates_per_step"])
         if g % H == H - 1:

@@ -163,7 +163,7 @@ def train_batch(
         if expert is not None:  # each agent acts around the expert's choice from its own K, as a process does
             a_exp = expert.act(knowledge_context(sc, k, m))
             a = team.force_inactive(team_epsilon_greedy(a_exp, m, eps_env, rngs))
-            losses.append(imitate_step(learner, expert, k, m))
+            losses.append(imitate_step(learner, expert, k))
         else:  # a dropped agent's stored action: its idling
             a = team.force_inactive(learner.act(k, m, eps_env, rngs, net))
         k2, r, info = team.step(a)
@@ -186,12 +186,13 @@ def train_batch(
     }
 
 
-def imitate_step(learner: Learner, expert: Policy, k: FloatArray, m: BoolArray) -> float:
+def imitate_step(learner: Learner, expert: Policy, k: FloatArray) -> float:
     """The warm start's update of one step for the whole team, in process and in the trainer over ROS alike: the
-    networks learn to rank first the expert's choices made from every agent's own knowledge state (B, N, K) and mask
-    (`Learner.imitate`), the knowledge as the trainer receives it (float32, the precision of the wire and of the
-    replay memories). Returns the loss."""
+    networks learn to rank first the expert's choices made from every agent's own knowledge state (B, N, K) and its
+    Â(a_o) (`Learner.imitate`), the knowledge as the trainer receives it (float32, the precision of the wire and of
+    the replay memories). Returns the loss."""
     k32 = np.asarray(k, dtype=np.float32).astype(np.float64)  # the values of float32, as the trainer has them
+    m = learner.knowledge_mask(k32).numpy()
     return learner.imitate(k32, m, np.asarray(expert.act(knowledge_context(learner.scenario, k32, m)), dtype=np.int64))
 
 

@@ -33,7 +33,7 @@ TOKENS_PRESET: dict[str, Any] = {
     "imitate_episodes": 2048,
     "eps_start": 0.3,
 }
-"""The settings `htlm train --learner tokens` starts from (docs/model.md, The token learner): smaller layers than
+"""The settings the token learner starts from (`with_preset`; docs/model.md, The token learner): smaller layers than
 the paper's MLPs (one network serves every action), a warm start on the auction, and less exploration after it."""
 
 

@@ -25,7 +25,6 @@ import numpy as np
 
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
-from htlm_agent.mind.knowledge import previous
 from htlm_msgs_py.payload import seal
 from htlm_msgs_py.run_control import REFUSED, RunControl
 from htlm_world.episode import global_step
@@ -554,8 +553,7 @@ class TrainerCore:
                 from htlm_agent.experiments.train import imitate_step
 
                 # the agents acted around the expert's choices from these knowledge states: as `htlm train`
-                mask = self.learner.model.action_mask(previous(k, sc))
-                self.last_loss = imitate_step(self.learner, self.expert, k, mask)
+                self.last_loss = imitate_step(self.learner, self.expert, k)
             self.learner.store_batch(k, a, rew, k2, m2, bool(recs[0]["done"]))
         else:  # a round without every agent has no warm-start update (the expert's team choice needs them all)
             out.counters["partial_rounds"] += 1
