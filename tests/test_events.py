@@ -195,3 +195,28 @@ def test_htlm_stress_runs_a_team_under_a_stress_set_and_writes_its_reports(tmp_p
     assert (
         main(["show", str(out / "new-fire" / "learned-with"), "--episode", "0", "--out", str(tmp_path / "e.png")]) == 0
     )
+
+
+def test_random_events_are_made_for_any_operation_at_their_rate() -> None:
+    """`--events random`: every task can come back once its site is done or surge, every agent can drop out, named
+    from the operation alone, at about RANDOM_EVENTS_PER_EPISODE events an episode; a stress set of that name wins."""
+    from htlm_agent.baselines.heuristics import GreedyPolicy
+    from htlm_world.scenario import RANDOM_EVENTS_PER_EPISODE, random_events
+
+    for sc in (builtin(), load("warehouse")):
+        ev = read_events("random", sc)
+        assert ev == random_events(sc)
+        assert len(ev) == 2 * sc.n_tasks + sc.n_agents
+        assert {e.agent for e in ev if e.event == "dropout"} == {a.name for a in sc.agents}
+        assert all(0 < e.probability < 0.05 for e in ev)
+    sc = builtin()
+    team = Team(sc.with_events(random_events(sc), "random"), 400, 2)
+    rollout_events = 0
+    team.reset()
+    for _ in range(sc.horizon):
+        _, _, info = team.step(GreedyPolicy(team.scenario).act(team.context()))
+        rollout_events += int(np.asarray(info.events).sum())
+    per_episode = rollout_events / 400
+    assert 0.25 * RANDOM_EVENTS_PER_EPISODE < per_episode < 1.5 * RANDOM_EVENTS_PER_EPISODE, per_episode
+    named = sc.replace(stress={"random": (EventSpec("dropout", agent="agent1", at=2),)})
+    assert read_events("random", named) == named.stress["random"]

@@ -134,3 +134,51 @@ def test_a_trained_network_acts_on_a_changed_team_and_operation() -> None:
         team = Team(c, 4, 1)
         a = greedy_actions(net, team.knowledge(), team.mask())
         assert np.take_along_axis(team.mask(), a[..., None], axis=-1).all()
+
+
+class _Recording:
+    """An agent policy that keeps every knowledge state it acts on."""
+
+    def __init__(self, inner: object) -> None:
+        self.inner = inner
+        self.seen: list[np.ndarray] = []
+
+    def act(self, k: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        self.seen.append(k.copy())
+        return self.inner.act(k, mask)  # type: ignore[attr-defined, no-any-return]
+
+
+def test_every_agent_knows_where_its_teammates_were_as_the_in_process_team_does() -> None:
+    """With `teammates` (and the roster), K ends with where the teammates were at the last step: an agent's mind
+    builds it from the broadcasts it heard, the in-process Team from the joint assignment, and the two agree
+    step for step; a teammate's capability on a task, or its presence at an idle location, shows there."""
+    from htlm_agent.baselines.heuristics import builtin_policy
+    from htlm_agent.mind.agent import loopback_episode
+    from htlm_agent.mind.policies import DecentralizedPolicy
+    from htlm_agent.runtime.team import rollout
+
+    sc = builtin().replace(roster=True, teammates=True)
+    assert sc.knowledge_size == builtin().knowledge_size + sc.n_agents + sc.n_actions
+    inner = [builtin_policy(sc, "greedy", i)[0] for i in range(sc.n_agents)]
+    in_team = [_Recording(p) for p in inner]
+    dp = DecentralizedPolicy(in_team, 3, 0.2)  # type: ignore[arg-type]
+    dp.begin(2)
+    tr = rollout(Team(sc, 1, 3, episode=2), dp)
+    in_minds = [_Recording(p) for p in inner]
+    lb = loopback_episode(sc, 3, 2, in_minds, epsilon=0.2)  # type: ignore[arg-type]
+    assert np.array_equal(tr.actions[:, 0], lb["actions"])
+    model = Model.build(sc)
+    for i in range(sc.n_agents):
+        assert len(in_team[i].seen) == len(in_minds[i].seen) == sc.horizon
+        for t, (a, b) in enumerate(zip(in_team[i].seen, in_minds[i].seen, strict=True)):
+            assert np.array_equal(a, b), (i, t)
+            mates = knowledge.teammates(b, sc)[0]
+            if t == 0:  # everyone starts at idle@site1
+                assert mates[sc.n_tasks] == 1.0 and mates.sum() == 1.0
+                continue
+            joint = tr.actions[t - 1, 0]
+            want = knowledge.teammates_of(model, joint)[i]
+            assert np.allclose(mates, want)
+            for j in range(sc.n_tasks):  # a task a teammate worked on shows its capability there
+                others = [n for n in range(sc.n_agents) if n != i and joint[n] == j]
+                assert (mates[j] > 0) == any(model.agent_caps[n, j] > 0 for n in others)

@@ -149,15 +149,16 @@ def test_no_launched_process_maps_fast_dds_shared_memory(ros_team: Any) -> None:
 
 
 def test_token_networks_with_a_roster_over_ros_equal_in_process(ros_team: Any, tmp_path: Path) -> None:
-    """The token learner's networks (one shared network, a copy in every agent process) on a scenario with the roster
-    and a dropout: every agent sees from the broadcasts who went silent, as the in-process Team does from who sat
-    out, and the 4 episodes equal Team(scenario, 4, seed, b) bit for bit."""
+    """The token learner's networks (one shared network, a copy in every agent process) on a scenario with the roster,
+    the teammates' places and a dropout: every agent sees from the broadcasts who went silent and where the others
+    were, as the in-process Team does from who sat out and the joint assignment, and the 4 episodes equal
+    Team(scenario, 4, seed, b) bit for bit."""
     import yaml
 
     from htlm_agent.learning.settings import Settings
     from htlm_world.scenario import EventSpec, builtin
 
-    sc = builtin().replace(roster=True).with_events((EventSpec("dropout", agent="agent2", at=3),))
+    sc = builtin().replace(roster=True, teammates=True).with_events((EventSpec("dropout", agent="agent2", at=3),))
     (path := tmp_path / "roster.yaml").write_text(yaml.safe_dump(sc.to_dict()))
     team = ros_team(policy="checkpoint", seed=6, episodes=4, batch=4, scenario=sc, scenario_file=str(path))
     settings = Settings(learner="tokens", hidden=(16, 16), memory=1000, envs=1)

@@ -218,6 +218,10 @@ class Scenario:
     """The knowledge state also holds the roster: which teammates the agent heard from at its last step (their
     broadcast arrived), so that a policy can leave out a teammate that has gone silent (not in the paper:
     docs/model.md, Knowledge state)."""
+    teammates: bool = False
+    """The knowledge state also holds where the teammates were at the last step, by their last known assignments:
+    for every task the capability they brought to it, for every idle location how many idled there (not in the
+    paper: docs/model.md, Knowledge state)."""
     agents: tuple[AgentSpec, ...] = ()
     """The team."""
     team: str = ""
@@ -329,8 +333,9 @@ class Scenario:
     @property
     def knowledge_size(self) -> int:
         """Length of the Q-network input: p*L marginals + one-hot previous assignment over G-bar (+ the roster of
-        N teammates heard from, with `roster`)."""
-        return self.n_tasks * self.levels + self.n_actions + (self.n_agents if self.roster else 0)
+        N teammates heard from, with `roster`; + the teammates' last assignments over G-bar, with `teammates`)."""
+        extra = (self.n_agents if self.roster else 0) + (self.n_actions if self.teammates else 0)
+        return self.n_tasks * self.levels + self.n_actions + extra
 
     def agent_reward(self, i: int) -> RewardParams:
         """Reward parameters of agent i (its own, else the shared ones)."""
@@ -394,7 +399,9 @@ class Scenario:
             "levels": self.levels,
             "actions": list(self.action_names),
             "n_agents": self.n_agents,
-            "knowledge": ["marginals(p,L)", "onehot(prev,|G|)"] + (["roster(N)"] if self.roster else []),
+            "knowledge": ["marginals(p,L)", "onehot(prev,|G|)"]
+            + (["roster(N)"] if self.roster else [])
+            + (["teammates(|G|)"] if self.teammates else []),
         }
         return hashlib.sha256(json.dumps(layout, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -834,9 +841,56 @@ def _validate_events(
             raise ScenarioError(f"{src}: {at}.once_done: {ev.once_done!r} is not a site (sites: {list(sites)})")
 
 
+RANDOM_EVENTS = "random"
+"""The name (`--events random`) of the events every scenario can draw by chance (`random_events`), unless it has a
+stress set or there is a file of that name."""
+
+RANDOM_EVENTS_PER_EPISODE = 0.5
+"""How many random events (`random_events`) an episode holds on average: half relapses after completion, a quarter
+surges of an open task, a quarter dropouts."""
+
+
+def random_events(sc: Scenario, per_episode: float = RANDOM_EVENTS_PER_EPISODE) -> tuple[EventSpec, ...]:
+    """Events that happen by chance, made from the operation alone, for training that prepares for the unexpected
+    (docs/model.md, Events): every task can come back to level L − 2 once its site is done (a relapse, or a new
+    task where the team believes the work is over), can surge to level L − 1 from step 3 on, and every agent can
+    drop out from step 2 on. The chances per step are set so that an episode holds `per_episode` events on average
+    (half relapses, a quarter surges, a quarter dropouts; a relapse's window is taken as half the horizon)."""
+    h, top = sc.horizon, sc.levels - 1
+    n_tasks = max(1, sc.n_tasks)
+    relapse = min(1.0, per_episode / 2 / (n_tasks * max(1, h // 2)))
+    surge = min(1.0, per_episode / 4 / (n_tasks * max(1, h - 2)))
+    drop = min(1.0, per_episode / 4 / (max(1, sc.n_agents) * max(1, h - 1)))
+    out: list[EventSpec] = []
+    for s, k in sc.tasks:
+        site, kind = sc.sites[s].name, sc.kinds[k].name
+        out.append(
+            EventSpec(
+                "surge",
+                site=site,
+                task=kind,
+                level=max(1, top - 1),
+                at=1,
+                probability=relapse,
+                once_done=site,
+                name=f"{kind}@{site} comes back",
+            )
+        )
+        out.append(
+            EventSpec(
+                "surge", site=site, task=kind, level=top, at=min(3, h), probability=surge, name=f"{kind}@{site} surges"
+            )
+        )
+    out += [
+        EventSpec("dropout", agent=a.name, at=min(2, h), probability=drop, name=f"{a.name} drops out")
+        for a in sc.agents
+    ]
+    return tuple(out)
+
+
 def read_events(path: str | Path, sc: Scenario) -> tuple[EventSpec, ...]:
     """The events of an events file (`events:` a list, or the list itself), or of the scenario's stress set named
-    `path`, checked against the operation `sc`.
+    `path`, or (`RANDOM_EVENTS`) those that happen by chance (`random_events`), checked against the operation `sc`.
 
     Raises:
         ScenarioError: naming the file, the field and the bad value.
@@ -846,6 +900,8 @@ def read_events(path: str | Path, sc: Scenario) -> tuple[EventSpec, ...]:
         _validate_events(sc, f"scenario {sc.name!r}", f"stress.{name}", sc.stress[name])
         return sc.stress[name]
     p = Path(path)
+    if name == RANDOM_EVENTS and not p.exists():
+        return random_events(sc)
     if not p.exists():
         sets = f" (or name a stress set of the scenario: {', '.join(sc.stress)})" if sc.stress else ""
         raise ScenarioError(f"{p}: cannot read events file: No such file or directory{sets}")

@@ -54,6 +54,13 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
         help="the knowledge state holds which teammates were heard from at the last step, so the auction and the "
         "learners leave out a silent teammate (docs/model.md, Knowledge state) (default: the scenario's)",
     )
+    g.add_argument(
+        "--teammates",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the knowledge state holds where the teammates were at the last step (their last known assignments), "
+        "so a learned team sees who covers what (docs/model.md, Knowledge state) (default: the scenario's)",
+    )
     g.add_argument("--scenario", default=None, metavar="FILE", help="scenario YAML (default: the built-in 'paper')")
     g.add_argument(
         "--mode",
@@ -82,6 +89,8 @@ def scenario_from_args(args: argparse.Namespace) -> Scenario:
         sc = sc.replace(mode=args.mode)
     if getattr(args, "roster", None) is not None:
         sc = sc.replace(roster=args.roster)
+    if getattr(args, "teammates", None) is not None:
+        sc = sc.replace(teammates=args.teammates)
     if getattr(args, "credit", None) is not None:
         sc = sc.with_credit(args.credit)
     return with_events_from_args(sc, args)

@@ -57,7 +57,7 @@ def flatten(params: Sequence[NDArray[np.float32]], size: int) -> torch.Tensor:
 
 def token_features(levels: int) -> int:
     """F, the size of a token for a scenario with `levels` levels: the marginals and the named features below."""
-    return levels + 18 + GLOBAL_FEATURES
+    return levels + 20 + GLOBAL_FEATURES
 
 
 def token_shapes(levels: int, hidden: Sequence[int]) -> list[tuple[int, ...]]:
@@ -111,6 +111,9 @@ class TokenSpec:
         self.team_caps = torch.tensor(caps / cmax, dtype=torch.float32)  # (N_team, p)
         self.ahead_caps = torch.tensor(caps[None] * ahead / cmax, dtype=torch.float32)  # (A, N_team, p)
         self.roster = sc.roster
+        self.teammates = sc.teammates
+        self.n_team = sc.n_agents
+        self.mates_from = sc.knowledge_size - sc.n_actions
         self.own_total = torch.tensor(own.sum(axis=1) / (cmax * max(1, sc.n_kinds)), dtype=torch.float32)  # (A,)
         rewards = [sc.agent_reward(i) for i in self.agents]
         self.threshold = torch.tensor([r.belief_threshold for r in rewards], dtype=torch.float32)  # (A,)
@@ -162,11 +165,14 @@ class TokenSpec:
         capability (with `Scenario.roster`, of those heard from at the last step), the capability of those ahead in
         an auction, growth, hazard, at the site of a_o, is a_o, reassignment cost of going there, 1 (a task), the
         excess penalty it would earn, 0, and whether the auction run on the agent's own belief (and roster) gives it
-        this task (`advice`). Idle token s: zeros for the task-only entries, P(every task of s done) in place of
-        P(level 0), the site's largest confident level, its mean expected level, at the site of a_o, is a_o, the
-        reassignment cost, 0 (idle), the idle bonus times the chance that s is done, 1, and whether the auction
-        leaves the agent idle there. Every token ends with the operation's features: the mean P(level 0) over tasks,
-        the share of tasks confidently done, the agent's total capability, whether a_o is an idle location.
+        this task (`advice`), then (with `Scenario.teammates`, else zeros) the capability the teammates brought to
+        it at the last step and the part of its confident level that capability leaves uncovered. Idle token s:
+        zeros for the task-only entries, P(every task of s done) in place of P(level 0), the site's largest confident
+        level, its mean expected level, at the site of a_o, is a_o, the reassignment cost, 0 (idle), the idle bonus
+        times the chance that s is done, 1, whether the auction leaves the agent idle there, tanh of the number of
+        teammates that idled there at the last step, 0. Every token ends with the operation's features: the mean
+        P(level 0) over tasks, the share of tasks confidently done, the agent's total capability, whether a_o is an
+        idle location.
         """
         p, q, L = self.p, self.q, self.levels
         a_n, m = x.shape[0], x.shape[1]
@@ -187,7 +193,14 @@ class TokenSpec:
         same_task_site = (self.task_site.to(torch.float32)[None, None, :] == prev_site[..., None]).to(torch.float32)
         move = (1.0 - same_task_site) * has_prev[..., None]
         excess = self.excess_on[:, None, :] * (conf <= self.excess_from[:, None, :]).to(torch.float32)
-        roster = x[..., p * L + self.n_actions :] if self.roster else None  # (A, M, N) heard at the last step
+        start = p * L + self.n_actions
+        roster = x[..., start : start + self.n_team] if self.roster else None  # (A, M, N) heard at the last step
+        if self.teammates:  # where the teammates were at the last step (`knowledge.teammates_of`)
+            mates = x[..., self.mates_from : self.mates_from + self.n_actions] * max(1, self.n_team - 1)
+        else:
+            mates = torch.zeros(a_n, m, self.n_actions)
+        mates_cap = mates[..., :p]  # (A, M, p) the teammates' capability on each task, over capability_max
+        uncovered = (conf - mates_cap * self.scenario.capability_max).clamp(min=0.0) / (L - 1)
         advised = self.advice(conf, prev_site, roster)  # (A, M, |Ḡ|)
         if roster is None:
             others = self.others_cap[:, None, :].expand(a_n, m, p)
@@ -219,6 +232,8 @@ class TokenSpec:
                         -excess,
                         torch.zeros_like(p0),
                         advised[..., :p],
+                        mates_cap,
+                        uncovered,
                     ],
                     dim=-1,
                 ),
@@ -266,6 +281,8 @@ class TokenSpec:
                     site_done * self.idle_bonus[:, None, None],
                     torch.ones_like(z),
                     advised[..., p:],
+                    torch.tanh(mates[..., p:]),
+                    z,
                 ],
                 dim=-1,
             )

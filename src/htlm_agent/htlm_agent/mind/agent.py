@@ -145,7 +145,8 @@ class AgentMind:
     def knowledge(self) -> FloatArray:
         """Knowledge states K = {b, a_o} (B, K)."""
         roster = self.heard if self.scenario.roster else None
-        return knowledge.build(self.marg, self.prev, self.scenario.n_actions, roster)
+        mates = knowledge.teammates_of(self.model, self.known)[:, self.me] if self.scenario.teammates else None
+        return knowledge.build(self.marg, self.prev, self.scenario.n_actions, roster, mates)
 
     def mask(self) -> BoolArray:
         """Â(a_o) (B, |G|)."""

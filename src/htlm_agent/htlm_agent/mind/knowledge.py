@@ -4,8 +4,9 @@ its layout.
 Layout of the last axis (K = p·L + |Ḡ| entries): the per-task marginals of the belief, task-major (p rows of L
 levels, tasks in task order, `Scenario.tasks`), then the one-hot previous assignment a_o over
 Ḡ; a_o = -1 (no assignment yet) is all zeros. With `Scenario.roster`, N more entries: 1 for every teammate heard
-from at the last step (the agent itself always; everyone before the first step). `Scenario.knowledge_size` is its
-length and `Scenario.layout_hash` its fingerprint.
+from at the last step (the agent itself always; everyone before the first step). With `Scenario.teammates`, |Ḡ|
+more entries (`teammates`): where the agent's teammates were at the last step by their last known assignments.
+`Scenario.knowledge_size` is its length and `Scenario.layout_hash` its fingerprint.
 """
 
 from __future__ import annotations
@@ -15,20 +16,32 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.types import IntArray, Knowledge, Marginals
+from htlm_world.types import FloatArray, IntArray, Knowledge, Marginals
 
 AnyFloats = NDArray[np.floating[Any]]
 """Knowledge states as stored anywhere: float64 in the runtimes, float32 in the replay memories."""
 
 
-def build(marg: Marginals, prev: IntArray, n_actions: int, roster: NDArray[np.bool_] | None = None) -> Knowledge:
+def build(
+    marg: Marginals,
+    prev: IntArray,
+    n_actions: int,
+    roster: NDArray[np.bool_] | None = None,
+    mates: FloatArray | None = None,
+) -> Knowledge:
     """K from marginals (..., p, L) and previous assignments (...,): (..., p·L + |Ḡ|), followed with `roster`
-    (..., N) by 1 for every teammate heard from at the last step, 0 for the others (`Scenario.roster`)."""
+    (..., N) by 1 for every teammate heard from at the last step, 0 for the others (`Scenario.roster`), then with
+    `mates` (..., |Ḡ|) by where the teammates were (`Scenario.teammates`, `teammates_of`)."""
     lead, size = marg.shape[:-2], marg.shape[-2] * marg.shape[-1]
-    if roster is not None:
-        head = build(marg, prev, n_actions)
-        return np.concatenate([head, np.broadcast_to(roster, lead + roster.shape[-1:]).astype(head.dtype)], axis=-1)
+    if roster is not None or mates is not None:
+        parts = [build(marg, prev, n_actions)]
+        if roster is not None:
+            parts.append(np.broadcast_to(roster, lead + roster.shape[-1:]).astype(parts[0].dtype))
+        if mates is not None:
+            parts.append(np.broadcast_to(mates, lead + mates.shape[-1:]).astype(parts[0].dtype))
+        return np.concatenate(parts, axis=-1)
     out: Knowledge = np.empty(lead + (size + n_actions,))
     dst = out[..., :size].reshape(marg.shape)  # a view of out (its last axis split)
     if marg.strides[-1] == marg.itemsize or marg[..., 0, 0].size < 2048:
@@ -63,8 +76,31 @@ def roster(k: AnyFloats, scenario: Scenario) -> NDArray[np.bool_]:
     the scenario keeps no roster."""
     if not scenario.roster:
         return np.ones(k.shape[:-1] + (scenario.n_agents,), dtype=bool)
-    out: NDArray[np.bool_] = k[..., scenario.knowledge_size - scenario.n_agents :] > 0.5
+    start = scenario.n_tasks * scenario.levels + scenario.n_actions
+    out: NDArray[np.bool_] = k[..., start : start + scenario.n_agents] > 0.5
     return out
+
+
+def teammates_of(model: Model, joint: IntArray) -> FloatArray:
+    """Where each agent's teammates were (..., N, |Ḡ|), from the last known assignments of the whole team
+    (..., N) (`Scenario.teammates`, docs/model.md, Knowledge state): for task j the capability the agent's teammates
+    brought to it, over capability_max · (N − 1); for an idle location the number of teammates idling there, over
+    N − 1. An assignment of -1 (none) counts nowhere."""
+    sc = model.scenario
+    n, g = sc.n_agents, sc.n_actions
+    onehot = (joint[..., None] == np.arange(g)).astype(np.float64)  # (..., N, |Ḡ|)
+    caps = np.where(np.arange(g) < sc.n_tasks, model.agent_caps / sc.capability_max, 1.0)  # (N, |Ḡ|)
+    brought = onehot * caps  # what each agent brings to where it is
+    out: FloatArray = (brought.sum(axis=-2, keepdims=True) - brought) / max(1, n - 1)
+    return out
+
+
+def teammates(k: AnyFloats, scenario: Scenario) -> AnyFloats:
+    """The teammates' places (..., |Ḡ|) held in knowledge states (..., K) (`teammates_of`); zeros when the scenario
+    keeps none."""
+    if not scenario.teammates:
+        return np.zeros(k.shape[:-1] + (scenario.n_actions,), dtype=k.dtype)
+    return k[..., scenario.knowledge_size - scenario.n_actions :]
 
 
 def split(k: AnyFloats, scenario: Scenario) -> tuple[AnyFloats, IntArray]:

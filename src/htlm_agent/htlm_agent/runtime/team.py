@@ -125,10 +125,13 @@ class Team:
         return marg
 
     def _build_knowledge(self) -> FloatArray:
-        """K of every agent (B, N, K) from the marginals, a_o and (with `Scenario.roster`) who was heard from."""
+        """K of every agent (B, N, K) from the marginals, a_o and (with `Scenario.roster`) who was heard from, (with
+        `Scenario.teammates`) where the teammates were: in process every broadcast arrives, so every agent knows the
+        whole joint assignment of the last step."""
         sc = self.scenario
         roster = self.heard[:, None, :] | np.eye(sc.n_agents, dtype=bool)[None] if sc.roster else None
-        return knowledge.build(self.marg, self.prev, sc.n_actions, roster)
+        mates = knowledge.teammates_of(self.model, self.prev) if sc.teammates else None
+        return knowledge.build(self.marg, self.prev, sc.n_actions, roster, mates)
 
     def _sitting_out(self) -> BoolArray:
         """(B, N) the agents that sit out the step: kept out by an event, inactivated or dropped."""
