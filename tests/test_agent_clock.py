@@ -104,7 +104,7 @@ def test_a_session_started_mid_run_joins_at_the_next_instant() -> None:
     late = team.start(1)
     logs = team.logs[1]
     team.run_until(clock.at(1, SC.horizon) + PERIOD)
-    assert late.joined_at == (0, 6)
+    assert late.deploy is not None and late.deploy.joined_at == (0, 6)
     assert [x["episode"] for x in logs] == [0, 1]
     assert logs[0]["acted"] == [False] * 5 + [True] * (SC.horizon - 5), "joins at step 6, not before"
     assert logs[1]["acted"] == [True] * SC.horizon
@@ -252,12 +252,12 @@ def test_records_far_ahead_of_the_clock_take_no_place_in_the_tables() -> None:
     team.start(0)
     team.run_until(EPOCH + 2.5)
     s = team.sessions[0]
-    assert s.own_clock is not None and s.external is not None
+    assert s.deploy is not None and s.observations is not None
     rejects = []
     for i in range(65):
         obs = {"agent": 0, "episode": 2, "step": 1 + i % SC.horizon, "tasks": [0], "levels": [1], "acted": [0]}
         rejects += s.on_observation(obs, team.now).rejects
     assert [r[:2] for r in rejects] == [("observation", "future")] * 65
-    assert s.external.robot == {}
+    assert s.observations.robot == {}
     ok = s.on_observation({"agent": 0, "episode": 0, "step": 3, "tasks": [0], "levels": [1], "acted": [0]}, team.now)
     assert not ok.rejects

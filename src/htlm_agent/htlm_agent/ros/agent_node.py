@@ -132,7 +132,7 @@ class AgentNode(Node):
             return
         self._apply(self.session.on_scenario(rec, time.monotonic(), kept))
         se = self.session
-        if self.run_file is not None and se.own_clock is not None and rec["run"] == se.run and rec["epoch"] > 0.0:
+        if self.run_file is not None and se.deploy is not None and rec["run"] == se.run and rec["epoch"] > 0.0:
             text = msg if isinstance(msg, str) else record_text(msg)
             write_atomic(self.run_file, text)
 
