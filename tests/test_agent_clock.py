@@ -15,7 +15,7 @@ from htlm_agent.session.core import AgentSession
 from htlm_msgs_py import schema as S
 from htlm_msgs_py.schema import limits
 from htlm_world.clock import StepClock
-from htlm_world.protocol import LockstepSettings, WorldProtocol
+from htlm_world.protocol import LockstepSettings, world_protocol
 from htlm_world.scenario import builtin
 
 SC = builtin()
@@ -29,7 +29,7 @@ def _run_record(episodes: int, epoch: float = EPOCH) -> dict[str, Any]:
     settings = LockstepSettings(
         run_id="d1", mode="deploy", episodes=episodes, operation="external", clock="free", period=PERIOD
     )
-    rec = WorldProtocol(SC, settings).scenario_record("running")
+    rec = world_protocol(SC, settings).scenario_record("running")
     return {**rec, "epoch": epoch}
 
 
@@ -115,7 +115,7 @@ def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> No
     settings = LockstepSettings(
         run_id="d1", mode="deploy", episodes=1, operation="external", clock="free", period=PERIOD, join_timeout=5.0
     )
-    world = WorldProtocol(SC, dataclasses.replace(settings))
+    world = world_protocol(SC, dataclasses.replace(settings))
     eff = world.start(0.0)
     assert [k for k, _ in eff.publish] == ["scenario", "step"]
     sent = []
@@ -141,7 +141,7 @@ def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> No
     assert [row[2] for row in world.ep.trajectory()["actions"][1:3]] == [0, 1]
     assert world.ep.absent[2] == SC.horizon - 3
     # a world restarted mid-run observes from the step in progress on
-    again = WorldProtocol(SC, dataclasses.replace(settings, episodes=3))
+    again = world_protocol(SC, dataclasses.replace(settings, episodes=3))
     again.resume(5, 1, world.epoch)
     eff = again.start(clock.at(1, 4) + 0.5)
     assert (again.episode, again.t) == (1, 5)
@@ -231,7 +231,7 @@ def test_records_far_ahead_of_the_clock_take_no_place_in_the_tables() -> None:
     settings = LockstepSettings(
         run_id="d1", mode="deploy", episodes=3, operation="external", clock="free", period=PERIOD, join_timeout=5.0
     )
-    world = WorldProtocol(SC, settings)
+    world = world_protocol(SC, settings)
     world.start(0.0)
     for k in range(SC.n_agents):
         world.on_action({"agent": k, "episode": 0, "step": 1, "actions": [SC.start_assignment], "before": []}, 0.1)

@@ -25,7 +25,7 @@ from htlm_msgs_py import schema as S
 from htlm_msgs_py.payload import seal
 from htlm_msgs_py.schema import limits
 from htlm_world.episode import global_step
-from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol
+from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol, world_protocol
 from htlm_world.scenario import Scenario, builtin
 
 SC = builtin()
@@ -62,7 +62,7 @@ def _announce(
 ) -> dict[str, Any]:
     """A scenario record of the world, decoded."""
     settings = LockstepSettings(run_id=run, mode=mode, episodes=episodes, batch=batch, trainer_lag=trainer_lag)
-    rec = WorldProtocol(SC, dataclasses.replace(settings, first_episode=first)).scenario_record(state)
+    rec = world_protocol(SC, dataclasses.replace(settings, first_episode=first)).scenario_record(state)
     return {**rec, "seq": seq, "nonce": nonce}
 
 
@@ -161,7 +161,7 @@ class _Net:
 
 def _team(scenario: Scenario, seed: int, episodes: int, policy: str, batch: int = 1, first: int = 0, **kw: Any) -> _Net:
     settings = LockstepSettings(seed=seed, first_episode=first, episodes=episodes, linger=0.0, batch=batch)
-    world = WorldProtocol(scenario, settings)
+    world = world_protocol(scenario, settings)
     sessions = [
         AgentSession(AgentSettings(**{"agent": a.name, "policy": policy, **kw}).session()) for a in scenario.agents
     ]

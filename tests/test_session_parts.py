@@ -30,7 +30,7 @@ from htlm_msgs_py.schema import limits
 from htlm_msgs_py.signing import Signer
 from htlm_world.clock import FUTURE_STEPS, StepClock
 from htlm_world.episode import global_step
-from htlm_world.protocol import LockstepSettings, WorldProtocol
+from htlm_world.protocol import LockstepSettings, world_protocol
 from htlm_world.scenario import ScenarioRecordError, builtin
 
 SC = builtin()
@@ -41,7 +41,7 @@ NAMES = [a.name for a in SC.agents]
 def _record(**kw: Any) -> dict[str, Any]:
     """A decoded scenario record of a run."""
     settings = LockstepSettings(**{"run_id": "r1", "episodes": 2, **kw})
-    return {**WorldProtocol(SC, settings).scenario_record("running"), "seq": 0, "nonce": "00000000000000aa"}
+    return {**world_protocol(SC, settings).scenario_record("running"), "seq": 0, "nonce": "00000000000000aa"}
 
 
 # ----- the outbox and the action resend ---------------------------------------------------------------------------
