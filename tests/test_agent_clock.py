@@ -15,7 +15,7 @@ from htlm_agent.session.core import AgentSession
 from htlm_msgs_py import schema as S
 from htlm_msgs_py.schema import limits
 from htlm_world.clock import StepClock
-from htlm_world.protocol import LockstepSettings, WorldProtocol
+from htlm_world.protocol import LockstepSettings, world_protocol
 from htlm_world.scenario import builtin
 
 SC = builtin()
@@ -29,7 +29,7 @@ def _run_record(episodes: int, epoch: float = EPOCH) -> dict[str, Any]:
     settings = LockstepSettings(
         run_id="d1", mode="deploy", episodes=episodes, operation="external", clock="free", period=PERIOD
     )
-    rec = WorldProtocol(SC, settings).scenario_record("running")
+    rec = world_protocol(SC, settings).scenario_record("running")
     return {**rec, "epoch": epoch}
 
 
@@ -104,7 +104,7 @@ def test_a_session_started_mid_run_joins_at_the_next_instant() -> None:
     late = team.start(1)
     logs = team.logs[1]
     team.run_until(clock.at(1, SC.horizon) + PERIOD)
-    assert late.joined_at == (0, 6)
+    assert late.deploy is not None and late.deploy.joined_at == (0, 6)
     assert [x["episode"] for x in logs] == [0, 1]
     assert logs[0]["acted"] == [False] * 5 + [True] * (SC.horizon - 5), "joins at step 6, not before"
     assert logs[1]["acted"] == [True] * SC.horizon
@@ -115,7 +115,7 @@ def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> No
     settings = LockstepSettings(
         run_id="d1", mode="deploy", episodes=1, operation="external", clock="free", period=PERIOD, join_timeout=5.0
     )
-    world = WorldProtocol(SC, dataclasses.replace(settings))
+    world = world_protocol(SC, dataclasses.replace(settings))
     eff = world.start(0.0)
     assert [k for k, _ in eff.publish] == ["scenario", "step"]
     sent = []
@@ -141,7 +141,7 @@ def test_the_world_observes_the_joint_assignment_from_the_agents_actions() -> No
     assert [row[2] for row in world.ep.trajectory()["actions"][1:3]] == [0, 1]
     assert world.ep.absent[2] == SC.horizon - 3
     # a world restarted mid-run observes from the step in progress on
-    again = WorldProtocol(SC, dataclasses.replace(settings, episodes=3))
+    again = world_protocol(SC, dataclasses.replace(settings, episodes=3))
     again.resume(5, 1, world.epoch)
     eff = again.start(clock.at(1, 4) + 0.5)
     assert (again.episode, again.t) == (1, 5)
@@ -231,7 +231,7 @@ def test_records_far_ahead_of_the_clock_take_no_place_in_the_tables() -> None:
     settings = LockstepSettings(
         run_id="d1", mode="deploy", episodes=3, operation="external", clock="free", period=PERIOD, join_timeout=5.0
     )
-    world = WorldProtocol(SC, settings)
+    world = world_protocol(SC, settings)
     world.start(0.0)
     for k in range(SC.n_agents):
         world.on_action({"agent": k, "episode": 0, "step": 1, "actions": [SC.start_assignment], "before": []}, 0.1)
@@ -252,12 +252,12 @@ def test_records_far_ahead_of_the_clock_take_no_place_in_the_tables() -> None:
     team.start(0)
     team.run_until(EPOCH + 2.5)
     s = team.sessions[0]
-    assert s.own_clock is not None and s.external is not None
+    assert s.deploy is not None and s.observations is not None
     rejects = []
     for i in range(65):
         obs = {"agent": 0, "episode": 2, "step": 1 + i % SC.horizon, "tasks": [0], "levels": [1], "acted": [0]}
         rejects += s.on_observation(obs, team.now).rejects
     assert [r[:2] for r in rejects] == [("observation", "future")] * 65
-    assert s.external.robot == {}
+    assert s.observations.robot == {}
     ok = s.on_observation({"agent": 0, "episode": 0, "step": 3, "tasks": [0], "levels": [1], "acted": [0]}, team.now)
     assert not ok.rejects

@@ -25,7 +25,7 @@ from htlm_msgs_py import schema as S
 from htlm_msgs_py.payload import seal
 from htlm_msgs_py.schema import limits
 from htlm_world.episode import global_step
-from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol
+from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol, world_protocol
 from htlm_world.scenario import Scenario, builtin
 
 SC = builtin()
@@ -62,7 +62,7 @@ def _announce(
 ) -> dict[str, Any]:
     """A scenario record of the world, decoded."""
     settings = LockstepSettings(run_id=run, mode=mode, episodes=episodes, batch=batch, trainer_lag=trainer_lag)
-    rec = WorldProtocol(SC, dataclasses.replace(settings, first_episode=first)).scenario_record(state)
+    rec = world_protocol(SC, dataclasses.replace(settings, first_episode=first)).scenario_record(state)
     return {**rec, "seq": seq, "nonce": nonce}
 
 
@@ -161,7 +161,7 @@ class _Net:
 
 def _team(scenario: Scenario, seed: int, episodes: int, policy: str, batch: int = 1, first: int = 0, **kw: Any) -> _Net:
     settings = LockstepSettings(seed=seed, first_episode=first, episodes=episodes, linger=0.0, batch=batch)
-    world = WorldProtocol(scenario, settings)
+    world = world_protocol(scenario, settings)
     sessions = [
         AgentSession(AgentSettings(**{"agent": a.name, "policy": policy, **kw}).session()) for a in scenario.agents
     ]
@@ -272,20 +272,20 @@ def test_an_unacknowledged_transition_is_sent_again_after_its_deadline() -> None
     assert s.resend(1.4).publish == []  # not yet: sent 0.9 s ago
     eff = s.resend(1.5)
     assert [k for k, _ in eff.publish] == ["transition"] and eff.counters["resent"] == 1
-    assert eff.publish[0][1] == s.outbox[0][0]  # the very same record
+    assert eff.publish[0][1] == s.outbox.waiting[0].text  # the very same record
     _trained_step(s, 2, 1.6)
     _trained_step(s, 3, 1.7)
-    assert list(s.outbox) == [0, 1, 2]
+    assert list(s.outbox.waiting) == [0, 1, 2]
     eff = s.resend(2.7)  # all three are due: at most resend_batch per pass, oldest first
     assert [S.decode(text, S.TRANSITION, s.lim)["seq"] for _, text in eff.publish] == [0, 1]
     assert eff.counters["resent"] == 2
     # the trainer acknowledges up to seq 1: those leave the outbox; a duplicate acknowledgement changes nothing
     ack = {"agent": 1, "session": s.id, "upto": 1}
-    assert s.on_ack(ack, 2.8) == SessionEffects() and list(s.outbox) == [2] and s.acked == 2
-    assert s.on_ack(ack, 2.9) == SessionEffects() and list(s.outbox) == [2] and s.acked == 2
+    assert s.on_ack(ack, 2.8) == SessionEffects() and list(s.outbox.waiting) == [2] and s.outbox.acked == 2
+    assert s.on_ack(ack, 2.9) == SessionEffects() and list(s.outbox.waiting) == [2] and s.outbox.acked == 2
     # an acknowledgement of another session (our process before a restart) is dropped, another agent's ignored
     assert s.on_ack({**ack, "session": "0" * 16, "upto": 9}, 3.0).drops == [("transition_ack", "session")]
-    assert s.on_ack({**ack, "agent": 0, "upto": 9}, 3.0) == SessionEffects() and list(s.outbox) == [2]
+    assert s.on_ack({**ack, "agent": 0, "upto": 9}, 3.0) == SessionEffects() and list(s.outbox.waiting) == [2]
     # the run stops: the process waits for the acknowledgements at most stop_timeout
     eff = s.on_scenario(_announce(episodes=1, seq=1, state="stopped"), 3.0)
     assert eff.log == [("info", "run r1 stopped by the world; 1 transitions unacknowledged")]
@@ -299,7 +299,7 @@ def test_a_full_outbox_drops_its_oldest_transition() -> None:
     s.on_scenario(_announce(episodes=1), 0.0)
     s.on_step(_begin(0), 0.0)
     counts = [_trained_step(s, t, 0.1 * t).counters["outbox_dropped"] for t in (1, 2, 3, 4)]
-    assert counts == [0, 0, 1, 1] and list(s.outbox) == [2, 3] and s.seq == 4
+    assert counts == [0, 0, 1, 1] and list(s.outbox.waiting) == [2, 3] and s.outbox.seq == 4
 
 
 def test_an_action_the_world_has_not_applied_is_sent_again() -> None:
@@ -330,7 +330,7 @@ def _weights(agent: int, version: int, trained: int, every: int = 1, seed: int =
 def test_the_gate_holds_the_actions_until_the_weights_of_the_lagged_step() -> None:
     s = _session(0, policy="auto", epsilon=0.0, weights_timeout=30.0)
     eff = s.on_scenario(_announce(mode="train", episodes=2, trainer_lag=1), 0.0)
-    assert eff.subscribe_weights and s.policy_kind == "trainer" and s.send_transitions
+    assert eff.subscribe_weights and s.policies.kind == "trainer" and s.send_transitions
     assert s.on_step(_begin(0), 0.1).publish == []  # no weights yet: the world asks again
     g0 = global_step(0, 1, 1, H)
     assert s.on_weights(_weights(0, 0, g0), 0.2) == SessionEffects()
@@ -347,7 +347,7 @@ def test_the_gate_holds_the_actions_until_the_weights_of_the_lagged_step() -> No
     assert s.tick(10.0).publish == []  # within weights_timeout
     eff = s.on_weights(_weights(0, 1, g0 + 1, seed=1), 10.1)  # they arrive: the action goes
     assert [a["step"] for a in _sent(eff, "action")] == [3] and s.mind.deferred is None
-    assert s.mind.policy is s.versions[g0 + 1]
+    assert s.mind.policy is s.weights.versions[g0 + 1]
     # older and foreign weights, and weights whose data do not unpack, are counted and change nothing
     assert s.on_weights(_weights(0, 1, g0 + 1), 10.2).drops == [("weights", "past")]
     assert s.on_weights(_weights(3, 2, g0 + 2), 10.2).rejects == [
@@ -355,7 +355,7 @@ def test_the_gate_holds_the_actions_until_the_weights_of_the_lagged_step() -> No
     ]
     bad = {**_weights(0, 2, g0 + 2), "sha256": "0" * 64}
     assert [r[:2] for r in s.on_weights(bad, 10.2).rejects] == [("weights", "data")]
-    assert s.weights_version == 1
+    assert s.weights.version == 1
     # step 4 waits for the weights of g0 + 2, which never come: after weights_timeout it acts with the newest
     _trained_step(s, 3, 10.3)
     assert s.mind.deferred == 4
@@ -422,11 +422,11 @@ def test_an_agent_outside_the_team_or_without_a_policy_fails() -> None:
 
 def test_goals_follow_the_assignment_and_the_robot_s_arrival_is_logged_once() -> None:
     s = _session(0)
-    assert s.arrival() == ("unknown", -1.0) and s.status() == "waiting for the world"
+    assert s.arrival.arrival() == ("unknown", -1.0) and s.status() == "waiting for the world"
     s.on_scenario(_announce(episodes=1), 0.0)
     eff = s.on_step(_begin(0), 0.1)
     ((x, y),) = eff.goals
-    site = s.last_site
+    site = s.arrival.site
     assert (x, y) == tuple(float(v) for v in SC.site_positions[site])
     assert s.on_pose(x + 100.0, y, 0.2).log == [("info", f"robot on its way to site {SC.site_names[site]} (100 m)")]
     assert s.on_pose(x + 50.0, y, 0.3).log == []  # still on its way: logged once

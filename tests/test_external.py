@@ -10,7 +10,7 @@ import pytest
 from htlm_agent.mind.external import ExternalObservations
 from htlm_world.episode import ExternalEpisode
 from htlm_world.model import Model
-from htlm_world.protocol import LockstepSettings, WorldProtocol
+from htlm_world.protocol import LockstepSettings, WorldProtocol, world_protocol
 from htlm_world.robots import Drive, Sensing, StandInOperation, action_distance, site_distance
 from htlm_world.scenario import builtin
 
@@ -18,7 +18,7 @@ from htlm_world.scenario import builtin
 def _external(episodes: int = 1) -> WorldProtocol:
     sc = builtin().replace(horizon=3)
     s = LockstepSettings(episodes=episodes, clock="free", period=0.1, operation="external", run_id="x", mode="deploy")
-    return WorldProtocol(sc, s)
+    return world_protocol(sc, s)
 
 
 def _run_steps(proto: WorldProtocol, now: float) -> tuple[float, list[tuple[str, dict]]]:  # type: ignore[type-arg]
@@ -82,7 +82,7 @@ def test_the_protocol_takes_severity_of_the_current_episode_only() -> None:
 
 
 def test_a_simulated_world_drops_severity_records() -> None:
-    proto = WorldProtocol(builtin(), LockstepSettings(run_id="x"))
+    proto = world_protocol(builtin(), LockstepSettings(run_id="x"))
     proto.start(0.0)
     assert proto.on_severity({"episode": 0, "step": 1, "levels": [[0, 0, 0, 0]]}, 0.0).drops == [
         ("severity", "simulated")

@@ -15,7 +15,7 @@ from htlm_agent.runtime.team import Team, rollout
 from htlm_msgs_py import schema
 from htlm_world.metrics import completion_step
 from htlm_world.model import Model, kind_table
-from htlm_world.protocol import WorldProtocol
+from htlm_world.protocol import LockstepProtocol
 from htlm_world.scenario import REOPEN_LEVEL, Scenario, ScenarioError, builtin, from_dict, from_record, load
 from htlm_world.simulator import sample_world_step
 from lockstep_tools import assert_loopback_equals_team
@@ -178,7 +178,7 @@ def test_an_absent_agent_observes_nothing_like_an_inactive_one() -> None:
 
 
 def test_the_world_record_names_the_task_a_standing_by_agent_observed(monkeypatch: pytest.MonkeyPatch) -> None:
-    """WorldProtocol's observation records: `tasks` is `Model.observes` of the applied actions where a level was
+    """LockstepProtocol's observation records: `tasks` is `Model.observes` of the applied actions where a level was
     observed, so an idle agent's record names the task it stood by for."""
     import test_world_protocol as twp
 
@@ -186,14 +186,14 @@ def test_the_world_record_names_the_task_a_standing_by_agent_observed(monkeypatc
     model = Model.build(sc)
     records: dict[tuple[int, int], dict] = {}  # type: ignore[type-arg]
 
-    class Recording(WorldProtocol):
+    class Recording(LockstepProtocol):
         def _apply_step(self, now: float, out) -> None:  # type: ignore[no-untyped-def]
             super()._apply_step(now, out)
             for kind, rec in out.publish:
                 if kind == "observation":
                     records[(rec["step"], rec["agent"])] = rec
 
-    monkeypatch.setattr(twp, "WorldProtocol", Recording)
+    monkeypatch.setattr(twp, "world_protocol", Recording)
     pols = [builtin_policy(sc, "greedy", i)[0] for i in range(sc.n_agents)]
     world_log, _ = twp._loopback_run(sc, 0, 0, 1, pols, 0.0)
     actions = world_log[0]["actions"]

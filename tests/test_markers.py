@@ -13,7 +13,7 @@ import pytest
 
 from htlm_world import markers as M
 from htlm_world.model import Model
-from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol
+from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol, world_protocol
 from htlm_world.scenario import builtin
 
 SC = builtin()
@@ -117,7 +117,7 @@ def test_without_an_action_an_agent_stays_where_it_was() -> None:
 def _drive(index: int, batch: int = 2, episodes: int = 2) -> tuple[list[tuple[Any, ...]], WorldProtocol]:
     """Run a WorldProtocol (every agent works on task k mod p) and feed every record to a MarkerView: the updates it
     returned, as (record kind, marks)."""
-    p = WorldProtocol(SC, LockstepSettings(episodes=episodes, batch=batch, linger=0.0, run_id="t"))
+    p = world_protocol(SC, LockstepSettings(episodes=episodes, batch=batch, linger=0.0, run_id="t"))
     view = M.MarkerView(SC)
     updates: list[tuple[Any, ...]] = []
 
@@ -181,7 +181,7 @@ def test_the_status_line_names_the_events_of_the_shown_episode() -> None:
     from htlm_world.scenario import EventSpec
 
     sc = SC.with_events([EventSpec("surge", site="site2", task="fire", level=4, at=2, name="flare")])
-    p = WorldProtocol(sc, LockstepSettings(episodes=1, linger=0.0, run_id="t"))
+    p = world_protocol(sc, LockstepSettings(episodes=1, linger=0.0, run_id="t"))
     view = M.MarkerView(sc)
     logs: list[str] = []
 

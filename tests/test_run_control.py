@@ -43,12 +43,12 @@ def test_a_node_told_its_run_joins_only_that_one() -> None:
 
 
 def _train_world(end_hold: float) -> Any:
-    from htlm_world.protocol import LockstepSettings, WorldProtocol
+    from htlm_world.protocol import LockstepSettings, world_protocol
     from htlm_world.scenario import builtin
 
     sc = builtin().replace(horizon=2)
     s = LockstepSettings(episodes=1, mode="train", pace=True, run_id="r", end_hold=end_hold)
-    return WorldProtocol(sc, s)
+    return world_protocol(sc, s)
 
 
 def _play(proto: Any, trained_upto: int) -> list[tuple[str, dict[str, Any]]]:

@@ -18,7 +18,7 @@ from htlm_agent.mind.agent import AgentMind, Effects
 from htlm_agent.mind.policies import AgentPolicy, DecentralizedPolicy
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.model import Model
-from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol
+from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol, world_protocol
 from htlm_world.scenario import Scenario, builtin
 
 SC = builtin()
@@ -27,7 +27,7 @@ N, H = SC.n_agents, SC.horizon
 
 def _protocol(listening: Any = None, **kw: Any) -> WorldProtocol:
     settings = LockstepSettings(**{"episodes": 1, "linger": 0.0, "run_id": "test", **kw})
-    return WorldProtocol(SC, settings, listening=listening)
+    return world_protocol(SC, settings, listening=listening)
 
 
 def _records(eff: WorldEffects, kind: str) -> list[dict[str, Any]]:
@@ -398,7 +398,7 @@ def _loopback_run(
     and each agent's episode logs."""
     model = Model.build(scenario)
     settings = LockstepSettings(seed=seed, first_episode=first, episodes=episodes, linger=0.0, batch=batch)
-    proto = WorldProtocol(scenario, settings, model)
+    proto = world_protocol(scenario, settings, model)
     minds = [AgentMind(scenario, i, seed, policies[i], model=model, batch=batch) for i in range(scenario.n_agents)]
     queue: deque[tuple[str, str, Any]] = deque()
     world_log: list[dict[str, Any]] = []

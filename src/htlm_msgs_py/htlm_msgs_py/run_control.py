@@ -14,6 +14,7 @@ from __future__ import annotations
 import re
 import secrets
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,28 @@ SEQ_AHEAD = 1000
 start, its epoch, a changed episode count, a restart, its stop), so a sequence number further ahead is not its
 (`future`), and a forged one cannot make every later announcement of the run look like a replay."""
 
-REFUSED = ("other_run", "replay", "future")
+
+class Verdict(StrEnum):
+    """What an announcement means for the node that judges it (`RunControl.take`); the values are the reasons
+    its counters and warnings name."""
+
+    JOIN = "join"
+    """A run to join (the node's first, or the next after its run stopped)."""
+    UPDATE = "update"
+    """A newer announcement of the node's run (the same world)."""
+    RESTART = "restart"
+    """A newer announcement of the node's run from a restarted world (another nonce)."""
+    STOP = "stop"
+    """The node's run stopped."""
+    OTHER_RUN = "other_run"
+    """Rejected: another run while the node's goes on."""
+    REPLAY = "replay"
+    """Rejected: not newer than the last announcement taken."""
+    FUTURE = "future"
+    """Rejected: more than SEQ_AHEAD ahead of the last announcement taken."""
+
+
+REFUSED = (Verdict.OTHER_RUN, Verdict.REPLAY, Verdict.FUTURE)
 """The verdicts of `RunControl.take` that reject an announcement."""
 
 
@@ -62,39 +84,31 @@ class RunControl:
     seq: int = -1
     stopped: bool = False
 
-    def take(self, rec: dict[str, Any]) -> str:
-        """Judge a decoded scenario record; returns what it means for the node:
-
-        - "join": a run to join (the node's first, or the next after its run stopped);
-        - "update": a newer announcement of the node's run (the same world);
-        - "restart": a newer announcement of the node's run from a restarted world (another nonce);
-        - "stop": the node's run stopped;
-        - "other_run", "replay" or "future": rejected (another run while ours goes on; not newer than the last
-          taken; more than SEQ_AHEAD ahead of it).
-        """
+    def take(self, rec: dict[str, Any]) -> Verdict:
+        """Judge a decoded scenario record; returns what it means for the node (`Verdict`)."""
         run, nonce, seq = rec["run"], rec["nonce"], rec["seq"]
         if self.run is None or (run != self.run and self.stopped and not self.wanted):
             if self.wanted and run != self.wanted:
-                return "other_run"
+                return Verdict.OTHER_RUN
             self.run, self.nonce, self.seq, self.stopped = run, nonce, seq, rec["state"] == "stopped"
-            return "join"
+            return Verdict.JOIN
         if run != self.run:
-            return "other_run"
+            return Verdict.OTHER_RUN
         if seq <= self.seq:
-            return "replay"
+            return Verdict.REPLAY
         if seq > self.seq + SEQ_AHEAD:
-            return "future"
+            return Verdict.FUTURE
         restarted = nonce != self.nonce
         self.nonce, self.seq = nonce, seq
         if rec["state"] == "stopped":
             if self.stopped:
-                return "update"
+                return Verdict.UPDATE
             self.stopped = True
-            return "stop"
+            return Verdict.STOP
         if self.stopped:  # a restarted world goes on with the run
             self.stopped = False
-            return "restart"
-        return "restart" if restarted else "update"
+            return Verdict.RESTART
+        return Verdict.RESTART if restarted else Verdict.UPDATE
 
     def refused(self, rec: dict[str, Any]) -> str:
         """The detail of a rejected announcement `rec`, for the node's counters and its warning."""

@@ -108,7 +108,7 @@ class AgentNode(Node):
         self.create_timer(s.resend_period, lambda: self._apply(self.session.resend(time.monotonic())))
         self.create_timer(min(0.1, s.broadcast_timeout / 4), self._tick)
         self.run_file = Path(s.run_dir) / f"{self.name}.run.json" if s.run_dir else None
-        """External operation: the run announcement this agent steps by, kept so that a restart needs no world."""
+        """A deployed team: the run announcement this agent steps by, kept so that a restart needs no world."""
         if self.run_file is not None and self.run_file.exists():
             self.get_logger().info(f"taking the run announcement kept in {self.run_file}")
             self._on_scenario(self.run_file.read_text(encoding="utf-8"), kept=True)
@@ -132,7 +132,7 @@ class AgentNode(Node):
             return
         self._apply(self.session.on_scenario(rec, time.monotonic(), kept))
         se = self.session
-        if self.run_file is not None and se.own_clock is not None and rec["run"] == se.run and rec["epoch"] > 0.0:
+        if self.run_file is not None and se.deploy is not None and rec["run"] == se.run and rec["epoch"] > 0.0:
             text = msg if isinstance(msg, str) else record_text(msg)
             write_atomic(self.run_file, text)
 

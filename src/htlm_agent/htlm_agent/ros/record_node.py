@@ -31,7 +31,7 @@ from htlm_agent.experiments.recording import (
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import Health, SettingsError, declare_settings, qos_profile, run_node
-from htlm_msgs_py.run_control import REFUSED, RunControl
+from htlm_msgs_py.run_control import REFUSED, RunControl, Verdict
 from htlm_msgs_py.signing import SigningError, signer_from_env
 
 SIGNAL_LIMIT = 5.0
@@ -96,7 +96,7 @@ class RecordNode(Node):
         if verdict in REFUSED:
             self.health.reject("scenario", verdict, self.control.refused(rec))
             return
-        if verdict == "join":
+        if verdict == Verdict.JOIN:
             for a in rec["scenario"].get("agents", []):
                 for t in agent_topics(str(a["name"])):
                     self._subscribe(t)

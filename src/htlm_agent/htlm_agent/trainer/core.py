@@ -26,7 +26,7 @@ import numpy as np
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
 from htlm_msgs_py.payload import seal
-from htlm_msgs_py.run_control import REFUSED, RunControl
+from htlm_msgs_py.run_control import REFUSED, RunControl, Verdict
 from htlm_world.episode import global_step
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
@@ -212,15 +212,15 @@ class TrainerCore:
         if verdict in REFUSED:  # nobody but our run's world stops or switches us
             out.rejects.append(("scenario", verdict, self.control.refused(rec)))
             return out
-        if verdict == "stop":
+        if verdict == Verdict.STOP:
             if not self.stopping:
                 out.log.append(("info", f"run {self.run} stopped by the world"))
                 self.stopping = True
                 self.stop_at = now
             return out
-        if verdict == "update":
+        if verdict == Verdict.UPDATE:
             return out
-        if verdict == "restart":
+        if verdict == Verdict.RESTART:
             out.log.append(("warning", f"run {self.run}: the world restarted (announcement {rec['seq']})"))
             self.stopping = False
             return out

@@ -1,7 +1,8 @@
 """world_node: the simulated operation over ROS 2, the world's side of the lockstep protocol (docs/ros.md).
 
-A thin adapter: it decodes the agents' actions and readies, feeds them and the time to the ROS-free
-`htlm_world.protocol.WorldProtocol` (which decides phases, deadlines, presence, late and duplicate answers, the free
+A thin adapter: it decodes the agents' actions and readies, feeds them and the time to the ROS-free protocol of
+the run's operation (`htlm_world.protocol.world_protocol`: the lockstep sequencer, or the observer of a deployed
+team; it decides phases, deadlines, presence, late and duplicate answers, the free
 clock, the episodes), and publishes the records the protocol returns. Run: `ros2 run htlm_world world_node` or
 `python -m htlm_world.ros.world_node --ros-args -p episodes:=5`.
 """
@@ -38,7 +39,7 @@ from htlm_msgs_py.run_control import unique_run_id
 from htlm_msgs_py.schema import encode, limits
 from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
-from htlm_world.protocol import WorldEffects, WorldProtocol
+from htlm_world.protocol import WorldEffects, world_protocol
 from htlm_world.ros.markers import MarkerPublisher
 from htlm_world.ros.settings import WorldSettings, load_scenario, validate_world_settings
 from htlm_world.scenario import ScenarioError
@@ -88,17 +89,17 @@ class WorldNode(Node):
             "ground_truth": self.create_publisher(String, topics.GROUND_TRUTH, EVENTS),
             "episode_metrics": self.create_publisher(String, topics.EPISODE_METRICS, EVENTS),
         }
-        external = s.operation == "external"
-        # simulated: the world sends every observation; external: the robots do, the world only listens (logs)
+        deployed = s.operation == "external"
+        # simulated: the world sends every observation; deployed: the robots do, the world only listens (logs)
         self.pub_obs = (
-            [] if external else [self.create_publisher(String, topics.observation(a.name), EVENTS) for a in sc.agents]
+            [] if deployed else [self.create_publisher(String, topics.observation(a.name), EVENTS) for a in sc.agents]
         )
         # the protocol: an episode begins once every agent answered and listens to its observations
-        self.protocol = WorldProtocol(
+        self.protocol = world_protocol(
             sc,
             s.lockstep(self.run_id),
             Model.build(sc),
-            None if external else (lambda k: self.pub_obs[k].get_subscription_count() > 0),
+            None if deployed else (lambda k: self.pub_obs[k].get_subscription_count() > 0),
         )
         self.markers = (  # /htlm/markers, for RViz2 and Foxglove
             MarkerPublisher(self, sc, lambda: self.settings.marker_episode) if s.markers else None
@@ -107,7 +108,7 @@ class WorldNode(Node):
         subscribe_records(self, topics.ACTION, EVENTS, self._on_action)
         subscribe_records(self, topics.READY, EVENTS, self._on_ready)
         subscribe_records(self, topics.TRAINER_PROGRESS, EVENTS, self._on_trainer)
-        if external:
+        if deployed:
             subscribe_records(self, topics.SEVERITY, EVENTS, self._on_severity)
             for a in sc.agents:
                 subscribe_records(self, topics.observation(a.name), EVENTS, self._on_observation)
