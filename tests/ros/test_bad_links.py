@@ -1,6 +1,6 @@
 """Lockstep training over bad links gives the networks of `htlm train` bit for bit: the world,
 the trainer and every agent in a network namespace of its own, joined by the user-space switch of tests/ros/links.py
-(this kernel has no netem), each started as the README says for several hosts (`team.sh train --only NAME
+(this kernel has no netem), each started as docs/ros.md says for several hosts (`team.sh train --only NAME
 --discovery subnet`, DDS on UDP). Every agent's link loses 5 % of the frames it sends and delays them by 100 ms; the
 world's and the trainer's links are clean (the delay and loss are on the agents' egress: an agent's records reach
 everyone 100 ms late, and 5 % of its datagrams, DDS's acknowledgements included, are lost on the way). The same run

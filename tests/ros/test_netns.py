@@ -1,5 +1,5 @@
 """Agents on separate hosts: the world, the trainer and every agent in a network namespace of its own (ip netns +
-veth pairs on a bridge, made here), each started the way the README documents for several hosts:
+veth pairs on a bridge, made here), each started the way docs/ros.md documents for several hosts:
 `launch_scripts/team.sh MODE --only <its processes> --discovery subnet` on the same domain id. DDS is forced onto
 UDP (FASTDDS_BUILTIN_TRANSPORTS=UDPv4): on one machine Fast DDS would otherwise use shared memory across the
 namespaces and the network would not be tested. Skipped, with the reason, where namespaces cannot be made."""

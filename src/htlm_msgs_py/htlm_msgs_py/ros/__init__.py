@@ -204,7 +204,7 @@ class Health:
 
 
 def say_unsigned(node: Node, signer: Signer) -> None:
-    """Say at start, once, that the node runs without a team key and what that allows (README, threat model)."""
+    """Say at start, once, that the node runs without a team key and what that allows (docs/ros.md, Run control)."""
     if not signer.enabled:
         domain = os.environ.get("ROS_DOMAIN_ID", "0")
         node.get_logger().warning(
