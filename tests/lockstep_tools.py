@@ -24,7 +24,7 @@ def assert_loopback_equals_team(sc: Scenario, name: str, seed: int, b: int, batc
     pols, eps = [p for p, _ in out], out[0][1]
     dp = DecentralizedPolicy(pols, seed, eps)
     dp.begin(b)
-    team = Team(sc, batch, seed, episode=b, model=model)
+    team = Team(sc, batch, seed, episode=b)
     tr = rollout(team, dp)
     lb = loopback_episode(sc, seed, b * batch, pols, epsilon=eps, model=model, batch=batch)
     for f in FIELDS:

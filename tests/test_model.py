@@ -119,6 +119,20 @@ def test_p_drop_by_margin(model: Model) -> None:
     assert table[5, 1] == pytest.approx(0.90)
 
 
+def test_a_scenario_is_compiled_once() -> None:
+    """Model.build keeps the Model of a scenario: equal scenarios (another object, the same numbers) share it, a
+    changed one gets its own, and what it keeps is what `compute` makes."""
+    a, b = builtin(), builtin()
+    assert a is not b and a == b
+    assert Model.build(a) is Model.build(b)
+    other = builtin(team="homogeneous")
+    assert Model.build(other) is not Model.build(a)
+    fresh = Model.compute(a)
+    kept = Model.build(a)
+    for name in ("transition_cdf", "obs", "info", "task_caps", "keep", "site_task"):
+        assert np.array_equal(getattr(fresh, name), getattr(kept, name)), name
+
+
 def test_p_drop_last_entry_covers_lower_margins() -> None:
     table = p_drop_table(builtin().replace(p_drop=(0.8, 0.3)))
     assert table[1, 4] == pytest.approx(0.3)
