@@ -28,10 +28,9 @@ from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.settings import Settings
 from htlm_msgs_py.qos import FASTDDS_PROFILE
 from htlm_world.scenario import builtin
+from support.ros import next_domain, wait_team
 
-from .conftest import next_domain
 from .links import LinkEmulator
-from .test_netns import _wait_team
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(600)]
 
@@ -93,7 +92,7 @@ def _team(emu: LinkEmulator, run: Path, episodes: int, profile: Path | None) -> 
         cmd = ["ip", "netns", "exec", emu.ns[name], script, *args, "--only", name, "--discovery", "subnet"]
         cmd += ["--run-dir", str(run), "--quiet"]
         procs[name] = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    _wait_team(procs, run, 550)
+    wait_team(procs, run, 550)
     return time.monotonic() - t0
 
 
