@@ -8,40 +8,25 @@ or of the wrong shape are dropped or refused, and counted."""
 from __future__ import annotations
 
 import dataclasses
-from collections import deque
 from typing import Any
 
 import numpy as np
 import pytest
 
-from htlm_agent.baselines.heuristics import builtin_policy
 from htlm_agent.learning.qnet import AgentQ, layer_sizes
 from htlm_agent.learning.settings import Settings
-from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.ros.settings import AgentSettings
-from htlm_agent.runtime.team import Team, rollout
 from htlm_agent.session.core import AgentSession, SessionEffects, SessionSettings
 from htlm_msgs_py import schema as S
 from htlm_msgs_py.payload import seal
-from htlm_msgs_py.schema import limits
 from htlm_world.episode import global_step
-from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol, world_protocol
-from htlm_world.scenario import Scenario, builtin
+from htlm_world.protocol import LockstepSettings, world_protocol
+from htlm_world.scenario import builtin
+from support.team import SCHEMA, builtin_team, reference, session_team
 
 SC = builtin()
 N, H = SC.n_agents, SC.horizon
 NAMES = [a.name for a in SC.agents]
-SCHEMA = {
-    "scenario": S.SCENARIO,
-    "step": S.STEP,
-    "observation": S.OBSERVATION,
-    "action": S.ACTION,
-    "broadcast": S.BROADCAST,
-    "ready": S.READY,
-    "transition": S.TRANSITION,
-    "belief": S.BELIEF,
-}
-"""The schema of each kind of record the world and the sessions publish."""
 
 
 def _session(i: int = 0, **kw: Any) -> AgentSession:
@@ -89,87 +74,6 @@ def test_the_session_settings_are_the_node_parameters() -> None:
 # ----- a team of sessions and the world in one process -----------------------------------------------------------
 
 
-class _Net:
-    """A WorldProtocol and one AgentSession per agent, every record encoded and decoded as on the wire and delivered
-    in order (a session's broadcast also comes back to itself, as over DDS). `lost` holds (kind, agent) pairs whose
-    records are never delivered; when nothing is left to deliver, the clock jumps to the world's next wake-up."""
-
-    def __init__(self, scenario: Scenario, world: WorldProtocol, sessions: list[AgentSession]) -> None:
-        self.scenario = scenario
-        self.world = world
-        self.sessions = sessions
-        self.lim = limits(
-            scenario.n_agents, scenario.n_tasks, scenario.n_actions, scenario.levels, scenario.horizon, 64
-        )
-        self.queue: deque[tuple[str, int, str]] = deque()
-        self.now = 0.0
-        self.world_log: list[dict[str, Any]] = []
-        self.agent_logs: dict[int, list[dict[str, Any]]] = {i: [] for i in range(len(sessions))}
-        self.transitions: list[dict[str, Any]] = []
-        self.effects: list[SessionEffects] = []
-        self.lost: set[tuple[str, int]] = set()
-
-    def from_world(self, eff: WorldEffects) -> None:
-        assert not eff.rejects, eff.rejects
-        for kind, fields in eff.publish:
-            if kind in ("scenario", "step", "observation"):
-                run = {} if kind == "scenario" else {"run": self.world.settings.run_id}  # the world node's signer's
-                self.queue.append((kind, -1, S.encode(SCHEMA[kind], {**run, **fields})))
-        self.world_log += eff.episode_log
-
-    def from_agent(self, i: int, eff: SessionEffects) -> None:
-        self.effects.append(eff)
-        self.queue.extend((kind, i, text) for kind, text in eff.publish)
-        self.agent_logs[i] += eff.episode_log
-
-    def deliver(self, kind: str, sender: int, text: str) -> None:
-        rec = S.decode(text, SCHEMA[kind], self.lim)
-        now, world = self.now, self.world
-        if kind == "scenario":
-            for i, s in enumerate(self.sessions):
-                self.from_agent(i, s.on_scenario(rec, now))
-        elif kind == "step":
-            for i, s in enumerate(self.sessions):
-                self.from_agent(i, s.on_step(rec, now))
-        elif kind == "observation":
-            i = rec["agent"]
-            if ("observation", i) not in self.lost:
-                self.from_agent(i, self.sessions[i].on_observation(rec, now))
-        elif kind == "broadcast":
-            for i, s in enumerate(self.sessions):
-                self.from_agent(i, s.on_broadcast(rec, now))
-        elif kind == "action" and ("action", sender) not in self.lost:
-            self.from_world(world.on_action(rec, now))
-        elif kind == "ready" and ("ready", sender) not in self.lost:
-            self.from_world(world.on_ready(rec, now))
-        elif kind == "transition":
-            self.transitions.append(rec)
-
-    def run(self, until: Any = None) -> None:
-        """Deliver until the world is done (or `until()` holds)."""
-        while not self.world.done and not (until is not None and until()):
-            if not self.queue:
-                self.now = max(self.now, self.world.next_wakeup())
-                self.from_world(self.world.tick(self.now))
-                for i, s in enumerate(self.sessions):
-                    self.from_agent(i, s.tick(self.now))
-                continue
-            self.deliver(*self.queue.popleft())
-        while self.queue and self.world.done:  # the world's last records (the run stopped)
-            self.deliver(*self.queue.popleft())
-
-
-def _team(scenario: Scenario, seed: int, episodes: int, policy: str, batch: int = 1, first: int = 0, **kw: Any) -> _Net:
-    settings = LockstepSettings(seed=seed, first_episode=first, episodes=episodes, linger=0.0, batch=batch)
-    world = world_protocol(scenario, settings)
-    sessions = [
-        AgentSession(AgentSettings(**{"agent": a.name, "policy": policy, **kw}).session()) for a in scenario.agents
-    ]
-    net = _Net(scenario, world, sessions)
-    net.from_world(world.start(0.0))
-    return net
-
-
 @pytest.mark.parametrize(
     ("team", "name", "seed", "first", "episodes", "batch"),
     [("heterogeneous", "greedy", 11, 0, 2, 1), ("homogeneous", "random", 3, 8, 6, 4)],
@@ -178,19 +82,17 @@ def test_a_team_of_sessions_equals_team_rollout(
     team: str, name: str, seed: int, first: int, episodes: int, batch: int
 ) -> None:
     sc = builtin(team)
-    net = _team(sc, seed, episodes, name, batch=batch, first=first)
+    net = session_team(sc, seed, episodes, name, batch=batch, first=first)
     net.run()
     assert [w["metrics"]["episode"] for w in net.world_log] == list(range(first, first + episodes))
     assert all(w["metrics"]["absent"] == [0] * sc.n_agents for w in net.world_log)
     assert not any(e.drops or e.rejects or e.counters or e.fatal for e in net.effects)
-    pols = [builtin_policy(sc, name, i) for i in range(sc.n_agents)]
+    pols, eps = builtin_team(sc, name)
     last = first + episodes
     for w in net.world_log:
         e = w["metrics"]["episode"]
         b = e // batch
-        dp = DecentralizedPolicy([p for p, _ in pols], seed, pols[0][1])
-        dp.begin(b)
-        tr, j = rollout(Team(sc, min(batch, last - b * batch), seed, episode=b), dp), e - b * batch
+        tr, j = reference(sc, pols, seed, eps, b, min(batch, last - b * batch)), e - b * batch
         assert np.array_equal(tr.actions[:, j], w["actions"]), f"episode {e}: actions"
         for i, logs in net.agent_logs.items():
             (rec,) = [x for x in logs if x["episode"] == e]
@@ -200,7 +102,7 @@ def test_a_team_of_sessions_equals_team_rollout(
 
 
 def test_an_agent_restarted_mid_run_rejoins_at_the_worlds_next_begin() -> None:
-    net = _team(SC, 5, 3, "greedy")
+    net = session_team(SC, 5, 3, "greedy")
     net.run(until=lambda: net.world.episode == 0 and net.world.t == 3)
     # agent 2's process restarts: a fresh session hears the run's announcement (transient local) and the steps of
     # an episode it never began; it answers from the next begin on, and the world idles it meanwhile

@@ -18,7 +18,7 @@ from htlm_agent.mind import knowledge
 from htlm_agent.runtime.team import Team
 from htlm_world.model import Model
 from htlm_world.scenario import AgentSpec, Scenario, builtin, from_dict
-from test_model import L, ref_fire, ref_info, ref_obs, ref_rescue
+from support.reference_model import L, ref_fire, ref_info, ref_obs, ref_rescue
 
 CMAX = 5
 

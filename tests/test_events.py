@@ -15,15 +15,8 @@ from htlm_world.events import EventRun
 from htlm_world.metrics import completion_step
 from htlm_world.model import Model
 from htlm_world.scenario import EventSpec, ScenarioError, builtin, from_dict, load, read_events
-from lockstep_tools import assert_loopback_equals_team
-
-MIXED = [
-    {"event": "surge", "site": "site1", "task": "fire", "level": 4, "at": 6},
-    {"event": "dropout", "agent": "agent2", "at": 3},
-    {"event": "return", "agent": "agent2", "at": 9, "probability": 0.5},
-    {"event": "surge", "site": "site2", "task": "rescue", "level": 3, "at": 2, "probability": 0.3},
-    {"event": "surge", "site": "site1", "task": "rescue", "level": 2, "once_done": "site1"},
-]
+from support.events import MIXED
+from support.team import assert_loopback_equals_team
 
 
 def _with(events: list[dict[str, object]], **more: object) -> object:

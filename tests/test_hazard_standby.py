@@ -9,18 +9,15 @@ import pytest
 
 from htlm_agent.baselines.heuristics import GreedyPolicy, builtin_policy
 from htlm_agent.mind import belief as bf
-from htlm_agent.mind.agent import loopback_episode
-from htlm_agent.mind.policies import DecentralizedPolicy
-from htlm_agent.runtime.team import Team, rollout
+from htlm_agent.runtime.team import Team
 from htlm_msgs_py import schema
 from htlm_world.metrics import completion_step
 from htlm_world.model import Model, kind_table
 from htlm_world.protocol import LockstepProtocol
 from htlm_world.scenario import REOPEN_LEVEL, Scenario, ScenarioError, builtin, from_dict, from_record, load
 from htlm_world.simulator import sample_world_step
-from lockstep_tools import assert_loopback_equals_team
-
-FIELDS = ("levels", "actions", "observations", "messages", "rewards")
+from support.events import MIXED
+from support.team import FIELDS, assert_loopback_equals_team, builtin_team, loopback_episode, loopback_run, reference
 
 
 def _standby() -> Scenario:
@@ -165,23 +162,18 @@ def test_loopback_equals_team_with_hazard_and_standby(name: str, batch: int) -> 
 
 def test_an_absent_agent_observes_nothing_like_an_inactive_one() -> None:
     sc = _standby()
-    out = [builtin_policy(sc, "greedy", i) for i in range(sc.n_agents)]
-    pols = [q for q, _ in out]
+    pols, _ = builtin_team(sc, "greedy")
     absent = {t: {2} for t in range(1, sc.horizon + 1)}
     lb = loopback_episode(sc, 4, 3, pols, absent=absent)
-    dp = DecentralizedPolicy(pols, 4, 0.0)
-    dp.begin(3)
-    tr = rollout(Team(sc, 1, 4, episode=3, inactive=(2,)), dp)
+    tr = reference(sc, pols, 4, 0.0, 3, inactive=(2,))
     for f in FIELDS:
         assert np.array_equal(getattr(tr, f)[:, 0], lb[f]), f
     assert (lb["observations"][:, 2] == -1).all() and (lb["messages"][:, 2] == -1).all()
 
 
-def test_the_world_record_names_the_task_a_standing_by_agent_observed(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_world_record_names_the_task_a_standing_by_agent_observed() -> None:
     """LockstepProtocol's observation records: `tasks` is `Model.observes` of the applied actions where a level was
     observed, so an idle agent's record names the task it stood by for."""
-    import test_world_protocol as twp
-
     sc = _standby()
     model = Model.build(sc)
     records: dict[tuple[int, int], dict] = {}  # type: ignore[type-arg]
@@ -193,9 +185,8 @@ def test_the_world_record_names_the_task_a_standing_by_agent_observed(monkeypatc
                 if kind == "observation":
                     records[(rec["step"], rec["agent"])] = rec
 
-    monkeypatch.setattr(twp, "world_protocol", Recording)
     pols = [builtin_policy(sc, "greedy", i)[0] for i in range(sc.n_agents)]
-    world_log, _ = twp._loopback_run(sc, 0, 0, 1, pols, 0.0)
+    world_log, _ = loopback_run(sc, 0, 0, 1, pols, 0.0, protocol=Recording)
     actions = world_log[0]["actions"]
     stood = 0
     for (t, k), rec in records.items():
@@ -267,8 +258,6 @@ def test_the_record_carries_hazard_and_standby() -> None:
 def test_both_runtimes_agree_under_events_with_hazard_and_standby(batch: int) -> None:
     """The scenario events (a surge, a dropout and a chance return) on top of the hazard and standby: the lockstep
     minds equal the Team bit for bit, and an agent an event keeps out observes nothing, standing by or not."""
-    from test_events import MIXED
-
     sc = from_dict({"events": MIXED, "kinds": load("paper-standby").to_dict()["kinds"], "standby_accuracy": 0.6})
     for seed, b in [(0, 0), (5, 3)]:
         _, tr = assert_loopback_equals_team(sc, "greedy", seed, b, batch)

@@ -12,7 +12,7 @@ import pytest
 
 from htlm_agent.baselines.heuristics import GreedyPolicy, builtin_policy
 from htlm_agent.learning.transition_store import StoreError, TransitionStore, read_store
-from htlm_agent.mind.agent import AgentMind, loopback_episode
+from htlm_agent.mind.agent import AgentMind
 from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.ros.launch import LaunchConfig, process_specs, ros_env, write_params
 from htlm_agent.ros.settings import AgentSettings, TrainerSettings, validate_agent_settings, validate_trainer_settings
@@ -21,26 +21,17 @@ from htlm_world.episode import WorldEpisode
 from htlm_world.model import Model
 from htlm_world.ros.settings import WorldSettings, validate_world_settings
 from htlm_world.scenario import builtin
-
-FIELDS = ("levels", "actions", "observations", "messages", "rewards")
-
-
-def _policies(sc, name):  # type: ignore[no-untyped-def]
-    out = [builtin_policy(sc, name, i) for i in range(sc.n_agents)]
-    return [p for p, _ in out], out[0][1]
+from support.team import FIELDS, builtin_team, loopback_episode, reference
 
 
 @pytest.mark.parametrize("team", ["heterogeneous", "semi-heterogeneous", "homogeneous"])
 @pytest.mark.parametrize("name", ["greedy", "random"])
 def test_loopback_equals_team_rollout(team: str, name: str) -> None:
     sc = builtin(team)
-    model = Model.build(sc)
-    pols, eps = _policies(sc, name)
+    pols, eps = builtin_team(sc, name)
     for seed, episode in [(0, 0), (3, 7), (11, 2)]:
-        dp = DecentralizedPolicy(pols, seed, eps)
-        dp.begin(episode)
-        tr = rollout(Team(sc, 1, seed, episode=episode), dp)
-        lb = loopback_episode(sc, seed, episode, pols, epsilon=eps, model=model)
+        tr = reference(sc, pols, seed, eps, episode)
+        lb = loopback_episode(sc, seed, episode, pols, epsilon=eps)
         for f in FIELDS:
             assert np.array_equal(getattr(tr, f)[:, 0], lb[f]), (f, seed, episode)
 
@@ -51,11 +42,9 @@ def test_a_batch_through_the_protocol_equals_team_of_that_batch(name: str, batch
     """B episodes at once: every agent keeps B beliefs and acts for all of them in one call; the result equals the
     in-process Team(scenario, B, seed, b) of batch b bit for bit."""
     sc = builtin()
-    pols, eps = _policies(sc, name)
+    pols, eps = builtin_team(sc, name)
     for seed, b in [(0, 0), (7, 3)]:
-        dp = DecentralizedPolicy(pols, seed, eps)
-        dp.begin(b)
-        tr = rollout(Team(sc, batch, seed, episode=b), dp)
+        tr = reference(sc, pols, seed, eps, b, batch)
         lb = loopback_episode(sc, seed, b * batch, pols, epsilon=eps, batch=batch)
         for f in FIELDS:
             assert np.array_equal(getattr(tr, f), lb[f]), (f, seed, b)
@@ -66,7 +55,7 @@ def test_train_mode_streams_are_those_of_htlm_train() -> None:
     from htlm_world import seeds
 
     sc = builtin()
-    pols, eps = _policies(sc, "random")
+    pols, eps = builtin_team(sc, "random")
     team = Team(sc, 8, 3)
     team.sim.rng = seeds.train_world(3, 2)
     team.sim.channel_rngs = [seeds.train_channel(3, i, 2) for i in range(sc.n_agents)]
@@ -103,10 +92,8 @@ def test_mind_rejects_arrays_of_another_length_and_waits_for_its_gate() -> None:
 
 def test_row_policy_is_the_team_greedy_policy() -> None:
     sc = builtin()
-    pols, _ = _policies(sc, "greedy")
-    dp = DecentralizedPolicy(pols, 5, 0.0)
-    dp.begin(4)
-    a = rollout(Team(sc, 1, 5, episode=4), dp)
+    pols, _ = builtin_team(sc, "greedy")
+    a = reference(sc, pols, 5, 0.0, 4)
     b = rollout(Team(sc, 1, 5, episode=4), GreedyPolicy(sc))
     for f in FIELDS:
         assert np.array_equal(getattr(a, f), getattr(b, f))
@@ -114,10 +101,8 @@ def test_row_policy_is_the_team_greedy_policy() -> None:
 
 def test_ht_mode_loopback_equals_team() -> None:
     sc = builtin(mode="ht")
-    pols, _ = _policies(sc, "random")
-    dp = DecentralizedPolicy(pols, 2, 1.0)
-    dp.begin(1)
-    tr = rollout(Team(sc, 1, 2, episode=1), dp)
+    pols, _ = builtin_team(sc, "random")
+    tr = reference(sc, pols, 2, 1.0, 1)
     lb = loopback_episode(sc, 2, 1, pols, epsilon=1.0)
     for f in FIELDS:
         assert np.array_equal(getattr(tr, f)[:, 0], lb[f]), f
@@ -127,12 +112,10 @@ def test_an_absent_agent_is_idle_like_an_inactive_one() -> None:
     """Agent 2 silent for the whole episode: the world idles it at its site, its teammates assume its last known
     assignment (idle@site1); the result is the in-process Team with agent 2 inactive."""
     sc = builtin()
-    pols, _ = _policies(sc, "greedy")
+    pols, _ = builtin_team(sc, "greedy")
     absent = {t: {2} for t in range(1, sc.horizon + 1)}
     lb = loopback_episode(sc, 4, 3, pols, absent=absent)
-    dp = DecentralizedPolicy(pols, 4, 0.0)
-    dp.begin(3)
-    tr = rollout(Team(sc, 1, 4, episode=3, inactive=(2,)), dp)
+    tr = reference(sc, pols, 4, 0.0, 3, inactive=(2,))
     for f in FIELDS:
         assert np.array_equal(getattr(tr, f)[:, 0], lb[f]), f
     world = WorldEpisode(sc, Model.build(sc), 4, 3)

@@ -24,7 +24,7 @@ from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.scenario import Scenario, builtin, load
-from test_learner import TINY  # the learner tests' run of a few seconds
+from support.learning import TINY  # the learner tests' run of a few seconds
 
 PINNED = Path(__file__).parent / "data" / "paper_pinned.json"
 
@@ -97,11 +97,11 @@ def test_the_paper_scenario_is_pinned_bit_for_bit(tmp_path: Path) -> None:
 
 
 def _protocol_digest() -> str:
-    from test_world_protocol import _loopback_run  # the one-process protocol with one AgentMind per agent
+    from support.team import loopback_run  # the one-process protocol with one AgentMind per agent
 
     sc = builtin()
     pols = [builtin_policy(sc, "random", i)[0] for i in range(sc.n_agents)]
-    world_log, agent_logs = _loopback_run(sc, 3, 0, 3, pols, 1.0, batch=2)
+    world_log, agent_logs = loopback_run(sc, 3, 0, 3, pols, 1.0, batch=2)
     return _digest(world_log, {str(k): v for k, v in agent_logs.items()})
 
 

@@ -438,9 +438,8 @@ def test_team_rollout_with_an_inactive_agent_equals_the_reference() -> None:
 
 def test_batch_sim_draws_equal_the_reference() -> None:
     sc = builtin()
-    model = Model.build(sc)
     rng = np.random.default_rng(0)
-    sim = BatchSim(sc, 32, np.random.default_rng(5), [np.random.default_rng(10 + k) for k in range(5)], model)
+    sim = BatchSim(sc, 32, np.random.default_rng(5), [np.random.default_rng(10 + k) for k in range(5)])
     ref = RefTeam(sc, 32, 0, 0, ())
     ref.rng, ref.chan = np.random.default_rng(5), [np.random.default_rng(10 + k) for k in range(5)]
     for _ in range(10):

@@ -153,9 +153,9 @@ def test_every_agent_knows_where_its_teammates_were_as_the_in_process_team_does(
     builds it from the broadcasts it heard, the in-process Team from the joint assignment, and the two agree
     step for step; a teammate's capability on a task, or its presence at an idle location, shows there."""
     from htlm_agent.baselines.heuristics import builtin_policy
-    from htlm_agent.mind.agent import loopback_episode
     from htlm_agent.mind.policies import DecentralizedPolicy
     from htlm_agent.runtime.team import rollout
+    from support.team import loopback_episode
 
     sc = builtin().replace(roster=True, teammates=True)
     assert sc.knowledge_size == builtin().knowledge_size + sc.n_agents + sc.n_actions

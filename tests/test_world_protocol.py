@@ -6,20 +6,16 @@ process, equal to the in-process `team.rollout`."""
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
 import pytest
 
-from htlm_agent.baselines.heuristics import builtin_policy
-from htlm_agent.mind.agent import AgentMind, Effects
-from htlm_agent.mind.policies import AgentPolicy, DecentralizedPolicy
-from htlm_agent.runtime.team import Team, rollout
 from htlm_world.model import Model
 from htlm_world.protocol import LockstepSettings, WorldEffects, WorldProtocol, world_protocol
-from htlm_world.scenario import Scenario, builtin
+from htlm_world.scenario import builtin
+from support.team import assert_logs_equal_rollout, builtin_team, loopback_run, reference
 
 SC = builtin()
 N, H = SC.n_agents, SC.horizon
@@ -382,97 +378,6 @@ def test_the_pace_gate_only_applies_to_the_lockstep_clock_with_pace() -> None:
 # ----- the protocol with the agents' minds, in one process --------------------------------------------------------
 
 
-def _loopback_run(
-    scenario: Scenario,
-    seed: int,
-    first: int,
-    episodes: int,
-    policies: list[AgentPolicy],
-    epsilon: float,
-    silent: frozenset[int] = frozenset(),
-    batch: int = 1,
-) -> tuple[list[dict[str, Any]], dict[int, list[dict[str, Any]]]]:
-    """Run `episodes` episodes of WorldProtocol in batches of `batch` with one AgentMind per agent, delivering
-    every record in order, its arrays as lists (the actions and readies of the `silent` agents are lost); when
-    nothing is left to deliver, the clock jumps to the protocol's next deadline. Returns the world's episode log
-    and each agent's episode logs."""
-    model = Model.build(scenario)
-    settings = LockstepSettings(seed=seed, first_episode=first, episodes=episodes, linger=0.0, batch=batch)
-    proto = world_protocol(scenario, settings, model)
-    minds = [AgentMind(scenario, i, seed, policies[i], model=model, batch=batch) for i in range(scenario.n_agents)]
-    queue: deque[tuple[str, str, Any]] = deque()
-    world_log: list[dict[str, Any]] = []
-    agent_logs: dict[int, list[dict[str, Any]]] = {i: [] for i in range(scenario.n_agents)}
-
-    def from_world(eff: WorldEffects) -> None:
-        # an agent answers a repeated begin with the same actions again: the world drops the duplicate
-        assert set(eff.drops) <= {("action", "duplicate")} and not eff.rejects, (eff.drops, eff.rejects)
-        queue.extend(("world", kind, fields) for kind, fields in eff.publish)
-        world_log.extend(eff.episode_log)
-
-    def from_agent(i: int, eff: Effects) -> None:
-        assert eff.drop is None, eff.drop
-        m = minds[i]
-        if eff.broadcast is not None:
-            t, a, levels = eff.broadcast
-            queue.append(("agent", "broadcast", (i, m.episode, t, a.tolist(), levels.tolist())))
-        if eff.action is not None and i not in silent:
-            rec = {"agent": i, "episode": m.episode, "step": eff.action[0], "actions": eff.action[1].tolist()}
-            queue.append(("agent", "action", rec))
-        if eff.ready is not None:
-            assert m.episode is not None
-            agent_logs[i].extend({"episode": m.episode + j, **m.episode_log(j)} for j in range(m.size))
-            if i not in silent:
-                queue.append(("agent", "ready", {"agent": i, "episode": m.episode, "step": eff.ready}))
-
-    now = 0.0
-    from_world(proto.start(now))
-    while not proto.done:
-        if not queue:
-            now = proto.next_wakeup()
-            from_world(proto.tick(now))
-            continue
-        _, kind, rec = queue.popleft()
-        if kind == "step" and rec["phase"] == "begin":
-            for i, m in enumerate(minds):
-                from_agent(i, m.begin(rec["episode"], epsilon, size=rec["size"]))
-        elif kind == "step" and rec["phase"] == "end":
-            for i, m in enumerate(minds):
-                from_agent(i, m.end(rec["episode"], rec["step"]))
-        elif kind == "step":  # step t was applied: the agents learn it from their observations
-            assert rec["phase"] == "step" and rec["size"] == proto.size
-        elif kind == "observation":
-            i = rec["agent"]
-            from_agent(i, minds[i].observe(rec["episode"], rec["step"], rec["levels"], rec["acted"], now))
-        elif kind == "broadcast":
-            j, e, t, a, levels = rec
-            for i, m in enumerate(minds):
-                if i != j:
-                    from_agent(i, m.hear(j, e, t, a, levels))
-        elif kind == "action":
-            from_world(proto.on_action(rec, now))
-        elif kind == "ready":
-            from_world(proto.on_ready(rec, now))
-    return world_log, agent_logs
-
-
-def _assert_equal_to_rollout(
-    world_log: list[dict[str, Any]], agent_logs: dict[int, list[dict[str, Any]]], ref: Any
-) -> None:
-    """`ref(e)` is the in-process trajectory of the batch holding episode e and e's index in it."""
-    for w in world_log:
-        e = w["metrics"]["episode"]
-        tr, j = ref(e)
-        assert np.array_equal(tr.levels[:, j], w["levels"]), f"episode {e}: levels"
-        assert np.array_equal(tr.actions[:, j], w["actions"]), f"episode {e}: actions"
-        assert np.array_equal(tr.observations[:, j], w["observations"]), f"episode {e}: observations"
-        for i, logs in agent_logs.items():
-            (rec,) = [x for x in logs if x["episode"] == e]
-            assert rec["actions"] == tr.actions[:, j, i].tolist(), f"episode {e} agent {i}: actions"
-            assert rec["messages"] == tr.messages[:, j, i].tolist(), f"episode {e} agent {i}: broadcasts"
-            assert rec["rewards"] == tr.rewards[:, j, i].tolist(), f"episode {e} agent {i}: rewards"
-
-
 @pytest.mark.parametrize(
     ("team", "name", "seed", "first", "episodes", "batch"),
     [
@@ -485,34 +390,28 @@ def test_protocol_with_the_minds_equals_team_rollout(
     team: str, name: str, seed: int, first: int, episodes: int, batch: int
 ) -> None:
     sc = builtin(team)
-    pols = [builtin_policy(sc, name, i) for i in range(sc.n_agents)]
-    policies, eps = [p for p, _ in pols], pols[0][1]
-    world_log, agent_logs = _loopback_run(sc, seed, first, episodes, policies, eps, batch=batch)
+    policies, eps = builtin_team(sc, name)
+    world_log, agent_logs = loopback_run(sc, seed, first, episodes, policies, eps, batch=batch)
     assert [w["metrics"]["episode"] for w in world_log] == list(range(first, first + episodes))
     assert all(w["metrics"]["absent"] == [0] * sc.n_agents for w in world_log)
     last = first + episodes
 
     def ref(e: int) -> Any:
         b = e // batch
-        dp = DecentralizedPolicy(policies, seed, eps)
-        dp.begin(b)
-        return rollout(Team(sc, min(batch, last - b * batch), seed, episode=b), dp), e - b * batch
+        return reference(sc, policies, seed, eps, b, min(batch, last - b * batch)), e - b * batch
 
-    _assert_equal_to_rollout(world_log, agent_logs, ref)
+    assert_logs_equal_rollout(world_log, agent_logs, ref)
 
 
 def test_protocol_with_a_silent_agent_equals_an_inactive_one() -> None:
     """Agent 2's actions never reach the world: the episode starts without it at the join timeout, it idles at its
     site every step, and the run equals the in-process Team with agent 2 inactive."""
-    pols = [builtin_policy(SC, "greedy", i) for i in range(N)]
-    policies = [p for p, _ in pols]
-    world_log, agent_logs = _loopback_run(SC, 4, 3, 1, policies, 0.0, silent=frozenset({2}))
+    policies, _ = builtin_team(SC, "greedy")
+    world_log, agent_logs = loopback_run(SC, 4, 3, 1, policies, 0.0, silent=frozenset({2}))
     (w,) = world_log
     assert w["metrics"]["absent"] == [0, 0, H, 0, 0]
 
     def ref(e: int) -> Any:
-        dp = DecentralizedPolicy(policies, 4, 0.0)
-        dp.begin(e)
-        return rollout(Team(SC, 1, 4, episode=e, inactive=(2,)), dp), 0
+        return reference(SC, policies, 4, 0.0, e, inactive=(2,)), 0
 
-    _assert_equal_to_rollout(world_log, agent_logs, ref)
+    assert_logs_equal_rollout(world_log, agent_logs, ref)

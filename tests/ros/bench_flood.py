@@ -28,8 +28,8 @@ from typing import Any
 import pytest
 
 from htlm_msgs_py import topics
+from support.ros import read_json
 
-from .conftest import read_json
 from .test_flood import OPEN, run_flood
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(1800)]

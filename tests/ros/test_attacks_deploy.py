@@ -33,8 +33,7 @@ import pytest
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.signing import Signer
-
-from .conftest import Launcher, alive_with, read_json
+from support.ros import Launcher, alive_with, read_json
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(300)]
 

@@ -1,6 +1,6 @@
 """Lockstep training over bad links gives the networks of `htlm train` bit for bit: the world,
 the trainer and every agent in a network namespace of its own, joined by the user-space switch of tests/ros/links.py
-(this kernel has no netem), each started as the README says for several hosts (`team.sh train --only NAME
+(this kernel has no netem), each started as docs/ros.md says for several hosts (`team.sh train --only NAME
 --discovery subnet`, DDS on UDP). Every agent's link loses 5 % of the frames it sends and delays them by 100 ms; the
 world's and the trainer's links are clean (the delay and loss are on the agents' egress: an agent's records reach
 everyone 100 ms late, and 5 % of its datagrams, DDS's acknowledgements included, are lost on the way). The same run
@@ -28,10 +28,9 @@ from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.settings import Settings
 from htlm_msgs_py.qos import FASTDDS_PROFILE
 from htlm_world.scenario import builtin
+from support.ros import next_domain, wait_team
 
-from .conftest import next_domain
 from .links import LinkEmulator
-from .test_netns import _wait_team
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(600)]
 
@@ -93,7 +92,7 @@ def _team(emu: LinkEmulator, run: Path, episodes: int, profile: Path | None) -> 
         cmd = ["ip", "netns", "exec", emu.ns[name], script, *args, "--only", name, "--discovery", "subnet"]
         cmd += ["--run-dir", str(run), "--quiet"]
         procs[name] = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    _wait_team(procs, run, 550)
+    wait_team(procs, run, 550)
     return time.monotonic() - t0
 
 

@@ -18,8 +18,7 @@ from typing import Any
 import pytest
 
 from htlm_agent.experiments.watch_view import WatchState
-
-from .conftest import read_json
+from support.ros import read_json
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(240)]
 

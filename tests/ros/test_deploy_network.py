@@ -38,10 +38,9 @@ import pytest
 from htlm_agent.ros.launch import LaunchConfig, ros_env
 from htlm_world.clock import StepClock
 from htlm_world.scenario import builtin
+from support.ros import TOOLS, next_domain, wait_team
 
-from .conftest import TOOLS, next_domain
 from .links import LinkEmulator
-from .test_netns import _wait_team
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(600)]
 
@@ -156,7 +155,7 @@ def deploy(emu: LinkEmulator, run: Path, seed: int, episodes: int, split: bool) 
             time.sleep(max(0.0, b - time.time()))
             emu.heal()
             splits.append((a, b))
-    _wait_team(procs, run, 90 + episodes * SC.horizon * PERIOD)
+    wait_team(procs, run, 90 + episodes * SC.horizon * PERIOD)
     seconds = time.monotonic() - t0
     recorder.terminate()
     recorder.wait(timeout=20)

@@ -13,8 +13,7 @@ import pytest
 
 from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.runtime.team import Team, rollout
-
-from .conftest import assert_same_as_in_process
+from support.ros import assert_same_as_in_process
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 

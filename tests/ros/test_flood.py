@@ -34,8 +34,7 @@ import pytest
 
 from htlm_msgs_py import qos, topics
 from htlm_world.scenario import builtin
-
-from .conftest import in_process, read_json
+from support.ros import in_process, read_json
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(400), pytest.mark.slow]
 

@@ -23,8 +23,8 @@ from htlm_agent.learning.transition_store import read_store
 from htlm_msgs_py import schema as S
 from htlm_msgs_py.signing import Signer
 from htlm_world import seeds
+from support.ros import RosTeam, assert_same_as_in_process, read_json
 
-from .conftest import RosTeam, assert_same_as_in_process, read_json
 from .ros_tools import SUBSCRIBERS, subscribed_topics
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]

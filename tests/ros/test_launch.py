@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import alive_with, next_domain
+from support.ros import alive_with, next_domain
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 

@@ -16,8 +16,7 @@ import pytest
 from htlm_agent.ros.launch import process_specs
 from htlm_world import markers as M
 from htlm_world.model import Model
-
-from .conftest import read_json
+from support.ros import read_json
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 

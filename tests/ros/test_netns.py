@@ -1,5 +1,5 @@
 """Agents on separate hosts: the world, the trainer and every agent in a network namespace of its own (ip netns +
-veth pairs on a bridge, made here), each started the way the README documents for several hosts:
+veth pairs on a bridge, made here), each started the way docs/ros.md documents for several hosts:
 `launch_scripts/team.sh MODE --only <its processes> --discovery subnet` on the same domain id. DDS is forced onto
 UDP (FASTDDS_BUILTIN_TRANSPORTS=UDPv4): on one machine Fast DDS would otherwise use shared memory across the
 namespaces and the network would not be tested. Skipped, with the reason, where namespaces cannot be made."""
@@ -20,8 +20,7 @@ import pytest
 from htlm_agent.learning.transition_store import read_store
 from htlm_agent.ros.launch import LaunchConfig
 from htlm_world.scenario import builtin
-
-from .conftest import RosTeam, assert_same_as_in_process, next_domain
+from support.ros import RosTeam, assert_same_as_in_process, next_domain, wait_team
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(150)]
 
@@ -87,25 +86,6 @@ def _launch(net: Net, script: str, name: str, args: list[str], run: Path) -> sub
     return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
-def _wait_team(procs: dict[str, subprocess.Popen[bytes]], run: Path, timeout: float) -> dict[str, int]:
-    """Every process's exit code (all must be 0: the failure message holds the world's output and log tail)."""
-    end = time.monotonic() + timeout
-    try:
-        codes = {name: p.wait(timeout=max(0.1, end - time.monotonic())) for name, p in procs.items()}
-    except subprocess.TimeoutExpired:
-        codes = {name: p.poll() if p.poll() is not None else -999 for name, p in procs.items()}
-    finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.kill()
-                p.wait()
-    outs = {name: p.stdout.read().decode() if p.stdout else "" for name, p in procs.items()}
-    logs = run / "logs"
-    tails = {n: (logs / f"{n}.log").read_text()[-1500:] for n in procs if (logs / f"{n}.log").exists()}
-    assert codes == dict.fromkeys(procs, 0), (codes, outs["world"], tails)
-    return codes
-
-
 def test_world_trainer_and_agents_in_separate_network_namespaces(net: Net, repo_root: Path, tmp_path: Path) -> None:
     seed, episodes = 3, 4  # two batches of 2: time for every process to discover the world
     run = tmp_path / "run"
@@ -117,7 +97,7 @@ def test_world_trainer_and_agents_in_separate_network_namespaces(net: Net, repo_
     before = bridged()
     args = ["evaluate", "--policy", "greedy", "--seed", str(seed), "--episodes", str(episodes), "--batch", "2"]
     procs = {name: _launch(net, script, name, [*args, "--timeout", "100"], run) for name in NAMES}
-    _wait_team(procs, run, 120)
+    wait_team(procs, run, 120)
     team = RosTeam(tmp_path, LaunchConfig(mode="evaluate", scenario=builtin(), run_dir=run, seed=seed, batch=2))
     assert assert_same_as_in_process(team, seed, "greedy") == episodes
     assert all(sum(w["metrics"]["absent"]) == 0 for w in team.world_episodes())
@@ -168,7 +148,7 @@ def test_agent_cut_off_the_network_mid_training_is_idle_then_rejoins_and_loses_n
     _ip("-n", net.ns[CUT], "link", "set", dev, "up")
     _ip("-n", net.ns[CUT], "route", "replace", "224.0.0.0/4", "dev", dev)  # the link's routes went with it
     up_at = logged()
-    _wait_team(procs, run, 100)
+    wait_team(procs, run, 100)
 
     eps = {w["metrics"]["episode"]: w for w in (json.loads(x) for x in world_log.read_text().splitlines())}
     assert sorted(eps) == list(range(B * batches)), "every episode ran once"

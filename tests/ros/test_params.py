@@ -13,8 +13,7 @@ import pytest
 from htlm_agent.ros.settings import AgentSettings, TrainerSettings
 from htlm_msgs_py.params import constraints
 from htlm_world.ros.settings import WorldSettings
-
-from .conftest import read_json
+from support.ros import read_json
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 

@@ -20,8 +20,7 @@ from mcap_ros2.decoder import DecoderFactory
 from htlm_agent.experiments.episode_plot import read_episode
 from htlm_agent.experiments.recording import episode_log, recorded_topics
 from htlm_world.scenario import builtin
-
-from .conftest import next_domain
+from support.ros import next_domain
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(240)]
 

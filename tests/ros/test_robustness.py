@@ -14,8 +14,7 @@ import pytest
 
 from htlm_agent.learning.transition_store import read_store
 from htlm_world.scenario import builtin
-
-from .conftest import read_json
+from support.ros import read_json
 
 # batch 1: the same faults run by default with batches of 8 (test_robustness_batch.py); these with -m slow
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(150), pytest.mark.slow]

@@ -31,8 +31,7 @@ import pytest
 
 from htlm_agent.learning.transition_store import read_store
 from htlm_world.scenario import builtin
-
-from .conftest import assert_same_as_in_process, next_domain, read_json
+from support.ros import assert_same_as_in_process, next_domain, read_json
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from .conftest import assert_same_as_in_process, read_json
+from support.ros import assert_same_as_in_process, read_json
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(120)]
 

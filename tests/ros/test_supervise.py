@@ -17,8 +17,7 @@ from typing import Any
 import pytest
 
 from htlm_world.clock import StepClock
-
-from .conftest import Launcher, alive_with
+from support.ros import Launcher, alive_with
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

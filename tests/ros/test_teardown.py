@@ -1,8 +1,9 @@
-"""A node process whose rclpy teardown hangs still ends, with the exit code of its work (htlm_msgs_py.ros.run_node):
-a destroy_node that never returns, with the GIL held as Fast DDS's spinning participant destruction holds it, is cut
-after TEARDOWN_SECONDS; every thread's stack goes to the log and the process exits with the code `run` returned
-(htlm_msgs_py.ros.exit_timer). The watchdog stays armed through the interpreter's exit, and no cyclic collection
-runs once the work is done. Where the exit timer is missing, faulthandler ends the process with code 1."""
+"""A node process whose rclpy teardown hangs still ends, with the exit code of its work
+(htlm_msgs_py.ros.lifecycle.run_node): a destroy_node that never returns, with the GIL held as Fast DDS's spinning
+participant destruction holds it, is cut after TEARDOWN_SECONDS; every thread's stack goes to the log and the process
+exits with the code `run` returned (htlm_msgs_py.ros.exit_timer). The watchdog stays armed through the interpreter's
+exit, and no cyclic collection runs once the work is done. Where the exit timer is missing, faulthandler ends the
+process with code 1."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.timeout(60)]
 HEAD = textwrap.dedent(
     """
     import atexit, ctypes, gc, sys, types
-    import htlm_msgs_py.ros as R
+    import htlm_msgs_py.ros.lifecycle as R
     from rclpy.node import Node
 
     R.TEARDOWN_SECONDS = 1.0

@@ -1,4 +1,4 @@
-"""The wire contract as Markdown, from the declarations themselves: the topic table of the README and the record
+"""The wire contract as Markdown, from the declarations themselves: the topic table and the record
 tables of docs/ros.md (`python -m htlm_msgs_py.docs topics|records`), so the documents never drift from the code."""
 
 from __future__ import annotations

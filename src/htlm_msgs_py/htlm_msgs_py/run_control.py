@@ -6,7 +6,7 @@ run alone: an announcement of another run is rejected while its own run goes on 
 else cannot touch it), and an announcement of its run that is not newer than the last one it took is a replay and is
 rejected too, and so is one more than `SEQ_AHEAD` ahead of it. Only once its run has stopped may a node that stays
 up join the next one. With a team key the announcements are signed, so nobody without the key can make a newer one;
-without a key any participant of the ROS domain can (README, threat model).
+without a key any participant of the ROS domain can (docs/ros.md, Run control).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Every topic lives under the namespace /htlm except the standard /diagnostics. Per-agent topics carry the agent's
 name from the scenario (letters, digits and _ only, so always a valid topic token). The table `TOPICS` is the one
-source of the README's topic table and of the integration tests' list of subscribed topics.
+source of the topic table of docs/ros.md and of the integration tests' list of subscribed topics.
 """
 
 from __future__ import annotations
@@ -113,4 +113,4 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(MARKERS, "visualization_msgs/msg/MarkerArray", "STATE", None, "world", "RViz2, Foxglove"),
     TopicSpec(DIAGNOSTICS, "diagnostic_msgs/msg/DiagnosticArray", "DIAGNOSTICS", None, "every node", "monitoring"),
 )
-"""The topic table of the README."""
+"""The topic table of docs/ros.md."""

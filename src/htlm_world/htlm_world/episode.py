@@ -18,6 +18,11 @@ from htlm_world.scenario import Scenario
 from htlm_world.simulator import sample_world_step
 from htlm_world.types import IntArray
 
+TRAINER_LAG = 1
+"""k of the trainer lag unless a run says otherwise: the agents act at step g with the networks updated through
+step g − 1 − k, and the world paces step g on the trainer's updates of the steps before g − k (`acting_weights`).
+The one default of the world node's, the lockstep protocol's and the learner's `trainer_lag`."""
+
 
 def batch_index(episode: int, batch: int) -> int:
     """The index b of the batch whose first episode is `episode` (its random streams are keyed by b)."""

@@ -144,7 +144,14 @@ class Model:
 
     @staticmethod
     def build(sc: Scenario) -> Model:
-        """Compute every table of scenario sc."""
+        """Every table of scenario sc, computed once per scenario: a scenario is frozen and hashable, so equal
+        scenarios share one Model (its `scenario` is the first of them it was built for) and no caller needs to hand
+        a Model around. The Models of the last MODELS_KEPT scenarios are kept."""
+        return _build_cached(sc)
+
+    @staticmethod
+    def compute(sc: Scenario) -> Model:
+        """Compute every table of scenario sc (`build` keeps the result)."""
         L, p, na = sc.levels, sc.n_tasks, sc.n_actions
         tables = tuple(kind_table(sc, k) for k in range(sc.n_kinds))
         accs = [accuracies(sc, k) for k in range(sc.n_kinds)]
@@ -340,3 +347,13 @@ def _cdf(t: FloatArray) -> FloatArray:
     # guard against round-off: once the cumulative sum reaches 1, no further (zero-probability) level is drawn
     c[c >= 1.0 - 1e-9] = np.inf
     return c
+
+
+MODELS_KEPT = 32
+"""How many scenarios' Models `Model.build` keeps (least recently used first out)."""
+
+
+@functools.lru_cache(maxsize=MODELS_KEPT)
+def _build_cached(sc: Scenario) -> Model:
+    """`Model.compute`, kept per scenario (`Model.build`)."""
+    return Model.compute(sc)

@@ -67,7 +67,6 @@ class BatchSim:
         batch: int,
         rng: np.random.Generator,
         channel_rngs: list[np.random.Generator] | None = None,
-        model: Model | None = None,
     ) -> None:
         """Create the simulator.
 
@@ -76,12 +75,11 @@ class BatchSim:
             batch: B, the number of episodes stepped together (>= 1).
             rng: the world's generator (transitions, observations).
             channel_rngs: one generator per agent for its channel; derived from rng when None.
-            model: precomputed tables of the scenario (built when None).
         """
         if batch < 1:
             raise ValueError(f"batch must be >= 1, got {batch!r}")
         self.scenario = scenario
-        self.model = model if model is not None else Model.build(scenario)
+        self.model = Model.build(scenario)
         self.batch = batch
         self.rng = rng
         if channel_rngs is None:

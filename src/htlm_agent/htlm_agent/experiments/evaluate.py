@@ -21,7 +21,6 @@ from htlm_agent.mind.context import Policy
 from htlm_agent.mind.reward import confident_levels
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.metrics import EpisodeMetrics, episode_metrics, importance, mean_se
-from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.types import BoolArray, FloatArray, IntArray
 
@@ -61,14 +60,12 @@ def run_episodes(
     episodes: int,
     seed: int = 0,
     inactive: tuple[int, ...] = (),
-    model: Model | None = None,
 ) -> Rollouts:
     """Run `episodes` episodes of `policy` in batches of at most MAX_BATCH: true levels, actions, observations,
     whether every agent believes, after the last step, that every task is at level 0 (confident levels of the
-    reward) and the seconds of each batch. `model`: the scenario compiled, built here when None."""
+    reward) and the seconds of each batch."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes!r}")
-    model = model if model is not None else Model.build(scenario)
     levels, actions, observations, believed, seconds = [], [], [], [], []
     events: list[tuple[int, int, int]] = []
     chunk = 0
@@ -76,7 +73,7 @@ def run_episodes(
     while left > 0:
         b = min(left, MAX_BATCH)
         t0 = time.perf_counter()
-        team = Team(scenario, b, seed, episode=chunk, inactive=inactive, model=model)
+        team = Team(scenario, b, seed, episode=chunk, inactive=inactive)
         tr = rollout(team, policy)
         levels.append(tr.levels)
         actions.append(tr.actions)
@@ -169,7 +166,6 @@ def evaluate_run(
     seed: int = 0,
     inactive: tuple[int, ...] = (),
     policy_name: str = "",
-    model: Model | None = None,
 ) -> Evaluation:
     """Evaluate `policy` (greedy, as it acts) over `episodes` episodes: metrics and per-episode data.
 
@@ -180,9 +176,8 @@ def evaluate_run(
         seed: master seed of the evaluation episodes.
         inactive: agent indices forced to idle whatever they decide (no retraining).
         policy_name: label for reports.
-        model: the scenario compiled, when the caller has it already.
     """
-    ro = run_episodes(policy, scenario, episodes, seed, inactive, model)
+    ro = run_episodes(policy, scenario, episodes, seed, inactive)
     em = episode_metrics(scenario, ro.levels, ro.actions)
     metrics = summarize(scenario, em, seed, inactive, policy_name or type(policy).__name__, ro.believed_complete)
     return Evaluation(metrics, em, ro.actions, scenario, ro.believed_complete, ro)
@@ -194,10 +189,9 @@ def evaluate(
     episodes: int = 500,
     seed: int = 0,
     inactive: tuple[int, ...] = (),
-    model: Model | None = None,
 ) -> dict[str, Any]:
     """The metrics dictionary of `evaluate_run` (team figures and an "agents" list)."""
-    return evaluate_run(policy, scenario, episodes, seed, inactive, model=model).metrics
+    return evaluate_run(policy, scenario, episodes, seed, inactive).metrics
 
 
 def write_reports(ev: Evaluation, out_dir: str | Path, settings: Any = None) -> dict[str, Path]:

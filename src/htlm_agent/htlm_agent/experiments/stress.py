@@ -23,7 +23,6 @@ from htlm_agent.mind.context import Policy
 from htlm_agent.progress import Progress
 from htlm_world.events import SURGE, EventRun
 from htlm_world.metrics import mean_se
-from htlm_world.model import Model
 from htlm_world.scenario import EventSpec, Scenario
 from htlm_world.types import IntArray
 
@@ -110,7 +109,7 @@ def run_stress(
     for name, (policy, sc) in policies.items():
         row: dict[str, Any] = {"set": set_name, "policy": name, "events": [e.label for e in events]}
         for tag, scenario in (("with", sc.with_events(events)), ("without", sc.replace(events=()))):
-            ev = evaluate_run(policy, scenario, episodes, seed=seed, policy_name=name, model=Model.build(scenario))
+            ev = evaluate_run(policy, scenario, episodes, seed=seed, policy_name=name)
             row[tag] = stress_figures(ev)
             if out_dir is not None:
                 write_reports(ev, out_dir / set_name / f"{name}-{tag}")

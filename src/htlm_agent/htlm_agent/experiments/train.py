@@ -208,9 +208,7 @@ def warm_start_expert(scenario: Scenario, settings: Settings) -> Policy | None:
 
 def validate(learner: Learner, episodes: int) -> dict[str, Any]:
     """Greedy validation of the current networks on episodes of the run's validation stream."""
-    return evaluate(
-        learner.policy(), learner.scenario, episodes, seed=seeds.validation(learner.seed), model=learner.model
-    )
+    return evaluate(learner.policy(), learner.scenario, episodes, seed=seeds.validation(learner.seed))
 
 
 # ----- the run's files --------------------------------------------------------------------------------------------
@@ -365,9 +363,7 @@ def final_evaluation(run: _Run, out: Path) -> dict[str, Any]:
     out/eval; returns its metrics."""
     s, scenario = run.learner.settings, run.learner.scenario
     policy = QPolicy.from_checkpoint(load_checkpoint(run.ckpt_dir))
-    evaluation = evaluate_run(
-        policy, scenario, s.eval_episodes, seed=s.seed, policy_name="htlm-dqn", model=run.learner.model
-    )
+    evaluation = evaluate_run(policy, scenario, s.eval_episodes, seed=s.seed, policy_name="htlm-dqn")
     write_reports(evaluation, out / "eval")
     run.log.evaluation(evaluation.metrics, run.learner.episodes_done)
     return evaluation.metrics
@@ -432,7 +428,7 @@ def train(
     done = learner.episodes_done
     run = _Run(
         learner=learner,
-        team=Team(scenario, s.envs, s.seed, model=learner.model),  # the scenario compiled once, for the run
+        team=Team(scenario, s.envs, s.seed),
         selection=selection,
         log=RunLog(out, done, resume, tensorboard),
         bar=Progress(s.episodes, initial=done, unit="ep", enabled=progress),

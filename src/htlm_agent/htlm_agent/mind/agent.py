@@ -7,8 +7,8 @@ keeps the agent's B beliefs of a batch of B episodes and acts for all of them wi
 it computes exactly what the in-process `Team(scenario, B, seed, b)` computes for that agent's column (same
 functions of belief.py and reward.py, same generators from `htlm_world.seeds`), so an evaluation over ROS
 reproduces `team.rollout` step for step; `policies.DecentralizedPolicy` runs the same per-agent policies inside
-`team.rollout`, and `loopback_episode` runs the protocol in one process (the reference for the ROS equivalence
-test). In train mode the streams are those of `htlm train` (`seeds.train_channel`, `seeds.train_explore`).
+`team.rollout` (the tests' in-process team harness, tests/support/team.py, runs the protocol with a mind per agent
+in one process). In train mode the streams are those of `htlm train` (`seeds.train_channel`, `seeds.train_explore`).
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from htlm_agent.mind import knowledge
 from htlm_agent.mind.policies import AgentPolicy, choose
 from htlm_agent.mind.reward import RewardTables, confident_levels, reward
 from htlm_world import seeds
-from htlm_world.episode import WorldEpisode
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.simulator import sample_channel
@@ -496,74 +495,3 @@ class AgentMind:
         i = min(max(i, 0), self.size - 1)
         conf = confident_levels(self.marg[i : i + 1, None], self.tables.threshold[self.me : self.me + 1])
         return self.marg[i].ravel().tolist(), [int(x) for x in conf[0, 0]]
-
-
-# ----- the protocol in one process --------------------------------------------------------------------------------
-
-
-def loopback_episode(
-    scenario: Scenario,
-    seed: int,
-    episode: int,
-    policies: list[AgentPolicy],
-    epsilon: float = 0.0,
-    absent: dict[int, set[int]] | None = None,
-    model: Model | None = None,
-    batch: int = 1,
-    mode: str = "evaluate",
-) -> dict[str, Any]:
-    """Run one batch of `batch` episodes from `episode` on (a multiple of `batch`) through the lockstep protocol in
-    one process: a WorldEpisode and one AgentMind per agent, every message delivered. `absent` maps a step to agents
-    whose actions are lost (the world makes them idle).
-
-    Returns levels (h+1, B, p), actions (h, B, N), observations (h, B, N), messages (h, B, N), rewards (h, B, N);
-    with batch 1 the B axis is dropped, as before batches.
-    """
-    model = model if model is not None else Model.build(scenario)
-    n, h = scenario.n_agents, scenario.horizon
-    b = episode // batch
-    world = WorldEpisode(scenario, model, seed, episode, size=batch, b=b, mode=mode)
-    minds = [AgentMind(scenario, i, seed, policies[i], model=model, batch=batch, mode=mode) for i in range(n)]
-    acts: dict[int, IntArray] = {}
-    for i, m in enumerate(minds):
-        act = m.begin(episode, epsilon, size=batch).action
-        assert act is not None and act[0] == 1
-        acts[i] = act[1]
-    msgs = np.full((h, batch, n), -1, dtype=np.int64)
-    rewards = np.zeros((h, batch, n))
-    for t in range(1, h + 1):
-        chosen = {i: a for i, a in acts.items() if not (absent and i in absent.get(t, set()))}
-        out = world.step(chosen)
-        observed, _cls = model.observes(out.actions, t)  # the world's record (`WorldProtocol`)
-        tasks = np.where(out.observations >= 0, observed, -1)
-        sends = []
-        effects: list[list[Effects]] = [[] for _ in range(n)]
-        for i, m in enumerate(minds):
-            eff = m.observe(episode, t, out.observations[:, i], out.acted, tasks=tasks[:, i])
-            if eff.broadcast is not None:
-                sends.append((i, eff.broadcast))
-                msgs[t - 1, :, i] = eff.broadcast[2]
-            effects[i].append(eff)
-        for i, m in enumerate(minds):
-            for j, (tj, aj, lj) in sends:
-                if j != i:
-                    effects[i].append(m.hear(j, episode, tj, aj, lj))
-        acts = {}
-        for i in range(n):
-            done = [e for e in effects[i] if e.transition is not None]
-            assert len(done) == 1, f"agent {i} did not finish step {t}"
-            rewards[t - 1, :, i] = done[0].transition.r  # type: ignore[union-attr]
-            if done[0].action is not None:
-                acts[i] = done[0].action[1]
-    levels = np.stack(world.level_log)
-    actions = np.stack(world.action_log)
-    observations = np.stack(world.obs_log)
-    if batch == 1:
-        return {
-            "levels": levels[:, 0],
-            "actions": actions[:, 0],
-            "observations": observations[:, 0],
-            "messages": msgs[:, 0],
-            "rewards": rewards[:, 0],
-        }
-    return {"levels": levels, "actions": actions, "observations": observations, "messages": msgs, "rewards": rewards}

@@ -33,25 +33,17 @@ from htlm_msgs_py.ros import (
     STATE_READER,
     Health,
     PoseStamped,
-    SettingsError,
     String,
     WorldWatch,
-    declare_settings,
     pose,
     run_node,
     say_unsigned,
     spin_until_finished,
+    start_node,
     string,
     subscribe_records,
 )
 from htlm_msgs_py.schema import record_text
-from htlm_msgs_py.signing import SigningError, signer_from_env
-
-
-def _validate(s: AgentSettings) -> None:
-    bad = validate_agent_settings(s)
-    if bad:
-        raise SettingsError("; ".join(bad))
 
 
 class AgentNode(Node):
@@ -60,12 +52,8 @@ class AgentNode(Node):
     def __init__(self) -> None:
         """Declare parameters, create publishers, subscriptions and timers; the rest waits for /htlm/scenario."""
         super().__init__("htlm_agent")
-        self.settings: AgentSettings = declare_settings(self, AgentSettings, _validate)
+        self.settings, self.signer = start_node(self, AgentSettings, validate_agent_settings)
         s = self.settings
-        try:
-            self.signer = signer_from_env()
-        except SigningError as e:
-            raise SettingsError(str(e)) from None
         self.name = s.agent
         self.health = Health(self, f"htlm: {self.name}", self.signer)
         self.session = AgentSession(s.session(), self.signer, self._readers, time.time() - time.monotonic())

@@ -30,18 +30,16 @@ from htlm_agent.experiments.recording import (
 )
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
-from htlm_msgs_py.ros import Health, SettingsError, declare_settings, qos_profile, run_node
+from htlm_msgs_py.ros import (
+    Health,
+    qos_profile,
+    run_node,
+    start_node,
+)
 from htlm_msgs_py.run_control import REFUSED, RunControl, Verdict
-from htlm_msgs_py.signing import SigningError, signer_from_env
 
 SIGNAL_LIMIT = 5.0
 """Longest the recorder goes on after a SIGINT or SIGTERM, seconds."""
-
-
-def _validate(s: RecordSettings) -> None:
-    bad = validate_record_settings(s)
-    if bad:
-        raise SettingsError("; ".join(bad))
 
 
 class RecordNode(Node):
@@ -50,11 +48,7 @@ class RecordNode(Node):
     def __init__(self) -> None:
         """Parameters, the bag, a subscription per topic (the agents' once known)."""
         super().__init__("htlm_recorder")
-        self.settings = declare_settings(self, RecordSettings, _validate)
-        try:
-            self.signer = signer_from_env()
-        except SigningError as e:
-            raise SettingsError(str(e)) from None
+        self.settings, self.signer = start_node(self, RecordSettings, validate_record_settings)
         self.health = Health(self, "htlm: recorder", self.signer)
         self.stop_signal = 0
         self.fatal: str | None = None

@@ -29,21 +29,14 @@ from htlm_msgs_py.ros import (
     SettingsError,
     String,
     WorldWatch,
-    declare_settings,
     run_node,
     say_unsigned,
     spin_until_finished,
+    start_node,
     string,
     subscribe_records,
 )
 from htlm_msgs_py.schema import encode, limits
-from htlm_msgs_py.signing import SigningError, signer_from_env
-
-
-def _validate(s: TrainerSettings) -> None:
-    bad = validate_trainer_settings(s)
-    if bad:
-        raise SettingsError("; ".join(bad))
 
 
 class TrainerNode(Node):
@@ -52,12 +45,10 @@ class TrainerNode(Node):
     def __init__(self) -> None:
         """Declare parameters, create publishers, subscriptions and timers; the learner waits for the scenario."""
         super().__init__("htlm_trainer")
-        self.settings: TrainerSettings = declare_settings(self, TrainerSettings, _validate, on_change=self._on_settings)
+        self.settings, self.signer = start_node(
+            self, TrainerSettings, validate_trainer_settings, on_change=self._on_settings
+        )
         s = self.settings
-        try:
-            self.signer = signer_from_env()
-        except SigningError as e:
-            raise SettingsError(str(e)) from None
         try:
             data = load_learner_data(s.settings_file, s.settings_json)
         except ValueError as e:

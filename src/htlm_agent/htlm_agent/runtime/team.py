@@ -44,7 +44,6 @@ class Team:
         seed: int,
         episode: int = 0,
         inactive: tuple[int, ...] = (),
-        model: Model | None = None,
     ) -> None:
         """Create the team.
 
@@ -54,11 +53,9 @@ class Team:
             seed: master seed; the world and every channel take their streams from it and `episode` (`seeds`).
             episode: index of this batch (episode index when batch = 1), for seed derivation.
             inactive: agents forced to idle (at the site of their previous assignment) whatever they choose.
-            model: the scenario compiled (`Model.build`), when the caller has it already.
         """
         self.scenario = scenario
-        assert model is None or model.scenario == scenario, "a model of another scenario"
-        self.model = model if model is not None else Model.build(scenario)
+        self.model = Model.build(scenario)
         self.tables = RewardTables.build(scenario)
         self.batch = batch
         self.inactive = tuple(inactive)
@@ -72,7 +69,6 @@ class Team:
             batch,
             seeds.world(seed, episode),
             [seeds.channel(seed, k, episode) for k in range(scenario.n_agents)],
-            model=self.model,
         )
         self.event_rng = seeds.events(seed, episode)
         """The generator of the scenario's events (`htlm_world.events`); training sets its own per batch."""

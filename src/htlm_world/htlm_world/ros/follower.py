@@ -8,15 +8,21 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 from rclpy.node import Node
 
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
-from htlm_msgs_py.ros import STATE_READER, Health, SettingsError, declare_settings, say_unsigned, subscribe_records
+from htlm_msgs_py.ros import (
+    STATE_READER,
+    Health,
+    say_unsigned,
+    start_node,
+    subscribe_records,
+)
 from htlm_msgs_py.run_control import REFUSED, RunControl
-from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.clock import FUTURE_STEPS, StepClock
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
@@ -25,14 +31,13 @@ from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 class RunFollower(Node):
     """A node that follows the world's run: `scenario`, `model`, `seed`, `run` once announced; `on_run` hook."""
 
-    def __init__(self, node_name: str, settings_cls: Any, validate: Any, health_name: str) -> None:
-        """Declare the parameters of `settings_cls` (checked by `validate`), the diagnostics and the scenario reader."""
+    def __init__(
+        self, node_name: str, settings_cls: Any, validate: Callable[[Any], list[str]], health_name: str
+    ) -> None:
+        """Declare the parameters of `settings_cls` (checked by `validate`, which lists their problems), the
+        diagnostics and the scenario reader."""
         super().__init__(node_name)
-        self.settings = declare_settings(self, settings_cls, validate)
-        try:
-            self.signer = signer_from_env()
-        except SigningError as e:
-            raise SettingsError(str(e)) from None
+        self.settings, self.signer = start_node(self, settings_cls, validate)
         self.health = Health(self, health_name, self.signer)
         self.stop_signal = 0
         self.fatal: str | None = None

@@ -25,7 +25,6 @@ from htlm_msgs_py import topics
 from htlm_msgs_py.ros import (
     EVENTS,
     POSE_READER,
-    SettingsError,
     String,
     run_node,
     spin_until_finished,
@@ -39,18 +38,12 @@ from htlm_world.ros.follower import RunFollower
 from htlm_world.ros.robot_settings import OperationSettings, validate_operation_settings
 
 
-def _validate(s: OperationSettings) -> None:
-    bad = validate_operation_settings(s)
-    if bad:
-        raise SettingsError("; ".join(bad))
-
-
 class OperationNode(RunFollower):
     """The true levels of the simulated robots' world."""
 
     def __init__(self) -> None:
         """Parameters, the severity publisher, the world's records; the robots' poses once the run is known."""
-        super().__init__("htlm_operation", OperationSettings, _validate, "htlm: operation")
+        super().__init__("htlm_operation", OperationSettings, validate_operation_settings, "htlm: operation")
         self.op: StandInOperation | None = None
         self.positions: dict[int, tuple[float, float]] = {}
         self.actions: dict[tuple[int, int], dict[int, int]] = {}  # (episode, step) -> agent -> action

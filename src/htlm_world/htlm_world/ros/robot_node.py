@@ -24,7 +24,6 @@ from htlm_msgs_py.ros import (
     ODOMETRY,
     STATE_READER,
     PoseStamped,
-    SettingsError,
     String,
     run_node,
     spin_until_finished,
@@ -37,18 +36,12 @@ from htlm_world.ros.follower import RunFollower
 from htlm_world.ros.robot_settings import RobotSettings, start_position, validate_robot_settings
 
 
-def _validate(s: RobotSettings) -> None:
-    bad = validate_robot_settings(s)
-    if bad:
-        raise SettingsError("; ".join(bad))
-
-
 class RobotNode(RunFollower):
     """One simulated robot."""
 
     def __init__(self) -> None:
         """Parameters, publishers, subscriptions, the motion timer; the robot appears once the run is announced."""
-        super().__init__("htlm_robot", RobotSettings, _validate, "htlm: robot")
+        super().__init__("htlm_robot", RobotSettings, validate_robot_settings, "htlm: robot")
         s: RobotSettings = self.settings
         self.name = s.agent
         self.health.name = f"htlm: robot {self.name}"

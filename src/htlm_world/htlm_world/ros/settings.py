@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from htlm_msgs_py.params import INT64_MAX, SECONDS, problems, setting
 from htlm_msgs_py.schema import EPISODE_MAX
+from htlm_world.episode import TRAINER_LAG
 from htlm_world.protocol import LockstepSettings
 from htlm_world.scenario import Scenario, builtin, load, team_names
 
@@ -65,7 +66,7 @@ class WorldSettings:
     (first_episode must be a multiple of B; the last batch is shorter when `episodes` is not)."""
     pace: str = setting("auto", choices=("auto", "on", "off"))
     """Wait for the trainer's updates before each step (auto: in train mode with the lockstep clock)."""
-    trainer_lag: int = setting(1, lo=0, hi=1000)
+    trainer_lag: int = setting(TRAINER_LAG, lo=0, hi=1000)
     """k of the rate limiter: step g waits until the trainer has done the updates of every step before g - k; the
     agents act with the networks k steps old. It must be the learner's trainer_lag (the default is the learner's
     default, `htlm launch train` passes the learner's, and the trainer warns when they differ)."""

@@ -29,15 +29,14 @@ from htlm_msgs_py.ros import (
     Health,
     SettingsError,
     String,
-    declare_settings,
     run_node,
     say_unsigned,
+    start_node,
     string,
     subscribe_records,
 )
 from htlm_msgs_py.run_control import unique_run_id
 from htlm_msgs_py.schema import encode, limits
-from htlm_msgs_py.signing import SigningError, signer_from_env
 from htlm_world.model import Model
 from htlm_world.protocol import WorldEffects, world_protocol
 from htlm_world.ros.markers import MarkerPublisher
@@ -54,28 +53,18 @@ SCHEMAS = {
 """The schema of every kind of record the protocol asks to publish."""
 
 
-def _validate(s: WorldSettings) -> None:
-    bad = validate_world_settings(s)
-    if bad:
-        raise SettingsError("; ".join(bad))
-
-
 class WorldNode(Node):
     """The world process: owns the simulated operation and the lockstep clock."""
 
     def __init__(self) -> None:
         """Declare parameters, load the scenario, create publishers, subscriptions and timers."""
         super().__init__("htlm_world")
-        self.settings: WorldSettings = declare_settings(self, WorldSettings, _validate, on_change=self._on_settings)
+        self.settings, self.signer = start_node(self, WorldSettings, validate_world_settings, self._on_settings)
         s = self.settings
         try:
             self.scenario = load_scenario(s)
         except ScenarioError as e:
             raise SettingsError(f"scenario: {e}") from None
-        try:
-            self.signer = signer_from_env()
-        except SigningError as e:
-            raise SettingsError(str(e)) from None
         sc = self.scenario
         self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, s.batch, sc.knowledge_size)
         self.run_id = s.run_id or unique_run_id(f"run-{s.seed}-{int(time.time())}")
