@@ -10,6 +10,4 @@ from htlm_world.ros.settings import WorldSettings
 
 
 def test_every_trainer_lag_defaults_to_the_one_default() -> None:
-    assert WorldSettings().trainer_lag == TRAINER_LAG
-    assert LockstepSettings().trainer_lag == TRAINER_LAG
-    assert Settings().trainer_lag == TRAINER_LAG
+    assert {s().trainer_lag for s in (WorldSettings, LockstepSettings, Settings)} == {TRAINER_LAG}

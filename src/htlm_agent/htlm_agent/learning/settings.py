@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from htlm_msgs_py.validation import ConversionError, convert_value
+from htlm_world.episode import TRAINER_LAG
 
 LEARNERS = ("paper", "tokens")
 """The Q-networks a run can train (`Settings.learner`)."""
@@ -100,7 +101,7 @@ class Settings:
     """B, episodes simulated in parallel; one batch of B episodes runs the whole horizon together."""
     updates_per_step: int = 8
     """Gradient updates of every agent per batched environment step (B transitions per agent)."""
-    trainer_lag: int = 1
+    trainer_lag: int = TRAINER_LAG
     """k of the trainer lag: the agents act at step t + 1 with the networks updated through step t − k (0: through
     step t, Algorithm 1 as written). Over ROS the trainer's updates of the last k steps then overlap the agents' work
     instead of holding it up; `htlm train` acts with the same networks, so both runtimes stay equal bit for bit."""

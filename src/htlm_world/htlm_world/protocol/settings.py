@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
+from htlm_world.episode import TRAINER_LAG
+
 
 class Phase(StrEnum):
     """Where the world is in the run; the values are what its diagnostics and status show."""
@@ -57,7 +59,7 @@ class LockstepSettings:
     pace: bool = False
     """Wait for the trainer (train mode): step g is applied only once the trainer has finished the gradient updates
     of every step before g - trainer_lag (its /htlm/trainer/progress records)."""
-    trainer_lag: int = 1
+    trainer_lag: int = TRAINER_LAG
     """k of the rate limiter: how many steps the trainer's updates may lag behind the world (0: the agents act with
     the networks of every update before the step, exactly as `htlm train`)."""
     trainer_deadline: float = 30.0
