@@ -21,7 +21,7 @@ mode that needs it."""
 LAZY_MODULES = {
     "htlm_agent.trainer.core": "the ROS trainer's core: loads the learner (torch) only once a run starts",
     "htlm_agent.session.policy": "an agent's choice of policy: loads torch only for a checkpoint",
-    "htlm_agent.session.weights": "an agent's client of the trainer's weights: loads torch only once weights come",
+    "htlm_agent.session.weights": "an agent's client of the trainer's weights: loads torch only to train on them",
     "htlm_agent.learning.transition_store": "read by the trainer node: loads the learner settings only on demand",
 }
 """Other modules allowed first-party imports inside functions, with the reason."""

@@ -20,8 +20,9 @@ from htlm_world.types import IntArray
 
 TRAINER_LAG = 1
 """k of the trainer lag unless a run says otherwise: the agents act at step g with the networks updated through
-step g − 1 − k, and the world paces step g on the trainer's updates of the steps before g − k (`acting_weights`).
-The one default of the world node's, the lockstep protocol's and the learner's `trainer_lag`."""
+step g − 1 − k, and the world paces step g on the trainer's updates of the steps before g − k (the learner's rule,
+`htlm_agent.learning.loop.acting_weights`). The one default of the world node's, the lockstep protocol's and the
+learner's `trainer_lag`."""
 
 
 def batch_index(episode: int, batch: int) -> int:
@@ -33,17 +34,6 @@ def global_step(episode: int, batch: int, t: int, horizon: int) -> int:
     """The run-wide index g of step t (1..h) of the batch whose first episode is `episode`: b * h + t - 1. The
     trainer counts its rounds of updates in it (round g: the updates for the transitions of step g)."""
     return batch_index(episode, batch) * horizon + t - 1
-
-
-def acting_weights(g: int, first: int, lag: int, every: int = 1) -> tuple[int, int]:
-    """Which networks act at global step g (index b·h + t − 1 of step t of batch b) of a run whose first step is
-    `first`, under a trainer lag and a weights cadence: (T, R), T = max(first, g − lag) and R the cadence's last
-    version at or below T, first + ⌊(T − first) / every⌋ · every. A network's version is the number of steps whose
-    updates it has had (`trained`); the agents act at g with version R, so the trainer's updates of steps T..g − 1
-    overlap the agents' work of those steps. With lag 0 and every 1 it is the version g: the updates of every step
-    before g, Algorithm 1 as written."""
-    target = max(first, g - lag)
-    return target, first + (target - first) // every * every
 
 
 def world_stream(seed: int, b: int, mode: str) -> np.random.Generator:

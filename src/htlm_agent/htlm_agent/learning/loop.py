@@ -15,7 +15,6 @@ from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.qnet import QNetwork, copy_network
 from htlm_agent.learning.settings import Settings
-from htlm_world.episode import acting_weights
 from htlm_world.types import FloatArray
 
 
@@ -29,6 +28,17 @@ def episode_epsilons(settings: Settings, episodes_done: int, batch: int) -> tupl
     if settings.eps_spread and batch > 1:
         return eps, np.minimum(1.0, eps * 2.0 * np.arange(batch) / (batch - 1))
     return eps, eps
+
+
+def acting_weights(g: int, first: int, lag: int, every: int = 1) -> tuple[int, int]:
+    """Which networks act at global step g (index b·h + t − 1 of step t of batch b) of a run whose first step is
+    `first`, under a trainer lag and a weights cadence: (T, R), T = max(first, g − lag) and R the cadence's last
+    version at or below T, first + ⌊(T − first) / every⌋ · every. A network's version is the number of steps whose
+    updates it has had (`trained`); the agents act at g with version R, so the trainer's updates of steps T..g − 1
+    overlap the agents' work of those steps. With lag 0 and every 1 it is the version g: the updates of every step
+    before g, Algorithm 1 as written."""
+    target = max(first, g - lag)
+    return target, first + (target - first) // every * every
 
 
 class LaggedNets:

@@ -10,7 +10,7 @@ from htlm_agent.baselines.heuristics import builtin_policy
 from htlm_agent.mind.policies import AgentPolicy
 from htlm_agent.session.effects import SessionEffects
 from htlm_msgs_py.payload import PayloadError, unseal
-from htlm_world.episode import acting_weights, global_step
+from htlm_world.episode import global_step
 from htlm_world.scenario import Scenario
 
 WEIGHTS_KEPT = 16
@@ -22,7 +22,7 @@ class WeightsClient:
     fixed cadence (`gate`), and the wait for a version that has not arrived (`hold`, `overdue`).
 
     In training the trainer publishes a new network for every agent after its updates; the agent acts at global step
-    g only with the version of the cadence (`trainer_lag`, `every`, htlm_world.episode.acting_weights), so its
+    g only with the version of the cadence (`trainer_lag`, `every`, htlm_agent.learning.loop.acting_weights), so its
     actions wait until that version arrives or `timeout` is over. The cache outlives a run: a process that stays up
     into the next run keeps what it has.
     """
@@ -106,6 +106,8 @@ class WeightsClient:
         ls = self.learner
         if ls is not None and self.training and ls.warm_start(episode):  # episode: as `epsilon` counts
             return self._expert(ls.imitate)  # the warm start: the baseline acts, no weights needed
+        from htlm_agent.learning.loop import acting_weights  # gated: a training run on the trainer's weights (torch)
+
         g = global_step(episode, self.batch, t, self.scenario.horizon)
         target, need = acting_weights(g, self.first_step, self.trainer_lag, self.every)
         have = [v for v in self.versions if v <= target]
