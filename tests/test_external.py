@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from htlm_agent.mind.external import ExternalObservations
-from htlm_world.episode import ExternalEpisode
+from htlm_agent.mind.deploy import DeployObservations
+from htlm_world.episode import DeployEpisode
 from htlm_world.model import Model
 from htlm_world.protocol import LockstepSettings, WorldProtocol, world_protocol
 from htlm_world.robots import Drive, Sensing, StandInOperation, action_distance, site_distance
@@ -53,7 +53,7 @@ def test_metrics_are_unknown_without_a_severity_source() -> None:
 def test_reported_levels_become_ground_truth_and_metrics() -> None:
     sc = builtin().replace(horizon=3)
     model = Model.build(sc)
-    ep = ExternalEpisode(sc, model, episode=0, started=0.0)
+    ep = DeployEpisode(sc, model, episode=0, started=0.0)
     for _t in range(3):
         ep.step({k: np.array([4]) for k in range(sc.n_agents)})
     assert ep.report_levels(1, np.array([3, 4, 4, 4])) and ep.report_levels(2, np.array([0, 0, 0, 0]))
@@ -90,7 +90,7 @@ def test_a_simulated_world_drops_severity_records() -> None:
 
 
 def test_observations_pair_step_records_with_the_robots_observations() -> None:
-    ext = ExternalObservations()
+    ext = DeployObservations()
     assert ext.on_robot(0, 1, [3]) == []  # ahead of the world's step record: kept
     (ob,) = ext.on_step(0, 1, [0, 1], now=0.0, wait=0.1)
     assert (ob.episode, ob.step, ob.levels, ob.acted) == (0, 1, [3], [0, 1])

@@ -14,7 +14,7 @@ import pytest
 from htlm_agent.learning.qnet import AgentQ, layer_sizes
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind.agent import AgentMind, Effects
-from htlm_agent.mind.external import ExternalObservations, Observed
+from htlm_agent.mind.deploy import DeployObservations, Observed
 from htlm_agent.session.arrival import ArrivalTracker
 from htlm_agent.session.deploy_clock import DeployClock
 from htlm_agent.session.effects import SessionEffects
@@ -238,7 +238,7 @@ class _Host:
 def test_the_deploy_clock_acts_before_each_instant_and_stops_when_the_run_is_over() -> None:
     clock = StepClock(100.0, 1.0, H, 0, 1)
     host = _Host()
-    obs = ExternalObservations(1)
+    obs = DeployObservations(1)
     d = DeployClock(clock, obs, 0.0, host)
     assert d.future(0, FUTURE_STEPS + 2, 100.0) and not d.future(0, FUTURE_STEPS + 1, 100.0)
     out = SessionEffects()
@@ -255,7 +255,7 @@ def test_the_deploy_clock_acts_before_each_instant_and_stops_when_the_run_is_ove
 def test_the_deploy_clock_joins_mid_run_at_the_next_instant_and_finishes_the_step_in_progress_at_a_stop() -> None:
     clock = StepClock(100.0, 1.0, H, 0, 2)
     host = _Host()
-    obs = ExternalObservations(1)
+    obs = DeployObservations(1)
     d = DeployClock(clock, obs, 0.0, host)
     out = SessionEffects()
     d.run(104.5, 104.5, out)  # the instant of step 5 has passed

@@ -1,5 +1,5 @@
-"""The episodes the world runs, without ROS: one batch's state and step (`WorldEpisode`, simulated; `ExternalEpisode`,
-the robots' world), and how a run's episodes, batches and steps are numbered (`batch_index`, `global_step`) and
+"""The episodes the world runs, without ROS: one batch's state and step (`WorldEpisode`, simulated; `DeployEpisode`,
+a deployed team's), and how a run's episodes, batches and steps are numbered (`batch_index`, `global_step`) and
 seeded (`world_stream`). `htlm_world.protocol.WorldProtocol` sequences them."""
 
 from __future__ import annotations
@@ -173,10 +173,11 @@ class WorldEpisode:
         return out
 
 
-class ExternalEpisode(WorldEpisode):
-    """One episode of an external operation (B = 1): the world applies nothing and observes nothing; it records
-    the joint assignment of every step, the true levels an outside source reports (`report_levels`) and the
-    observations the robots publish (`report_observation`), and knows the metrics only when every level is known."""
+class DeployEpisode(WorldEpisode):
+    """One episode of a deployed team (operation external, B = 1): the world applies nothing and observes nothing;
+    it records the joint assignment of every step, the true levels an outside source reports (`report_levels`) and
+    the observations the robots publish (`report_observation`), and knows the metrics only when every level is
+    known."""
 
     def __init__(self, scenario: Scenario, model: Model, episode: int, started: float | None = None) -> None:
         """Start episode `episode` (its levels at step 0 are the scenario's initial levels, the rest unknown)."""

@@ -212,8 +212,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     default_episodes = {"train": learner.episodes, "evaluate": 500, "deploy": 0}[args.mode]
     episodes = args.episodes if args.episodes is not None else default_episodes
     batch = args.batch if args.batch is not None else {"train": learner.envs, "evaluate": 128, "deploy": 1}[args.mode]
-    is_external = args.operation == "external" or args.robots == "sim"
-    if is_external and (args.mode == "train" or batch != 1):
+    deployed = args.operation == "external" or args.robots == "sim"
+    if deployed and (args.mode == "train" or batch != 1):
         bad.append(f"{args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
     if args.period <= 0:
         bad.append(f"--period {args.period!r}: must be > 0")

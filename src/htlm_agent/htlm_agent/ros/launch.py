@@ -287,7 +287,7 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         "batch": cfg.batch,
         "run_dir": str(run),
         "run_id": run_id_of(run),
-        **({"operation": "external", "clock": "free", "period": cfg.period} if external(cfg) else {}),
+        **({"operation": "external", "clock": "free", "period": cfg.period} if deployed(cfg) else {}),
         # the agents act with the networks the learner's trainer_lag says, and the world paces its steps by it
         **({"trainer_lag": learner.get("trainer_lag", Settings().trainer_lag)} if cfg.mode == "train" else {}),
         **cfg.world_params,
@@ -324,8 +324,8 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     return specs
 
 
-def external(cfg: LaunchConfig) -> bool:
-    """Whether the launch runs an external operation (the world simulates nothing)."""
+def deployed(cfg: LaunchConfig) -> bool:
+    """Whether the launch deploys the team (operation external: the world simulates nothing)."""
     return cfg.operation == "external" or cfg.robots == "sim"
 
 

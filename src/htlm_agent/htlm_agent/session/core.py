@@ -17,7 +17,7 @@ from __future__ import annotations
 from typing import Any
 
 from htlm_agent.mind.agent import AgentMind, Effects
-from htlm_agent.mind.external import ExternalObservations, Observed
+from htlm_agent.mind.deploy import DeployObservations, Observed
 from htlm_agent.mind.policies import AgentPolicy
 from htlm_agent.session.arrival import ArrivalTracker
 from htlm_agent.session.deploy_clock import DeployClock
@@ -78,7 +78,7 @@ class AgentSession:
         """(run, nonce, seq) of the announcement taken from disk."""
         self.joined: JoinedRun | None = None
         """The run followed (None before the first announcement taken)."""
-        self.observations: ExternalObservations | None = None
+        self.observations: DeployObservations | None = None
         """A deployed team: pairs the steps with the robot's observations."""
         self.deploy: DeployClock | None = None
         """A deployed team, once the run's epoch is announced: the step clock this agent keeps itself."""
@@ -148,7 +148,8 @@ class AgentSession:
         if verdict == Verdict.UPDATE:
             return out
         if verdict == Verdict.RESTART and self.deploy is not None:  # the world is back; our clock never stopped
-            out.log.append(("info", f"run {self.run}: the world (observer) restarted (announcement {rec['seq']})"))
+            text = f"run {self.run}: the world (deploy observer) restarted (announcement {rec['seq']})"
+            out.log.append(("info", text))
             return out
         if verdict == Verdict.RESTART:  # the same run from a restarted world: take its next begin whatever our state
             # The announcement (a transient-local sample, sent to a newly matched reader on the writer's heartbeat)
@@ -178,7 +179,7 @@ class AgentSession:
         sc = run.scenario
         self.joined = run
         self.signer.run = run.run  # what we send carries it; records of other runs are rejected
-        self.observations = ExternalObservations(run.batch) if run.deployed else None
+        self.observations = DeployObservations(run.batch) if run.deployed else None
         self.scenario_at = now
         self.arrival.scenario = sc
         self.records.index = run.index

@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 from htlm_agent.mind.agent import AgentMind, Effects
-from htlm_agent.mind.external import ExternalObservations, Observed
+from htlm_agent.mind.deploy import DeployObservations, Observed
 from htlm_agent.session.effects import SessionEffects
 from htlm_agent.session.offsets import CLOCK_TOLERANCE
 from htlm_world.clock import FUTURE_STEPS, StepClock
@@ -47,7 +47,7 @@ class DeployClock:
     judges how far ahead a record's step is. A process that joins mid-run (a restart) joins at the next instant;
     the steps it was away count as missed."""
 
-    def __init__(self, clock: StepClock, observations: ExternalObservations, wait: float, host: DeployHost) -> None:
+    def __init__(self, clock: StepClock, observations: DeployObservations, wait: float, host: DeployHost) -> None:
         """The driver of `host`'s mind on `clock`; `observations` pairs the steps with the robot's observations,
         waiting `wait` seconds for each."""
         self.clock = clock

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from htlm_world.clock import FUTURE_STEPS, StepClock
-from htlm_world.episode import ExternalEpisode, WorldEpisode
+from htlm_world.episode import DeployEpisode, WorldEpisode
 from htlm_world.protocol.base import WorldProtocol
 from htlm_world.protocol.settings import Phase, WorldEffects
 
@@ -79,7 +79,7 @@ class DeployProtocol(WorldProtocol):
         self._next_episode(e, now, out)
         out.log.append(("info", f"observing the agents' clock from episode {e} step {t}"))
         if self.ep is not None and t > 1:
-            assert isinstance(self.ep, ExternalEpisode)
+            assert isinstance(self.ep, DeployEpisode)
             self.ep.skip(t - 1)
             self.t = t
             self.deadline = self._mono(clock.at(e, t)) + OBSERVE_AFTER * self.settings.period
@@ -98,7 +98,7 @@ class DeployProtocol(WorldProtocol):
         ep = self.ep
         before = rec["before"]
         if (
-            isinstance(ep, ExternalEpisode)
+            isinstance(ep, DeployEpisode)
             and ep.unheard
             and rec["episode"] == self.episode
             and len(before) == rec["step"] - 1
@@ -130,7 +130,7 @@ class DeployProtocol(WorldProtocol):
         the current episode, logged and published as the step's ground truth."""
         out = WorldEffects()
         ep = self.ep
-        if not isinstance(ep, ExternalEpisode):
+        if not isinstance(ep, DeployEpisode):
             out.drops.append(("severity", "simulated"))
             return out
         e, t = rec["episode"], rec["step"]
@@ -155,13 +155,13 @@ class DeployProtocol(WorldProtocol):
         """A decoded observation record a robot published: kept for the episode log."""
         out = WorldEffects()
         ep = self.ep
-        if isinstance(ep, ExternalEpisode) and self._soon(rec["episode"], rec["step"], ep):
+        if isinstance(ep, DeployEpisode) and self._soon(rec["episode"], rec["step"], ep):
             self._keep_early("observation", rec)
-        elif isinstance(ep, ExternalEpisode) and rec["episode"] == self.episode and 1 <= rec["step"] <= ep.t:
+        elif isinstance(ep, DeployEpisode) and rec["episode"] == self.episode and 1 <= rec["step"] <= ep.t:
             ep.report_observation(rec["agent"], rec["step"], rec["levels"][0])
         return out
 
-    def _soon(self, e: int, t: int, ep: ExternalEpisode) -> bool:
+    def _soon(self, e: int, t: int, ep: DeployEpisode) -> bool:
         """Under the agents' clock: whether step t of episode e is the next one the observer will record (its
         reports may come first)."""
         if self.epoch <= 0.0 or (e, t) <= (self.episode, ep.t):
@@ -187,7 +187,7 @@ class DeployProtocol(WorldProtocol):
 
     # ----- phases -------------------------------------------------------------------------------------------------
     def _new_episode(self, e: int, now: float) -> WorldEpisode:
-        return ExternalEpisode(self.scenario, self.model, e, started=now)
+        return DeployEpisode(self.scenario, self.model, e, started=now)
 
     def _begin(self, now: float, out: WorldEffects) -> None:
         """Under the agents' clock nobody waits for anybody: step 1 is recorded at its instant (before the epoch,

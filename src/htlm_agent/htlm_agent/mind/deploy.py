@@ -1,9 +1,9 @@
-"""An agent's observations in an external operation, without ROS (docs/ros.md, Connecting your robots).
+"""An agent's observations in a deployed team, without ROS (docs/ros.md, Connecting your robots).
 
-In an external operation the world simulates nothing: its step record says that step t was applied and whose
-actions it applied, and the agent's own robot publishes the observation of its task, or nothing (it is on its way,
-idle, or its perception saw nothing). `ExternalObservations` pairs the two: the step is observed as soon as both
-are in, or `wait` seconds after the step record with no observation (level -1: the belief predicts). A robot's
+In a deployed team (operation external) the world simulates nothing: its step record says that step t was applied
+and whose actions it applied, and the agent's own robot publishes the observation of its task, or nothing (it is on
+its way, idle, or its perception saw nothing). `DeployObservations` pairs the two: the step is observed as soon as
+both are in, or `wait` seconds after the step record with no observation (level -1: the belief predicts). A robot's
 observation that comes after that is late and dropped.
 """
 
@@ -25,7 +25,7 @@ class Observed:
     """The agents whose actions the world applied (from its step record)."""
 
 
-class ExternalObservations:
+class DeployObservations:
     """Pairs the world's step records with the robot's observations (batch of `size` episodes)."""
 
     KEEP = 64
