@@ -28,6 +28,7 @@ import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Annotated, Any, Literal, NamedTuple, Union
 
 import msgspec
@@ -588,6 +589,19 @@ TRAINER_PROGRESS = Schema(
     doc="The trainer has done the gradient updates of every step whose global index (batch index x h + t - 1) is "
     "below `trained`; the world paces its steps by it.",
 )
+
+
+class Arrival(StrEnum):
+    """Whether an agent's robot has reached the site of its assignment (`BELIEF`'s `arrived`)."""
+
+    YES = "yes"
+    """Within the arrival radius of the site."""
+    NO = "no"
+    """On its way: farther than the radius."""
+    UNKNOWN = "unknown"
+    """No pose topic, no pose yet, or no assignment yet."""
+
+
 BELIEF = Schema(
     "htlm/belief",
     4,
@@ -598,7 +612,7 @@ BELIEF = Schema(
         "step": Int(0, "step"),
         "marginals": FloatList(-1e-6, 1.000001, length="marginals"),
         "confident": IntList(0, "level", length="tasks"),
-        "arrived": OneOf(("yes", "no", "unknown")),
+        "arrived": OneOf(tuple(a.value for a in Arrival)),
         "distance": Float(-1.0, 1e9),
     },
     doc="Per-task marginals of the agent's belief (p x L, row-major) and the confident level of every task, in one "

@@ -32,7 +32,7 @@ from htlm_agent.experiments.recording import messages
 from htlm_msgs_py import schema as S
 from htlm_msgs_py import topics
 from htlm_msgs_py.params import setting
-from htlm_msgs_py.schema import WireError, decode, limits
+from htlm_msgs_py.schema import Arrival, WireError, decode, limits
 from htlm_msgs_py.signing import Signer
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
@@ -115,8 +115,8 @@ class Belief:
     """Confident level of every task."""
     probability: list[float]
     """The marginal probability of that level, per task."""
-    arrived: str = "unknown"
-    """Whether the agent's robot is at the site of its assignment (yes, no, unknown without a pose topic)."""
+    arrived: Arrival = Arrival.UNKNOWN
+    """Whether the agent's robot is at the site of its assignment (unknown without a pose topic)."""
     distance: float = -1.0
     """How far it is from that site, metres (-1: unknown)."""
 
@@ -292,9 +292,8 @@ class WatchState:
         marg = rec["marginals"]
         conf = rec["confident"]
         prob = [float(marg[j * L + c]) for j, c in enumerate(conf)]
-        self.beliefs[agent] = Belief(
-            rec["episode"], rec["step"], list(conf), prob, rec.get("arrived", "unknown"), rec.get("distance", -1.0)
-        )
+        arrived = Arrival(rec.get("arrived", Arrival.UNKNOWN))
+        self.beliefs[agent] = Belief(rec["episode"], rec["step"], list(conf), prob, arrived, rec.get("distance", -1.0))
 
     def on_diagnostics(self, statuses: Iterable[tuple[str, int, str, Mapping[str, str]]], now: float) -> None:
         """The statuses of a /diagnostics message: (name, level, message, key/values) each."""
@@ -437,9 +436,9 @@ def _tasks_table(state: WatchState) -> Table | None:
 
 
 def _robot(b: Belief) -> str:
-    if b.arrived == "yes":
+    if b.arrived == Arrival.YES:
         return "at its site"
-    if b.arrived == "no":
+    if b.arrived == Arrival.NO:
         return f"{b.distance:.1f} m away" if b.distance >= 0 else "on its way"
     return "-"
 
@@ -452,7 +451,7 @@ def _agents_table(state: WatchState, now: float) -> Table | None:
     row = _truth_row(state)
     absent = set(state.absent())
     table = Table(title="agents", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
-    robots = any(b.arrived != "unknown" for b in state.beliefs.values())
+    robots = any(b.arrived != Arrival.UNKNOWN for b in state.beliefs.values())
     clocks = {a: state.clock_offset(a) for a in state.agent_names}
     own_clock = any(c is not None for c in clocks.values())  # the deployed team's own clock: offsets are measured
     extra = (("robot",) if robots else ()) + (("clock ahead",) if own_clock else ())

@@ -4,6 +4,7 @@ send when the site changes, whether the robot has arrived, and a log line when t
 from __future__ import annotations
 
 from htlm_agent.session.effects import SessionEffects
+from htlm_msgs_py.schema import Arrival
 from htlm_world.robots import site_distance
 from htlm_world.scenario import Scenario
 
@@ -22,8 +23,8 @@ class ArrivalTracker:
         """The site of the assignment (-1: none yet)."""
         self.position: tuple[float, float] | None = None
         """The robot's (x, y) in the map frame, from its pose topic."""
-        self.logged = "unknown"
-        """The arrival last logged (yes, no, unknown)."""
+        self.logged = Arrival.UNKNOWN
+        """The arrival last logged."""
 
     def assign(self, site: int, out: SessionEffects) -> None:
         """The assignment's site is `site`: a goal pose (x, y) to send when it changed."""
@@ -38,16 +39,16 @@ class ArrivalTracker:
         per step)."""
         self.position = (x, y)
         arrived, distance = self.arrival()
-        if arrived != self.logged and arrived != "unknown":
+        if arrived != self.logged and arrived != Arrival.UNKNOWN:
             self.logged = arrived
             assert self.scenario is not None
             site = self.scenario.site_names[self.site]
-            text = f"robot at site {site}" if arrived == "yes" else f"robot on its way to site {site} ({distance:g} m)"
-            out.log.append(("info", text))
+            away = f"robot on its way to site {site} ({distance:g} m)"
+            out.log.append(("info", f"robot at site {site}" if arrived == Arrival.YES else away))
 
-    def arrival(self) -> tuple[str, float]:
-        """Whether the robot is at the site of its assignment (yes, no, unknown) and its distance (-1: unknown)."""
+    def arrival(self) -> tuple[Arrival, float]:
+        """Whether the robot is at the site of its assignment and its distance (-1: unknown)."""
         if self.position is None or self.scenario is None or self.site < 0:
-            return "unknown", -1.0
+            return Arrival.UNKNOWN, -1.0
         d = site_distance(self.scenario, self.site, *self.position)
-        return ("yes" if d <= self.radius else "no"), round(d, 3)
+        return (Arrival.YES if d <= self.radius else Arrival.NO), round(d, 3)

@@ -29,6 +29,7 @@ from htlm_agent.session.records import RecordWriter
 from htlm_agent.session.run import JoinedRun, NotInTeamError
 from htlm_agent.session.settings import SessionSettings
 from htlm_msgs_py.run_control import REFUSED, RunControl, Verdict
+from htlm_msgs_py.schema import Arrival
 from htlm_msgs_py.signing import Signer
 from htlm_world.clock import FUTURE_STEPS, StepClock
 from htlm_world.scenario import ScenarioRecordError
@@ -450,7 +451,8 @@ class AgentSession:
         for ob in ready:
             if self.mind is None:
                 return
-            worked = self.arrival.arrival()[0] != "no"  # a robot still on its way did not work on its task this step
+            # a robot still on its way did not work on its task this step
+            worked = self.arrival.arrival()[0] != Arrival.NO
             eff = self.mind.observe(ob.episode, ob.step, ob.levels, ob.acted, now, worked)
             if eff.drop is None:
                 self.last_accept = now
@@ -570,7 +572,7 @@ class AgentSession:
         if run is not None:
             vals.update(self.offsets.values(run.names, run.period if self.deploy is not None else None))
         arrived, distance = self.arrival.arrival()
-        vals.update({"arrived": arrived, "distance_to_site": f"{distance:g}"})
+        vals.update({"arrived": arrived.value, "distance_to_site": f"{distance:g}"})
         if self.observations is not None:
             obs = self.observations
             vals.update({"observations_missing": str(obs.missing), "observations_late": str(obs.late)})
