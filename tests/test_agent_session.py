@@ -232,7 +232,7 @@ def _weights(agent: int, version: int, trained: int, every: int = 1, seed: int =
 def test_the_gate_holds_the_actions_until_the_weights_of_the_lagged_step() -> None:
     s = _session(0, policy="auto", epsilon=0.0, weights_timeout=30.0)
     eff = s.on_scenario(_announce(mode="train", episodes=2, trainer_lag=1), 0.0)
-    assert eff.subscribe_weights and s.policies.kind == "trainer" and s.send_transitions
+    assert eff.subscribe_weights and s.policies.kind == "trainer" and s.carrier.send_transitions
     assert s.on_step(_begin(0), 0.1).publish == []  # no weights yet: the world asks again
     g0 = global_step(0, 1, 1, H)
     assert s.on_weights(_weights(0, 0, g0), 0.2) == SessionEffects()

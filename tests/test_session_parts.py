@@ -1,7 +1,8 @@
 """The parts of an agent's session, each on its own without ROS or a session around it: the outbox of transitions
 and the action resend (htlm_agent.session.outbox), the trainer's weights and their lag gate (weights), the policy
 source (policy), the robot's arrival (arrival), the teammates' clock offsets (offsets), the deployed team's step
-clock driver (deploy_clock), the run joined (run) and the records written (records)."""
+clock driver (deploy_clock), the run joined (run), the records the mind's effects become (carry) and the records
+written (records)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,9 @@ from htlm_agent.learning.qnet import AgentQ, layer_sizes
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind.agent import AgentMind, Effects
 from htlm_agent.mind.deploy import DeployObservations, Observed
+from htlm_agent.ros.settings import AgentSettings
 from htlm_agent.session.arrival import ArrivalTracker
+from htlm_agent.session.carry import EffectCarrier
 from htlm_agent.session.deploy_clock import DeployClock
 from htlm_agent.session.effects import SessionEffects
 from htlm_agent.session.offsets import CLOCK_SAMPLES, ClockOffsets
@@ -168,6 +171,40 @@ def test_the_arrival_tracker_sends_a_goal_per_site_and_logs_changes_once() -> No
     site = SC.site_names[1]
     assert out.log == [("info", f"robot on its way to site {site} (3 m)"), ("info", f"robot at site {site}")]
     assert a.arrival() == ("yes", 0.0)
+
+
+def test_the_arrival_values_are_the_diagnostics_strings() -> None:
+    a = ArrivalTracker(radius=2.0)
+    assert a.values() == {"arrived": "unknown", "distance_to_site": "-1"}
+    a.scenario, a.site, a.position = SC, 1, (float(SC.site_positions[1][0]) + 3.0, float(SC.site_positions[1][1]))
+    assert a.values() == {"arrived": "no", "distance_to_site": "3"}
+
+
+# ----- the mind's effects as records ------------------------------------------------------------------------------
+
+
+def test_the_carrier_publishes_the_action_sends_a_goal_and_counts_a_drop() -> None:
+    run = JoinedRun.from_record(_record(), NAMES[0])
+    mind = AgentMind(SC, 0, 0, *_Host._policy(), batch=1, mode="evaluate")
+    outbox = Outbox(8, 1.0, 8)
+    resend, arrival = ActionResend(0.5), ArrivalTracker(2.0)
+    arrival.scenario = SC
+    signer = Signer(None)
+    signer.run = run.run
+    records = RecordWriter(signer, outbox.session, run.index)
+    carrier = EffectCarrier(
+        AgentSettings(agent=NAMES[0]).session(), records, outbox, resend, arrival, lambda _k: 0, 0.0
+    )
+    out = SessionEffects()
+    carrier.carry("step", Effects(drop="past"), mind, run, 1.0, False, out)
+    assert out.drops == [("step", "past")] and not out.publish and not out.goals
+    eff = mind.begin(0)
+    assert eff.action is not None
+    carrier.carry("step", eff, mind, run, 1.0, False, out)
+    assert [kind for kind, _ in out.publish] == ["action"] and resend.last is not None
+    site = int(run.model.action_site[int(eff.action[1][0])])
+    assert out.goals == [tuple(float(v) for v in SC.site_positions[site])] and arrival.site == site
+    assert carrier.episodes_done == 0 and len(outbox) == 0
 
 
 # ----- clock offsets ----------------------------------------------------------------------------------------------

@@ -74,6 +74,11 @@ class DeployObservations:
         """When `due` next has something to return (None: nothing waits)."""
         return min((d for _a, d in self.steps.values()), default=None)
 
+    def values(self) -> dict[str, str]:
+        """The counts of steps observed without the robot and of its late observations, for the node's
+        /diagnostics."""
+        return {"observations_missing": str(self.missing), "observations_late": str(self.late)}
+
     def _pair(self, key: tuple[int, int], levels: list[int] | None = None) -> list[Observed]:
         got = self.robot.pop(key, None) if levels is None else levels
         if got is None:

@@ -52,3 +52,8 @@ class ArrivalTracker:
             return Arrival.UNKNOWN, -1.0
         d = site_distance(self.scenario, self.site, *self.position)
         return (Arrival.YES if d <= self.radius else Arrival.NO), round(d, 3)
+
+    def values(self) -> dict[str, str]:
+        """The arrival and the distance for the node's /diagnostics."""
+        arrived, distance = self.arrival()
+        return {"arrived": arrived.value, "distance_to_site": f"{distance:g}"}

@@ -8,8 +8,9 @@ world is ahead of a batch we cannot finish) and which policy to act with (a chec
 trainer's weights); its parts keep the rest: the trainer's weights and the lag gate (`weights.WeightsClient`), the
 transitions until acknowledged and the action until applied (`outbox`), the deployed team's step clock
 (`deploy_clock.DeployClock`), the teammates' clock offsets (`offsets.ClockOffsets`), the robot's arrival at its
-site (`arrival.ArrivalTracker`), and the records the mind's effects become (`records.RecordWriter`). Every method
-takes `now` (monotonic seconds, the only clock the session reads) and returns the `SessionEffects` to carry out.
+site (`arrival.ArrivalTracker`), and the records the mind's effects become (`carry.EffectCarrier`, encoded by
+`records.RecordWriter`). Every method takes `now` (monotonic seconds, the only clock the session reads) and returns
+the `SessionEffects` to carry out.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from htlm_agent.mind.agent import AgentMind, Effects
 from htlm_agent.mind.deploy import DeployObservations, Observed
 from htlm_agent.mind.policies import AgentPolicy
 from htlm_agent.session.arrival import ArrivalTracker
+from htlm_agent.session.carry import EffectCarrier
 from htlm_agent.session.deploy_clock import DeployClock
 from htlm_agent.session.effects import Readers, SessionEffects
 from htlm_agent.session.offsets import ClockOffsets
@@ -92,6 +94,9 @@ class AgentSession:
         self.arrival = ArrivalTracker(s.arrival_radius)
         self.offsets = ClockOffsets()
         self.records = RecordWriter(self.signer, self.outbox.session)
+        self.carrier = EffectCarrier(
+            s, self.records, self.outbox, self.action_resend, self.arrival, self.readers, wall_offset
+        )
         self.id = self.outbox.session
         """This process's session id in its transition records (the trainer acknowledges per session)."""
         # joining and rejoining
@@ -103,8 +108,6 @@ class AgentSession:
         """The world restarted: take its next begin even if it interrupts our batch."""
         self.stopping = False
         self.stop_deadline = 0.0
-        self.send_transitions = False
-        self.episodes_done = 0
 
     @property
     def run(self) -> str | None:
@@ -189,7 +192,7 @@ class AgentSession:
         if self.deploy is not None:
             self.deploy.stop_after = None
         s = self.settings
-        self.send_transitions = s.transitions == "on" or (s.transitions == "auto" and run.mode == "train")
+        self.carrier.send_transitions = s.transitions == "on" or (s.transitions == "auto" and run.mode == "train")
         why = self.policies.choose(run, out)
         if why is not None:
             self._fail(why, out)
@@ -198,7 +201,7 @@ class AgentSession:
             (
                 "info",
                 f"run {self.run}: agent {self.name} (index {run.index}) of {sc.name}/{sc.team}, mode {run.mode}, "
-                f"policy {self.policies.kind}, transitions {'on' if self.send_transitions else 'off'}"
+                f"policy {self.policies.kind}, transitions {'on' if self.carrier.send_transitions else 'off'}"
                 + (", operation external: observations from the robot" if run.deployed else ""),
             )
         )
@@ -249,7 +252,7 @@ class AgentSession:
             return True
         if not (self.stopping and self.settings.exit_on_stop):
             return False
-        return not (self.send_transitions and len(self.outbox)) or now >= self.stop_deadline
+        return not (self.carrier.send_transitions and len(self.outbox)) or now >= self.stop_deadline
 
     # ----- the policy ---------------------------------------------------------------------------------------------
     def epsilon(self, episode: int, size: int) -> Any:
@@ -505,48 +508,13 @@ class AgentSession:
 
     # ----- records out --------------------------------------------------------------------------------------------
     def carry(self, topic: str, eff: Effects, out: SessionEffects) -> None:
-        """Turn the mind's effects of a record on `topic` into records, in the order the protocol wants them."""
-        if eff.drop is not None:
-            out.drops.append((topic, eff.drop))
-            return
-        mind, w = self.mind, self.records
-        assert mind is not None and mind.episode is not None and self.joined is not None
-        if eff.broadcast is not None:
-            t, a, level = eff.broadcast
-            out.publish.append(("broadcast", w.broadcast(mind.episode, t, a, level, self.now + self.wall_offset)))
-        if eff.action is not None:  # before the transition: the world and the team wait for it
-            t, a = eff.action
-            text = w.action(mind.episode, t, a, mind.history(t) if self.deploy is not None else [])
-            out.publish.append(("action", text))
-            self.action_resend.sent(mind.episode, t, text, self.now)
-        if eff.ready is not None:
-            out.publish.append(("ready", w.ready(mind.episode, eff.ready)))
-        tr = eff.transition
-        if tr is not None:
-            if self.send_transitions:
-                seq = self.outbox.next_seq()
-                self.outbox.put(seq, w.transition(tr, seq), self.now, out)
-            every = self.settings.belief_every
-            if every and (tr.done or (tr.step % every == 0 and self.readers("belief") > 0)):
-                i = min(self.settings.belief_episode, mind.size - 1)
-                marginals, confident = mind.belief_summary(i)
-                arrived, distance = self.arrival.arrival()
-                belief = w.belief(tr.episode + i, tr.step, marginals, confident, arrived, distance)
-                out.publish.append(("belief", belief))
-            if tr.done:
-                self._episode_done(tr.episode, out)
-        if eff.action is not None:
-            action = int(eff.action[1][min(self.settings.belief_episode, len(eff.action[1]) - 1)])
-            self.arrival.assign(int(self.joined.model.action_site[action]), out)
+        """Turn the mind's effects of a record on `topic` into records (`EffectCarrier.carry`)."""
+        self.carrier.carry(topic, eff, self.mind, self.joined, self.now, self.deploy is not None, out)
 
-    def _episode_done(self, episode: int, out: SessionEffects) -> None:
-        """The batch from `episode` on is over: log its episodes (in train mode only the first of each batch)."""
-        assert self.mind is not None and self.joined is not None
-        self.episodes_done += self.mind.size
-        logged = 1 if self.joined.mode == "train" else self.mind.size
-        out.episode_log += [
-            {"run": self.run, "episode": episode + i, **self.mind.episode_log(i)} for i in range(logged)
-        ]
+    @property
+    def episodes_done(self) -> int:
+        """Episodes this process has finished, over all its runs."""
+        return self.carrier.episodes_done
 
     # ----- status ---------------------------------------------------------------------------------------------
     def values(self) -> dict[str, str]:
@@ -571,11 +539,9 @@ class AgentSession:
         }
         if run is not None:
             vals.update(self.offsets.values(run.names, run.period if self.deploy is not None else None))
-        arrived, distance = self.arrival.arrival()
-        vals.update({"arrived": arrived.value, "distance_to_site": f"{distance:g}"})
+        vals.update(self.arrival.values())
         if self.observations is not None:
-            obs = self.observations
-            vals.update({"observations_missing": str(obs.missing), "observations_late": str(obs.late)})
+            vals.update(self.observations.values())
         return vals
 
     def status(self) -> str:
