@@ -12,7 +12,22 @@ from pathlib import Path
 import pytest
 import yaml
 
-from htlm_agent.baselines.optimal import Limits, ProblemSize, ProblemTooLarge, estimate, solve
+import numpy as np
+
+from htlm_agent.baselines.heuristics import AuctionPolicy
+from htlm_agent.baselines.optimal import (
+    QMDP_LOAD_COST,
+    Limits,
+    ProblemSize,
+    ProblemTooLarge,
+    QmdpPolicy,
+    action_values,
+    estimate,
+    solve,
+    state_index,
+)
+from htlm_agent.experiments.evaluate import evaluate
+from htlm_agent.runtime.team import Team
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario, builtin, from_dict
 
@@ -122,3 +137,39 @@ def test_estimate_bounds_the_problem(team: str) -> None:
     assert sol.cap_vectors.shape[0] <= est.capability_vectors
     assert sol.values.size == (sc.horizon + 1) * est.states
     assert est.evaluations == sc.horizon * est.states * est.capability_vectors
+
+
+def test_qmdp_agents_act_on_their_own_belief_with_the_optimums_values() -> None:
+    """Each agent's QMDP choice is its part of the joint action the optimum takes in a state its belief is certain
+    of, idles once it believes every task done, and does not read the true levels."""
+    sc = builtin()
+    pol = QmdpPolicy(sc)
+    sol = pol.sol
+    team = Team(sc, 4, 3)
+    ctx = team.context()
+    certain = np.zeros_like(ctx.marginals)
+    levels = np.array([[4, 4, 4, 4], [0, 3, 0, 3], [0, 1, 0, 1], [0, 0, 0, 0]])
+    for e, lv in enumerate(levels):
+        certain[e, :, np.arange(sc.n_tasks), lv] = 1.0
+    ctx.marginals = certain
+    a = pol.act(ctx)
+    caps = Model.build(sc).agent_caps[:, : sc.n_tasks]
+    for e, lv in enumerate(levels[:3]):
+        work = a[e] < sc.n_tasks
+        joint = np.zeros(sc.n_tasks, dtype=np.int64)
+        np.add.at(joint, a[e][work], caps[np.flatnonzero(work), a[e][work]])
+        q = action_values(sol, sc.horizon)[:, state_index(sc, lv)]
+        best = q.min()
+        mine = int(np.flatnonzero((sol.cap_vectors == np.minimum(joint, sc.capability_max)).all(axis=1))[0])
+        assert q[mine] <= best + QMDP_LOAD_COST * caps.sum(), (lv, a[e])  # the optimum's step, up to the load cost
+    assert (a[3] >= sc.n_tasks).all()  # believed complete: everyone idles
+    ctx.true_levels = np.full_like(ctx.true_levels, 4)
+    assert (pol.act(ctx) == a).all()
+
+
+def test_qmdp_beats_the_auction_on_the_paper_operation() -> None:
+    """The reference docs/model.md gives (Baselines, qmdp): on the same episodes, sooner than the auction."""
+    sc = builtin()
+    qmdp = evaluate(QmdpPolicy(sc), sc, 200, 0)["completion"]["mean"]
+    auction = evaluate(AuctionPolicy(sc), sc, 200, 0)["completion"]["mean"]
+    assert qmdp < auction - 0.5, (qmdp, auction)

@@ -7,11 +7,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from htlm_agent.baselines.heuristics import AuctionPolicy
 from htlm_agent.experiments.market import changed_operations
-from htlm_agent.experiments.train import train
+from htlm_agent.baselines.optimal import QmdpPolicy
+from htlm_agent.experiments.train import imitate_step, train
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.qnet import AgentQ, build_network, init_params, network_shapes
@@ -84,6 +86,29 @@ def test_the_warm_start_learns_the_auctions_choices() -> None:
             lr.imitate(ctx.knowledge, ctx.mask, a)
             team.step(a)
     assert np.mean(agree[-sc.horizon :]) > 0.97, agree[-sc.horizon :]
+
+
+def test_a_warm_start_with_more_imitation_updates_draws_from_every_expert_choice_so_far() -> None:
+    """`imitate_updates` > 1: the step's update, then minibatches of the expert memory; no TD updates meanwhile."""
+    sc = builtin()
+    s = TOKENS.replace(imitate="qmdp", imitate_episodes=32, imitate_updates=3)
+    assert s.td_updates(0) == 0 and s.td_updates(32) == s.updates_per_step
+    assert TOKENS.replace(imitate="auction", imitate_episodes=32).td_updates(0) == TOKENS.updates_per_step
+    lr = Learner(sc, s)
+    expert = QmdpPolicy(sc)
+    team = Team(sc, 16, 0)
+    before = lr.net.flat.detach().clone()
+    for _ in range(2):
+        imitate_step(lr, expert, team.knowledge())
+        team.step(expert.act(team.context()))
+    memory = lr.expert_memory()
+    assert memory.size == 32
+    k, m, a = memory.sample(s.batch_size)
+    assert k.shape == (s.batch_size, sc.n_agents, sc.knowledge_size) and m.shape[:2] == a.shape
+    assert np.take_along_axis(m, a[..., None], axis=-1).all()  # every stored choice lies in its Â
+    assert not torch.equal(before, lr.net.flat)
+    with pytest.raises(ValueError, match="imitate_updates: 0 must be >= 1"):
+        TOKENS.replace(imitate_updates=0)
 
 
 def test_a_token_run_checkpoints_and_loads_as_a_policy(tmp_path: Path) -> None:

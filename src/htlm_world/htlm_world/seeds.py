@@ -55,6 +55,8 @@ class Stream(IntEnum):
     """The scenario's events of one episode (or one batch of evaluation episodes): keys (episode, 0)."""
     TRAIN_EVENTS = 16
     """The scenario's events of one batch of in-process training episodes: keys (batch, 0)."""
+    IMITATION = 17
+    """The warm start's draws of stored expert choices (`Settings.imitate_updates`): keys (0, 0)."""
 
 
 def sequence(seed: int, stream: Stream, first: int = 0, second: int = 0) -> np.random.SeedSequence:
@@ -161,6 +163,11 @@ def network_init(seed: int, agent: int) -> int:
 def replay(seed: int, agent: int) -> int:
     """The seed of agent `agent`'s replay-memory sampling generator (an integer: its state goes into checkpoints)."""
     return derived_seed(seed, Stream.REPLAY, agent)
+
+
+def imitation(seed: int) -> np.random.Generator:
+    """The warm start's sampling of the expert choices stored so far (`Settings.imitate_updates`)."""
+    return generator(seed, Stream.IMITATION)
 
 
 def validation(seed: int) -> int:

@@ -6,6 +6,8 @@
   agent on its own belief (docs/model.md, Baselines).
 - the HT Dec-POMDP learner (the paper's predecessor): the same deep Q-learner on the scenario in mode "ht" (no idle
   locations, R_LM = 0), see `htlm_agent.experiments.baselines.train_ht`.
+- `QmdpPolicy` (htlm_agent.baselines.optimal): every agent on its own belief with the values of the centralized
+  optimum (QMDP), where the optimum can be computed.
 - `OptimalPolicy` (htlm_agent.baselines.optimal): the centralized, fully observed optimum acting on the true state
   (the floor).
 
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from htlm_agent.baselines.optimal import QmdpPolicy
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate, own_assignment
 from htlm_agent.mind.context import Context
@@ -26,11 +29,11 @@ from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.types import BoolArray, IntArray
 
-BASELINES = ("random", "greedy", "auction", "ht", "optimal")
+BASELINES = ("random", "greedy", "auction", "qmdp", "ht", "optimal")
 """Names accepted by `registry.make_baseline` and `htlm evaluate --baseline` (here, in a module without torch, so
 that the command line lists them without loading the learner)."""
 
-BUILTIN_POLICIES = ("greedy", "auction", "random")
+BUILTIN_POLICIES = ("greedy", "auction", "qmdp", "random")
 """Baselines an agent process runs by name, without a network (`policies.builtin_policy`; the agent node's
 `policy:=NAME`, `htlm launch --policy NAME`)."""
 
@@ -150,4 +153,6 @@ def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPoli
         raise ValueError(f"unknown built-in policy {name!r}; choose one of {', '.join(BUILTIN_POLICIES)}")
     if name == "auction":
         return RowPolicy(scenario, AuctionPolicy(scenario), agent), 0.0
+    if name == "qmdp":
+        return RowPolicy(scenario, QmdpPolicy(scenario), agent), 0.0
     return RowPolicy(scenario, GreedyPolicy(scenario), agent), (1.0 if name == "random" else 0.0)

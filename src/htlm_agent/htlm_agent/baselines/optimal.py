@@ -366,3 +366,60 @@ class OptimalPolicy:
             done = (ctx.true_levels == 0).all(axis=1)[:, None]
             joint = np.where((joint < 0) | done, self.model.idle_action(ctx.prev), joint)
         return np.asarray(joint, dtype=np.int64)
+
+
+def action_values(sol: OptimalSolution, steps_left: int) -> FloatArray:
+    """Q of the optimum with `steps_left` steps to go: (C, L^p), entry [c, s] the expected completion step from
+    state s when the team applies capability vector c now and acts optimally after (1 + the expected value of the
+    next state; 0 for the complete state)."""
+    sc = sol.scenario
+    model = Model.build(sc)
+    mats = [site_matrices(model, sol.cap_vectors, s) for s in range(sc.n_sites)]
+    sizes = tuple(m.shape[1] for m in mats)
+    v = sol.values[steps_left - 1].reshape(sizes)
+    ev = np.broadcast_to(v, (sol.cap_vectors.shape[0],) + v.shape)
+    for s in range(sc.n_sites):
+        ev = _contract(ev, mats[s], s + 1)
+    q = 1.0 + ev.reshape(sol.cap_vectors.shape[0], -1)
+    q[:, 0] = 0.0  # every task at level 0: complete
+    return np.ascontiguousarray(q)
+
+
+QMDP_LOAD_COST = 0.001
+"""Steps of expected completion that one unit of committed capability is worth to `QmdpPolicy`: mission first, load
+second (among capability vectors within a hundredth of a step per unit of each other, the one that commits less)."""
+
+
+class QmdpPolicy:
+    """Every agent on its own belief alone: the capability vector that minimizes the optimum's expected completion
+    step averaged over its belief, then its own part of the joint action that makes it (QMDP, Littman, Cassandra and
+    Kaelbling 1995; docs/model.md, Baselines). The belief is the product of the agent's task marginals, the values
+    those of the centralized optimum with the whole horizon to go (the knowledge state holds no step count); an agent
+    whose part brings no capability idles at the site of its previous assignment. Decentralized, but only where the
+    optimum can be computed (`solve` refuses larger problems)."""
+
+    def __init__(self, sc: Scenario) -> None:
+        """Solve the scenario and keep the optimum's action values (C, L^p)."""
+        self.sc = sc
+        self.model = Model.build(sc)
+        self.sol = solve(sc)
+        caps = self.model.agent_caps[:, : sc.n_tasks]
+        joint = self.sol.joint_actions  # (C, N), -1 where an agent brings nothing
+        n = np.arange(sc.n_agents)
+        brings = (joint >= 0) & (caps[n[None, :], np.maximum(joint, 0)] > 0)
+        self.parts = np.where(brings, joint, -1)  # (C, N)
+        committed = np.where(brings, caps[n[None, :], np.maximum(joint, 0)], 0).sum(axis=1)  # (C,)
+        self.q_t = (action_values(self.sol, sc.horizon) + QMDP_LOAD_COST * committed[:, None]).T.copy()  # (L^p, C)
+
+    def act(self, ctx: Context) -> IntArray:
+        """One action per agent, each from its own row's marginals."""
+        sc = self.sc
+        marg = ctx.marginals  # (B, N, p, L)
+        b, n = marg.shape[:2]
+        joint = np.ones((b, n, 1))
+        for j in range(sc.n_tasks):  # the product belief over every joint state, in `state_index` order
+            joint = (joint[..., :, None] * marg[:, :, j, None, :]).reshape(b, n, -1)
+        best = (joint @ self.q_t).argmin(axis=2)  # (B, N): each agent's capability vector
+        own = self.parts[best, np.arange(n)[None, :]]
+        stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
+        return np.where(own >= 0, own, stay).astype(np.int64)

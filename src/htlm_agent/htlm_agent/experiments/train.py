@@ -27,6 +27,7 @@ import torch
 import yaml
 
 from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
+from htlm_agent.baselines.optimal import QmdpPolicy
 from htlm_agent.experiments.evaluate import evaluate, evaluate_run, write_reports
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
 from htlm_agent.learning.dqn import Learner
@@ -169,7 +170,7 @@ def train_batch(
         k2, r, info = team.step(a)
         m2 = team.mask()
         learner.store_batch(k, a, r, k2, m2, t == sc.horizon - 1)
-        losses += learner.train_steps(s.updates_per_step)
+        losses += learner.train_steps(s.td_updates(learner.episodes_done))
         levels.append(info.levels)
         actions.append(a)
         rsum += float(r.mean())
@@ -190,16 +191,27 @@ def imitate_step(learner: Learner, expert: Policy, k: FloatArray) -> float:
     """The warm start's update of one step for the whole team, in process and in the trainer over ROS alike: the
     networks learn to rank first the expert's choices made from every agent's own knowledge state (B, N, K) and its
     Â(a_o) (`Learner.imitate`), the knowledge as the trainer receives it (float32, the precision of the wire and of
-    the replay memories). Returns the loss."""
+    the replay memories); with `Settings.imitate_updates` > 1, also on minibatches of the expert choices stored so
+    far. Returns the last update's loss."""
     k32 = np.asarray(k, dtype=np.float32).astype(np.float64)  # the values of float32, as the trainer has them
     m = learner.knowledge_mask(k32).numpy()
-    return learner.imitate(k32, m, np.asarray(expert.act(knowledge_context(learner.scenario, k32, m)), dtype=np.int64))
+    a = np.asarray(expert.act(knowledge_context(learner.scenario, k32, m)), dtype=np.int64)
+    loss = learner.imitate(k32, m, a)
+    s = learner.settings
+    if s.imitate_updates > 1:  # more updates on every expert choice of the warm start so far
+        memory = learner.expert_memory()
+        memory.add(k32, m, a)
+        for _ in range(s.imitate_updates - 1):
+            loss = learner.imitate(*memory.sample(s.batch_size))
+    return loss
 
 
 def warm_start_expert(scenario: Scenario, settings: Settings) -> Policy | None:
     """The baseline the warm start imitates (`Settings.imitate`), None without a warm start."""
     if settings.imitate == "none" or settings.imitate_episodes == 0:
         return None
+    if settings.imitate == "qmdp":
+        return QmdpPolicy(scenario)
     return AuctionPolicy(scenario) if settings.imitate == "auction" else GreedyPolicy(scenario)
 
 

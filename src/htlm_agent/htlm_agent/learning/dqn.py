@@ -47,7 +47,7 @@ from htlm_agent.learning.qnet import (
     pack_weights,
 )
 from htlm_agent.learning.qpolicy import QPolicy, greedy_actions
-from htlm_agent.learning.replay import Batch, Replay
+from htlm_agent.learning.replay import Batch, ExpertMemory, Replay
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
 from htlm_agent.learning.tokens import TokenQ
@@ -113,6 +113,7 @@ class Learner:
         )
         self.updates = np.zeros(n, dtype=np.int64)
         self.episodes_done = 0
+        self._experts: ExpertMemory | None = None
         self.gamma = scenario.gamma
         self._nstep = [NStep(settings.n_step, self.gamma, settings.reward_scale) for _ in range(n)]
         self._nstep_batch = NStep(settings.n_step, self.gamma, settings.reward_scale)
@@ -353,6 +354,16 @@ class Learner:
                 self.sync_target(sync)
             losses.append(float(per_agent.detach()[torch.from_numpy(ready)].mean()))
         return losses
+
+    def expert_memory(self) -> ExpertMemory:
+        """The warm start's memory of expert choices (`Settings.imitate_updates`), made at its first use: as many
+        team steps as `memory` holds transitions. A resumed run starts it anew."""
+        if self._experts is None:
+            sc = self.scenario
+            self._experts = ExpertMemory(
+                self.settings.memory, sc.n_agents, sc.knowledge_size, sc.n_actions, seeds.imitation(self.seed)
+            )
+        return self._experts
 
     def imitate(self, knowledge: FloatArray, mask: BoolArray, expert: IntArray) -> float:
         """One supervised update of the token networks towards a baseline's actions (the warm start,

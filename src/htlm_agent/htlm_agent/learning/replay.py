@@ -223,3 +223,33 @@ class Replay:
         self.pos[:] = st["pos"]
         for g, s in zip(self.rngs, st["rngs"], strict=True):
             g.bit_generator.state = s
+
+
+class ExpertMemory:
+    """The warm start's expert choices (`Settings.imitate_updates`): whole team steps of knowledge (float32, as
+    stored everywhere), masks and the expert's actions, oldest overwritten first, sampled uniformly."""
+
+    def __init__(self, capacity: int, n_agents: int, k_size: int, n_actions: int, rng: np.random.Generator) -> None:
+        """Room for `capacity` team steps (rows of N agents)."""
+        self.k = np.zeros((capacity, n_agents, k_size), dtype=np.float32)
+        self.mask = np.zeros((capacity, n_agents, n_actions), dtype=bool)
+        self.action = np.zeros((capacity, n_agents), dtype=np.int64)
+        self.size = 0
+        self.next = 0
+        self.rng = rng
+
+    def add(self, k: FloatArray, mask: BoolArray, action: IntArray) -> None:
+        """Store B team steps: (B, N, K) knowledge, (B, N, |Ḡ|) masks, (B, N) the expert's actions."""
+        cap = self.k.shape[0]
+        for row in range(0, k.shape[0], cap):  # a batch larger than the memory keeps its last rows
+            part = slice(row, row + cap)
+            n = k[part].shape[0]
+            idx = (self.next + np.arange(n)) % cap
+            self.k[idx], self.mask[idx], self.action[idx] = k[part], mask[part], action[part]
+            self.next = int((self.next + n) % cap)
+            self.size = min(cap, self.size + n)
+
+    def sample(self, rows: int) -> tuple[FloatArray, BoolArray, IntArray]:
+        """`rows` team steps drawn uniformly (with replacement) from what is stored."""
+        idx = self.rng.integers(0, self.size, size=rows)
+        return self.k[idx].astype(np.float64), self.mask[idx], self.action[idx]

@@ -16,7 +16,7 @@ from htlm_world.episode import TRAINER_LAG
 LEARNERS = ("paper", "tokens")
 """The Q-networks a run can train (`Settings.learner`)."""
 
-IMITATE = ("none", "auction", "greedy")
+IMITATE = ("none", "auction", "greedy", "qmdp")
 """The baselines a warm start can imitate (`Settings.imitate`)."""
 
 
@@ -50,10 +50,15 @@ class Settings:
     """tokens: the agents share one network (their capabilities and preferences are inputs); False: each agent
     trains its own."""
     imitate: str = "none"
-    """Warm start: `auction` or `greedy` trains the networks first to rank that baseline's choice, made from each
-    agent's own belief, above the other actions (with its episodes stored as experience); `none`: no warm start."""
+    """Warm start: `auction`, `greedy` or `qmdp` (where the optimum can be computed) trains the networks first to
+    rank that baseline's choice, made from each agent's own belief, above the other actions (with its episodes stored
+    as experience); `none`: no warm start."""
     imitate_episodes: int = 0
     """Episodes of the warm start (part of `episodes`), run by the baseline the networks imitate."""
+    imitate_updates: int = 1
+    """Imitation updates per step of the warm start: one on the step's expert choices, the others on minibatches
+    (`batch_size` team steps) drawn from every expert choice of the warm start so far. A baseline whose choices the
+    token features do not carry (`qmdp`) needs many; the auction's advice is one of the features."""
     hidden: tuple[int, ...] = (64, 64)
     """Hidden layer sizes of every agent's Q-network MLP (ReLU); tokens: the token encoder's and the head's."""
     lr: float = 1e-3
@@ -169,6 +174,8 @@ class Settings:
             raise ValueError(
                 f"settings.imitate_episodes: {self.imitate_episodes!r} must be in 0..episodes ({self.episodes})"
             )
+        if self.imitate_updates < 1:
+            raise ValueError(f"settings.imitate_updates: {self.imitate_updates!r} must be >= 1")
         if self.imitate != "none" and self.learner != "tokens":
             raise ValueError(f"settings.imitate: {self.imitate!r} needs learner 'tokens', not {self.learner!r}")
         if self.envs > self.memory:
@@ -180,6 +187,14 @@ class Settings:
         span = self.eps_fraction * self.episodes
         frac = 1.0 if span <= 0 else min(max(float(episode) / span, 0.0), 1.0)
         return self.eps_start + frac * (self.eps_end - self.eps_start)
+
+    def td_updates(self, episodes_done: int) -> int:
+        """TD updates of every agent at a step: `updates_per_step`, none in a warm start with more than one imitation
+        update a step (`imitate_updates`), where the imitation alone shapes the networks (TD targets from the
+        belief-based reward pull them away from a baseline they cannot read off their features)."""
+        if self.imitate_updates > 1 and self.warm_start(episodes_done):
+            return 0
+        return self.updates_per_step
 
     def warm_start(self, episodes_done: int) -> bool:
         """Whether the batch after `episodes_done` training episodes is one of the warm start: the baseline of

@@ -40,7 +40,7 @@ class PolicySource:
         if kind == "auto":
             kind = "trainer" if run.mode == "train" else ("checkpoint" if self.checkpoint else "")
             if not kind:
-                return f"mode {run.mode}: no policy: set checkpoint:=DIR, or policy:=greedy, auction or random"
+                return f"mode {run.mode}: no policy: set checkpoint:=DIR, or policy:=greedy, auction, qmdp or random"
         self.kind = kind
         try:
             self._make(kind, run, out)
