@@ -9,10 +9,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
-
-import numpy as np
 
 from htlm_agent.baselines.heuristics import AuctionPolicy
 from htlm_agent.baselines.optimal import (

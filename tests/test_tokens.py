@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from htlm_agent.baselines.heuristics import AuctionPolicy
-from htlm_agent.experiments.market import changed_operations
 from htlm_agent.baselines.optimal import QmdpPolicy
+from htlm_agent.experiments.market import changed_operations
 from htlm_agent.experiments.train import imitate_step, train
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.dqn import Learner

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from htlm_agent.baselines.optimal import ProblemTooLarge
 from htlm_agent.experiments.baselines import make_baseline
 from htlm_agent.experiments.evaluate import evaluate, importance_table
 from htlm_agent.experiments.stress import run_stress
@@ -43,11 +44,27 @@ from htlm_world.scenario import Scenario, load
 
 LEARNERS: dict[str, dict[str, Any]] = {
     "tokens": {"settings": {"learner": "tokens"}, "credit": "difference"},
+    "tokens-qmdp": {
+        "settings": {"learner": "tokens", "imitate": "qmdp", "imitate_updates": 32, "hidden": (64, 64)},
+        "credit": "difference",
+    },
     "paper": {"settings": {}, "credit": None},
 }
 """The learned teams: `Settings.for_learner` changes and the credit of the scenario they train on."""
 
-BASELINES = ("greedy", "auction")
+BASELINES = ("greedy", "auction", "qmdp")
+"""The teams a user would pick instead, and QMDP where the optimum can be computed (left out elsewhere)."""
+
+
+def _baselines(sc: Scenario, seed: int) -> dict[str, tuple[Any, Scenario]]:
+    """Every baseline of BASELINES that can be built for `sc` (QMDP needs the optimum: not on large scenarios)."""
+    out: dict[str, tuple[Any, Scenario]] = {}
+    for b in BASELINES:
+        try:
+            out[b] = make_baseline(b, sc, seed=seed)
+        except ProblemTooLarge:
+            _log(f"{sc.name}: no {b}: the optimum it needs is too large to compute")
+    return out
 
 
 def _log(text: str) -> None:
@@ -97,8 +114,7 @@ def run_scenario(
             rows[-1].update(_figures(res.metrics))
             teams[learner] = (QPolicy.from_checkpoint(load_checkpoint(run_dir)), lsc)
             _log(f"{name} {learner} seed {seed}: {rows[-1]['completion']:.2f} steps in {took:.0f} s")
-        for b in BASELINES:
-            pol, bsc = make_baseline(b, sc, seed=seed)
+        for b, (pol, bsc) in _baselines(sc, seed).items():
             rows.append({"scenario": name, "team": b, "condition": "none", "seed": seed})
             rows[-1].update(_figures(evaluate(pol, bsc, eval_episodes, seed=seed)))
             teams[b] = (pol, bsc)
@@ -166,8 +182,8 @@ def run_transfer(name: str, seed: int, episodes: int, eval_episodes: int, out: P
         retrained = out / "runs" / f"{name}__{change.replace(' ', '-')}__{seed}"
         train(changed, settings, retrained, progress=False, tensorboard=False)
         teams["retrained"] = QPolicy.from_checkpoint(load_checkpoint(retrained))
-        for b in BASELINES:
-            teams[b] = make_baseline(b, changed, seed=seed)[0]
+        for b, (pol, _) in _baselines(changed, seed).items():
+            teams[b] = pol
         for team, pol in teams.items():
             row = {"scenario": name, "change": change, "team": team, "seed": seed}
             row.update(_figures(evaluate(pol, changed, eval_episodes, seed=seed)))
@@ -231,7 +247,14 @@ def plot(summary: list[dict[str, Any]], path: Path) -> None:
 
     scenarios = list(dict.fromkeys(r["scenario"] for r in summary))
     fig, axes = plt.subplots(len(scenarios), 1, figsize=(11, 3.2 * len(scenarios)), squeeze=False)
-    colours = {"tokens": "#1f6f8b", "paper": "#7fb3d5", "greedy": "0.6", "auction": "#c0392b"}
+    colours = {
+        "tokens": "#1f6f8b",
+        "tokens-qmdp": "#16a085",
+        "paper": "#7fb3d5",
+        "greedy": "0.6",
+        "auction": "#c0392b",
+        "qmdp": "#8e44ad",
+    }
     for ax, sc in zip(axes[:, 0], scenarios, strict=True):
         block = [r for r in summary if r["scenario"] == sc]
         conds = list(dict.fromkeys(r["condition"] for r in block))
@@ -268,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m htlm_agent.experiments.market", description=__doc__.splitlines()[0])
     p.add_argument("--scenarios", nargs="+", required=True, help="shipped scenario names or files")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    p.add_argument("--learners", nargs="*", default=list(LEARNERS), choices=list(LEARNERS))
+    p.add_argument("--learners", nargs="*", default=["tokens", "paper"], choices=list(LEARNERS))
     p.add_argument("--episodes", type=int, default=12_288, help="training episodes of every learned team")
     p.add_argument("--eval-episodes", type=int, default=500)
     p.add_argument("--no-stress", action="store_true", help="skip the stress sets")

@@ -27,7 +27,7 @@ import torch
 import yaml
 
 from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
-from htlm_agent.baselines.optimal import QmdpPolicy
+from htlm_agent.baselines.optimal import ProblemTooLarge, QmdpPolicy
 from htlm_agent.experiments.evaluate import evaluate, evaluate_run, write_reports
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
 from htlm_agent.learning.dqn import Learner
@@ -211,7 +211,10 @@ def warm_start_expert(scenario: Scenario, settings: Settings) -> Policy | None:
     if settings.imitate == "none" or settings.imitate_episodes == 0:
         return None
     if settings.imitate == "qmdp":
-        return QmdpPolicy(scenario)
+        try:
+            return QmdpPolicy(scenario)
+        except ProblemTooLarge as e:
+            raise ValueError(f"settings.imitate: 'qmdp' needs the centralized optimum, and {e}") from None
     return AuctionPolicy(scenario) if settings.imitate == "auction" else GreedyPolicy(scenario)
 
 

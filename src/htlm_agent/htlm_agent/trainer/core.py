@@ -559,7 +559,8 @@ class TrainerCore:
             out.counters["partial_rounds"] += 1
             for i in sorted(rnd.records):
                 self._store_one(rnd.records[i])
-        losses = self.learner.train_steps(self.learner.settings.td_updates(self.learner.episodes_done))  # as `htlm train`: drawn together
+        # as `htlm train`: drawn together
+        losses = self.learner.train_steps(self.learner.settings.td_updates(self.learner.episodes_done))
         if losses:
             self.last_loss = losses[-1]
             self.updates += len(losses)
