@@ -32,8 +32,8 @@ def test_report_rows_come_from_the_logged_episodes_and_the_evaluated_baselines(t
     assert row["episodes"] == 4 and row["completion_mean"] == 15.0 and row["failure_rate"] == 0.25
     assert row["unused_fraction"] == pytest.approx(0.515) and row["completion_se"] > 0
     base = baseline_rows(builtin(), 20, seed=3)
-    assert [r["policy"] for r in base] == ["random", "greedy", "auction", "optimal"]
-    assert base[3]["completion_mean"] < base[1]["completion_mean"] < base[0]["completion_mean"]
+    assert [r["policy"] for r in base] == ["random", "greedy", "auction", "qmdp", "optimal"]
+    assert base[4]["completion_mean"] < base[1]["completion_mean"] < base[0]["completion_mean"]
     assert base[2]["completion_mean"] < base[0]["completion_mean"]
     doc = write_report(tmp_path, [row, *base], {"team": "heterogeneous", "seed": 3, "train_episodes": 4})
     with (tmp_path / "result.csv").open() as f:
@@ -49,7 +49,7 @@ def test_a_baseline_too_large_here_is_left_out_with_its_reason() -> None:
     skipped: dict[str, str] = {}
     base = baseline_rows(load("warehouse"), 10, seed=0, skipped=skipped)
     assert [r["policy"] for r in base] == ["random", "greedy", "auction"]
-    assert list(skipped) == ["optimal"] and "too large to compute here" in skipped["optimal"]
+    assert list(skipped) == ["qmdp", "optimal"] and "too large to compute here" in skipped["optimal"]
 
 
 def test_report_without_episodes_names_the_file(tmp_path: Path) -> None:

@@ -300,7 +300,6 @@ def solve(sc: Scenario, limits: Limits = DEFAULT_LIMITS, progress: bool = False)
     L, S = sc.levels, sc.n_sites
     caps, joints = capability_vectors(model, progress)
     mats = [site_matrices(model, caps, s) for s in range(S)]  # each (C, L^m, L^m), m the site's tasks
-    sizes = tuple(m.shape[1] for m in mats)
     n_states = L**sc.n_tasks
     complete = np.zeros(n_states, dtype=bool)
     complete[0] = True
@@ -308,12 +307,7 @@ def solve(sc: Scenario, limits: Limits = DEFAULT_LIMITS, progress: bool = False)
     best = np.zeros((sc.horizon + 1, n_states), dtype=np.int64)
     bar = Progress(sc.horizon, unit="steps", enabled=progress)
     for k in range(1, sc.horizon + 1):
-        v = values[k - 1].reshape(sizes)
-        # expected next value for every capability vector: contract each site's axis with its matrix
-        ev = np.broadcast_to(v, (caps.shape[0],) + v.shape)
-        for s in range(S):
-            ev = _contract(ev, mats[s], s + 1)
-        q = ev.reshape(caps.shape[0], n_states)
+        q = _expected_next(values[k - 1], mats)
         best[k] = q.argmin(axis=0)
         values[k] = np.where(complete, 0.0, 1.0 + q.min(axis=0))
         bar.update(k, phase="value iteration", capability_vectors=caps.shape[0], states=n_states)
@@ -337,6 +331,16 @@ def site_matrices(model: Model, caps: IntArray, site: int) -> FloatArray:
         c = caps[:, j]
         out *= table[c[:, None, None], g[None, :, None], idx[q][None, :, None], idx[q][None, None, :]]
     return out
+
+
+def _expected_next(values: FloatArray, mats: list[FloatArray]) -> FloatArray:
+    """The expected value of the next state (C, L^p) under every capability vector, from the values (L^p,) and every
+    site's matrices (`site_matrices`): each site's axis contracted with its matrix."""
+    v = values.reshape(tuple(m.shape[1] for m in mats))
+    ev = np.broadcast_to(v, (mats[0].shape[0],) + v.shape)
+    for s, mat in enumerate(mats):
+        ev = _contract(ev, mat, s + 1)
+    return ev.reshape(mats[0].shape[0], -1)
 
 
 def _contract(ev: FloatArray, mat: FloatArray, axis: int) -> FloatArray:
@@ -375,12 +379,7 @@ def action_values(sol: OptimalSolution, steps_left: int) -> FloatArray:
     sc = sol.scenario
     model = Model.build(sc)
     mats = [site_matrices(model, sol.cap_vectors, s) for s in range(sc.n_sites)]
-    sizes = tuple(m.shape[1] for m in mats)
-    v = sol.values[steps_left - 1].reshape(sizes)
-    ev = np.broadcast_to(v, (sol.cap_vectors.shape[0],) + v.shape)
-    for s in range(sc.n_sites):
-        ev = _contract(ev, mats[s], s + 1)
-    q = 1.0 + ev.reshape(sol.cap_vectors.shape[0], -1)
+    q = 1.0 + _expected_next(sol.values[steps_left - 1], mats)
     q[:, 0] = 0.0  # every task at level 0: complete
     return np.ascontiguousarray(q)
 

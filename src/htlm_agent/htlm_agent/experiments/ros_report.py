@@ -2,9 +2,9 @@
 result.json and result.png in the run directory.
 
 The learned team's row comes from the world's episode log (world.jsonl) of the evaluation run over ROS; the
-baselines (random, greedy, auction, and the centralized optimum that reads the true state) are evaluated in process
-on the same number of episodes with the same master seed (`htlm evaluate --baseline`), so every row is measured, none
-is drawn from constants.
+baselines (random, greedy, auction, QMDP and the centralized optimum that reads the true state; the last two where
+the optimum can be computed) are evaluated in process on the same number of episodes with the same master seed
+(`htlm evaluate --baseline`), so every row is measured, none is drawn from constants.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from htlm_world.scenario import Scenario
 FIELDS = ("policy", "runtime", "episodes", "completion_mean", "completion_se", "failure_rate", "unused_fraction")
 """Columns of result.csv (and keys of every row of result.json)."""
 
-BASELINES = ("random", "greedy", "auction", "optimal")
+BASELINES = ("random", "greedy", "auction", "qmdp", "optimal")
 """Baselines shown beside the learned team."""
 
 
@@ -75,7 +75,7 @@ def learned_row(world_log: Path, name: str = "learned (HTLM DQN)") -> dict[str, 
 def baseline_rows(
     scenario: Scenario, episodes: int, seed: int, skipped: dict[str, str] | None = None
 ) -> list[dict[str, Any]]:
-    """random, greedy, auction and the optimum, evaluated in process on `episodes` episodes of master seed `seed`.
+    """random, greedy, auction, QMDP and the optimum, evaluated in process on `episodes` episodes of master seed `seed`.
     A baseline that cannot be computed here (the optimum of a large scenario) is left out, and why goes into
     `skipped` by its name."""
     rows = []
