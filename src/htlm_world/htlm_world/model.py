@@ -217,6 +217,12 @@ class Model:
         site = np.where(prev >= 0, self.action_site[np.maximum(prev, 0)], 0)
         return (self.scenario.n_tasks + site).astype(np.int64)
 
+    def rest_action(self, prev: IntArray) -> IntArray:
+        """What a baseline agent does when it takes no task: idle at the site of its previous assignment
+        (`idle_action`); HT mode (no idle locations): stay on its previous task, task 0 before any."""
+        prev = np.asarray(prev, dtype=np.int64)
+        return self.idle_action(prev) if self.scenario.n_idle else np.where(prev >= 0, prev, 0)
+
     def observes(self, actions: IntArray, t: int | None) -> tuple[IntArray, IntArray]:
         """Which task each action observes at step t (1..h), and with which accuracy class (docs/model.md,
         Observation O): an agent working on a task observes it, with its kind's class; with `standby_accuracy`, an

@@ -79,12 +79,10 @@ class GreedyPolicy:
 
     def act(self, ctx: Context) -> IntArray:
         """One action per agent from its own row of the Context."""
-        sc = self.scenario
         lv = confident_levels(ctx.marginals, self.threshold)  # (B, N, p)
         blk = self.model.blocked(lv)
         b, n = ctx.prev.shape
-        stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
-        out = stay.astype(np.int64)
+        out = self.model.rest_action(ctx.prev)
         chosen = np.zeros((b, n), dtype=bool)
         for i in range(n):
             for j in self.order[i]:
@@ -141,8 +139,7 @@ class AuctionPolicy:
         present = knowledge.roster(ctx.knowledge, sc).reshape(b * n, n) if sc.roster else None  # row: its roster
         # agent i's result in the auction it runs on its own row (allocate's, without the rounds after it)
         own = own_assignment(self.model, lv.reshape(b * n, p), np.tile(np.arange(n), b), present).reshape(b, n)
-        stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
-        return np.where(own >= 0, own, stay).astype(np.int64)
+        return np.where(own >= 0, own, self.model.rest_action(ctx.prev)).astype(np.int64)
 
 
 def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPolicy, float]:

@@ -405,9 +405,9 @@ class QmdpPolicy:
         caps = self.model.agent_caps[:, : sc.n_tasks]
         joint = self.sol.joint_actions  # (C, N), -1 where an agent brings nothing
         n = np.arange(sc.n_agents)
-        brings = (joint >= 0) & (caps[n[None, :], np.maximum(joint, 0)] > 0)
-        self.parts = np.where(brings, joint, -1)  # (C, N)
-        committed = np.where(brings, caps[n[None, :], np.maximum(joint, 0)], 0).sum(axis=1)  # (C,)
+        brought = np.where(joint >= 0, caps[n[None, :], np.maximum(joint, 0)], 0)  # (C, N) each agent's capability
+        self.parts = np.where(brought > 0, joint, -1)  # (C, N)
+        committed = brought.sum(axis=1)  # (C,)
         self.q_t = (action_values(self.sol, sc.horizon) + QMDP_LOAD_COST * committed[:, None]).T.copy()  # (L^p, C)
 
     def act(self, ctx: Context) -> IntArray:
@@ -420,5 +420,4 @@ class QmdpPolicy:
             joint = (joint[..., :, None] * marg[:, :, j, None, :]).reshape(b, n, -1)
         best = (joint @ self.q_t).argmin(axis=2)  # (B, N): each agent's capability vector
         own = self.parts[best, np.arange(n)[None, :]]
-        stay = self.model.idle_action(ctx.prev) if sc.n_idle else np.where(ctx.prev >= 0, ctx.prev, 0)
-        return np.where(own >= 0, own, stay).astype(np.int64)
+        return np.where(own >= 0, own, self.model.rest_action(ctx.prev)).astype(np.int64)

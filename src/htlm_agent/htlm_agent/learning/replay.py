@@ -241,13 +241,11 @@ class ExpertMemory:
     def add(self, k: FloatArray, mask: BoolArray, action: IntArray) -> None:
         """Store B team steps: (B, N, K) knowledge, (B, N, |Ḡ|) masks, (B, N) the expert's actions."""
         cap = self.k.shape[0]
-        for row in range(0, k.shape[0], cap):  # a batch larger than the memory keeps its last rows
-            part = slice(row, row + cap)
-            n = k[part].shape[0]
-            idx = (self.next + np.arange(n)) % cap
-            self.k[idx], self.mask[idx], self.action[idx] = k[part], mask[part], action[part]
-            self.next = int((self.next + n) % cap)
-            self.size = min(cap, self.size + n)
+        k, mask, action = k[-cap:], mask[-cap:], action[-cap:]  # a batch larger than the memory keeps its last rows
+        idx = (self.next + np.arange(k.shape[0])) % cap
+        self.k[idx], self.mask[idx], self.action[idx] = k, mask, action
+        self.next = int((self.next + k.shape[0]) % cap)
+        self.size = min(cap, self.size + k.shape[0])
 
     def sample(self, rows: int) -> tuple[FloatArray, BoolArray, IntArray]:
         """`rows` team steps drawn uniformly (with replacement) from what is stored."""
