@@ -57,6 +57,11 @@ class Stream(IntEnum):
     """The scenario's events of one batch of in-process training episodes: keys (batch, 0)."""
     IMITATION = 17
     """The warm start's draws of stored expert choices (`Settings.imitate_updates`): keys (0, 0)."""
+    BASE_ROLLOUTS = 18
+    """The simulated episodes the lookahead baseline learns its value from, and its network's initial weights:
+    keys (0, 0) and (1, 0)."""
+    LOOKAHEAD = 19
+    """The lookahead baseline's draws of states from the agents' beliefs: keys (0, 0)."""
 
 
 def sequence(seed: int, stream: Stream, first: int = 0, second: int = 0) -> np.random.SeedSequence:
@@ -168,6 +173,21 @@ def replay(seed: int, agent: int) -> int:
 def imitation(seed: int) -> np.random.Generator:
     """The warm start's sampling of the expert choices stored so far (`Settings.imitate_updates`)."""
     return generator(seed, Stream.IMITATION)
+
+
+def base_rollouts(seed: int) -> np.random.Generator:
+    """The episodes of the auction on the true levels that the lookahead baseline learns its value from."""
+    return generator(seed, Stream.BASE_ROLLOUTS)
+
+
+def base_value_init(seed: int) -> int:
+    """The torch seed of the lookahead baseline's value network and its minibatches."""
+    return derived_seed(seed, Stream.BASE_ROLLOUTS, 1)
+
+
+def lookahead(seed: int) -> np.random.Generator:
+    """The lookahead baseline's draws of states from the agents' beliefs."""
+    return generator(seed, Stream.LOOKAHEAD)
 
 
 def validation(seed: int) -> int:

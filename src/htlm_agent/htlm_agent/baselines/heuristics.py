@@ -29,7 +29,7 @@ from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.types import BoolArray, IntArray
 
-BASELINES = ("random", "greedy", "auction", "qmdp", "ht", "optimal")
+BASELINES = ("random", "greedy", "auction", "qmdp", "lookahead", "ht", "optimal")
 """Names accepted by `registry.make_baseline` and `htlm evaluate --baseline` (here, in a module without torch, so
 that the command line lists them without loading the learner)."""
 

@@ -35,7 +35,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--baseline",
         choices=list(BASELINES),
         help="random | greedy (belief heuristic) | auction (sequential single-item auction on each agent's "
-        "belief) | ht (HT Dec-POMDP learner) | optimal (centralized, fully observed: the floor)",
+        "belief) | qmdp (the optimum's values on each agent's belief; small operations only) | lookahead (the "
+        "auction improved by a learned value on each agent's belief) | ht (HT Dec-POMDP learner) | optimal "
+        "(centralized, fully observed: the floor)",
     )
     p.add_argument("--episodes", type=int, default=500, help="evaluation episodes (default: 500)")
     p.add_argument(

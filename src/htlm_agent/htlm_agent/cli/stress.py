@@ -30,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--baselines",
         nargs="*",
         default=["greedy", "auction"],
-        choices=["random", "greedy", "auction"],
+        choices=["random", "greedy", "auction", "lookahead"],
         help="baselines beside the team (default: greedy auction)",
     )
     p.add_argument("--episodes", type=int, default=500, help="episodes per run (default: 500)")

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from htlm_agent.baselines.heuristics import BASELINES, AuctionPolicy, GreedyPolicy, RandomPolicy
+from htlm_agent.baselines.lookahead import LookaheadPolicy
 from htlm_agent.baselines.optimal import OptimalPolicy, QmdpPolicy
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
@@ -59,6 +60,8 @@ def make_baseline(
         return AuctionPolicy(scenario), scenario
     if name == "qmdp":
         return QmdpPolicy(scenario), scenario
+    if name == "lookahead":
+        return LookaheadPolicy(scenario, seed=seed), scenario
     if name == "optimal":
         return OptimalPolicy(scenario), scenario
     if name == "ht":

@@ -1,0 +1,203 @@
+"""The auction improved by a one-step lookahead on each agent's own belief (docs/model.md, Baselines).
+
+QMDP needs the centralized optimum, which only the smallest operations allow. This baseline needs none: a value
+network learns, from simulated episodes, how many steps the auction run on the true levels takes to finish from a
+joint state (`BaseValue`, a regression on the simulator's outcomes through torch autograd and torch.optim), and every
+agent, from its own belief alone, improves on the auction with it (`LookaheadPolicy`): the agents in index order
+each pick the action that minimizes the expected steps to go, one step ahead, over states drawn from the belief,
+with the teammates before it on their improved choices and those after it on the auction's. An agent runs that
+sequence in its head and keeps its own choice, as it does the auction (one-agent-at-a-time rollout, Bertsekas 2020).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from htlm_agent.baselines.optimal import QMDP_LOAD_COST
+from htlm_agent.mind import knowledge
+from htlm_agent.mind.auction import allocate
+from htlm_agent.mind.context import Context
+from htlm_agent.mind.reward import RewardTables, confident_levels
+from htlm_world import seeds
+from htlm_world.model import Model
+from htlm_world.scenario import Scenario
+from htlm_world.types import FloatArray, IntArray
+
+
+@dataclass(frozen=True)
+class ValueSettings:
+    """How `BaseValue.fit` learns: the simulated episodes and the regression."""
+
+    rollouts: int = 20_000
+    """Episodes of the auction on the true levels, each run for twice the horizon."""
+    random_start: float = 0.5
+    """Share of those episodes starting from random levels (each task 0 with probability 0.3, else uniform), so
+    that the states a belief may hold are covered; the rest start at the scenario's initial levels."""
+    perturb_steps: int = 12
+    """The others first act for up to this many steps (drawn uniformly) with each agent's choice replaced by a random
+    task or nothing with probability 0.3; the states from then on are the auction's alone and are learned from."""
+    hidden: int = 128
+    """Units of the two hidden layers."""
+    steps: int = 4000
+    """Adam updates of minibatches of 512 states."""
+    lr: float = 1e-3
+
+
+LOOKAHEAD_SAMPLES = 64
+"""States each agent draws from its belief for every lookahead (the expected steps to go are their mean; every
+candidate action is judged on the same draws and the same transition noise)."""
+
+
+def base_rollouts(sc: Scenario, vs: ValueSettings, seed: int = 0) -> tuple[IntArray, FloatArray]:
+    """Joint states (S, p) reached by the auction run on the true levels (every agent knowing them, the whole team
+    present) and the steps each took until every level was 0, capped at the horizon; states already complete are
+    left out (their value is 0 by definition)."""
+    rng = seeds.base_rollouts(seed)
+    model = Model.build(sc)
+    p, levels, n, h = sc.n_tasks, sc.levels, sc.n_agents, sc.horizon
+    r = vs.rollouts
+    s = np.tile(np.array(sc.initial_levels, dtype=np.int64), (r, 1))
+    rand = rng.random(r) < vs.random_start
+    rand_levels = rng.integers(0, levels, size=(r, p)) * (rng.random((r, p)) >= 0.3)
+    s[rand] = rand_levels[rand]
+    prefix = np.where(rand, 0, rng.integers(0, vs.perturb_steps + 1, size=r))
+    horizon2 = 2 * h
+    states = np.zeros((horizon2, r, p), dtype=np.int64)
+    for t in range(horizon2):
+        states[t] = s
+        own = allocate(model, s[:, None, :])[:, 0, :]  # (R, N): the auction on the true levels
+        perturbed = (t < prefix)[:, None] & (rng.random((r, n)) < 0.3)
+        a = np.where(perturbed, rng.integers(-1, p, size=(r, n)), own)
+        s = model.sample_transition(s, model.joint_capability(a), rng.random((r, p)))
+    complete = (states == 0).all(axis=-1)  # (2h, R)
+    next_done = np.full(r, 10**6)
+    to_go = np.zeros((horizon2, r), dtype=np.int64)
+    for t in range(horizon2 - 1, -1, -1):  # the first step >= t with every level 0
+        next_done = np.where(complete[t], t, next_done)
+        to_go[t] = next_done - t
+    keep = (np.arange(h)[:, None] >= prefix[None, :]) & ~complete[:h]  # (h, R)
+    x = states[:h][keep]
+    y = np.minimum(to_go[:h][keep], h).astype(np.float64)
+    return x, y
+
+
+class BaseValue:
+    """The expected steps the auction on the true levels takes to finish from a joint state: an MLP on the one-hot
+    levels of every task, 0 for the complete state."""
+
+    def __init__(self, sc: Scenario, vs: ValueSettings | None = None, seed: int = 0) -> None:
+        """A network of `vs.hidden` units, its weights from the seed; `fit` trains it."""
+        self.sc, self.vs, self.seed = sc, vs or ValueSettings(), seed
+        torch.manual_seed(seeds.base_value_init(seed))
+        d, hid = sc.n_tasks * sc.levels, self.vs.hidden
+        layers = [torch.nn.Linear(d, hid), torch.nn.ReLU(), torch.nn.Linear(hid, hid), torch.nn.ReLU()]
+        self.net = torch.nn.Sequential(*layers, torch.nn.Linear(hid, 1))
+
+    def encode(self, levels: IntArray) -> torch.Tensor:
+        """(..., p) levels -> (..., p L) one-hot inputs."""
+        x = torch.from_numpy(np.ascontiguousarray(levels, dtype=np.int64))
+        return torch.nn.functional.one_hot(x, self.sc.levels).reshape(*x.shape[:-1], -1).to(torch.float32)
+
+    def fit(self, progress: bool = False) -> float:
+        """Learn from `base_rollouts`: mean squared error, Adam. Returns the last minibatch's root mean squared
+        error (steps)."""
+        t0 = time.monotonic()
+        x_np, y_np = base_rollouts(self.sc, self.vs, self.seed)
+        x, y = self.encode(x_np), torch.from_numpy(y_np.astype(np.float32))
+        gen = torch.Generator().manual_seed(seeds.base_value_init(self.seed))
+        opt = torch.optim.Adam(self.net.parameters(), lr=self.vs.lr)
+        loss = torch.zeros(())
+        for _ in range(self.vs.steps):
+            idx = torch.randint(0, len(y), (512,), generator=gen)
+            loss = torch.nn.functional.mse_loss(self.net(x[idx])[:, 0], y[idx])
+            opt.zero_grad()
+            loss.backward()  # type: ignore[no-untyped-call]
+            opt.step()
+        rmse = float(loss.detach().sqrt())
+        if progress:
+            print(
+                f"lookahead: value of the auction on the true levels learned from {len(y_np):,} states "
+                f"(rmse {rmse:.2f} steps, {time.monotonic() - t0:.0f} s)",
+                file=sys.stderr,
+                flush=True,
+            )
+        return rmse
+
+    def __call__(self, levels: IntArray) -> FloatArray:
+        """(..., p) levels -> (...,) expected steps to finish (0 where every level is 0)."""
+        shape = levels.shape[:-1]
+        flat = levels.reshape(-1, levels.shape[-1])
+        out = np.zeros(flat.shape[0])
+        open_rows = np.flatnonzero(flat.any(axis=-1))
+        with torch.no_grad():
+            for i in range(0, open_rows.size, 65536):
+                rows = open_rows[i : i + 65536]
+                out[rows] = self.net(self.encode(flat[rows]))[:, 0].numpy()
+        return out.reshape(shape)
+
+
+class LookaheadPolicy:
+    """Every agent on its own belief: the auction, improved one agent at a time by a one-step lookahead with the
+    learned value of the auction on the true levels (module docstring; docs/model.md, Baselines)."""
+
+    def __init__(
+        self, sc: Scenario, value: BaseValue | None = None, samples: int = LOOKAHEAD_SAMPLES, seed: int = 0
+    ) -> None:
+        """`value`: a fitted `BaseValue` (default: one fitted here with `seed`)."""
+        self.sc, self.model, self.samples = sc, Model.build(sc), samples
+        if value is None:
+            value = BaseValue(sc, seed=seed)
+            value.fit(progress=True)
+        self.value = value
+        self.threshold = RewardTables.build(sc).threshold
+        self.rng = seeds.lookahead(seed)
+        p = sc.n_tasks
+        # candidate 0: no task; candidate 1 + j: task j (N, p + 1, p) the capability each brings to every task
+        self.brings = np.zeros((sc.n_agents, p + 1, p), dtype=np.int64)
+        self.brings[:, 1 + np.arange(p), np.arange(p)] = self.model.agent_caps[:, :p]
+        # mission first, load second: QMDP's price of a unit of committed capability (at least one: working counts)
+        self.load = QMDP_LOAD_COST * np.maximum(self.brings.sum(axis=-1), 1) * (np.arange(p + 1) > 0)
+
+    def _stratified(self, b: int, n: int, p: int) -> FloatArray:
+        """(B, N, M, p) uniforms, each task's M of them one in each of M equal strata, in random order (fewer draws
+        for the same accuracy than independent ones)."""
+        m = self.samples
+        order = self.rng.random((b, n, p, m)).argsort(axis=-1)
+        u = (order + self.rng.random((b, n, p, m))) / m
+        return np.ascontiguousarray(u.transpose(0, 1, 3, 2))
+
+    def act(self, ctx: Context) -> IntArray:
+        """One action per agent, each from its own row's marginals and roster."""
+        sc, model = self.sc, self.model
+        p, n, m = sc.n_tasks, sc.n_agents, self.samples
+        marg = ctx.marginals  # (B, N, p, L): row i is agent i's belief
+        b = marg.shape[0]
+        present = knowledge.roster(ctx.knowledge, sc).reshape(b, n, n)  # row i: the teammates i counts on
+        plan = allocate(model, confident_levels(marg, self.threshold), present if sc.roster else None)  # (B, N, N)
+        # every auctioneer's draws of the joint state from its belief (product of its marginals), and the noise of
+        # the step after it, shared by every candidate
+        u = self._stratified(b, n, p)[..., None]
+        s = np.minimum((u > marg.cumsum(axis=-1)[:, :, None]).sum(axis=-1), sc.levels - 1)  # (B, N, M, p)
+        noise = self._stratified(b, n, p)[:, :, None]
+        complete = (s == 0).all(axis=-1)[:, :, None, :]  # (B, N, 1, M)
+        cand = p + 1
+        s_c = np.broadcast_to(s[:, :, None], (b, n, cand, m, p))
+        noise_c = np.broadcast_to(noise, (b, n, cand, m, p))
+        for k in range(n):  # agent k improves on the plan, in every auctioneer's head
+            brought = self.brings[np.arange(n), np.where(plan >= 0, plan + 1, 0)]  # (B, N, N, p)
+            others = brought.sum(axis=2) - brought[:, :, k]  # (B, N, p)
+            caps = np.minimum(others[:, :, None, :] + self.brings[k][None, None], sc.capability_max)
+            nxt = model.sample_transition(s_c, np.broadcast_to(caps[:, :, :, None, :], s_c.shape), noise_c)
+            q = np.where(complete, 0.0, 1.0 + self.value(nxt)).mean(axis=-1) + self.load[k]  # (B, N, p + 1)
+            if sc.n_idle == 0:  # HT mode: resting is staying on a task, so only the tasks are candidates
+                q[:, :, 0] = np.inf
+            q[:, :, 1:] = np.where(present[:, :, k, None], q[:, :, 1:], np.inf)  # a silent teammate brings nothing
+            q[:, :, 0] = np.where(present[:, :, k], q[:, :, 0], -np.inf)
+            plan[:, :, k] = q.argmin(axis=-1) - 1
+        own = plan[:, np.arange(n), np.arange(n)]
+        return np.where(own >= 0, own, model.rest_action(ctx.prev)).astype(np.int64)
