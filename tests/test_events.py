@@ -5,6 +5,7 @@ produce the same episodes under them, bit for bit."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -188,6 +189,28 @@ def test_htlm_stress_runs_a_team_under_a_stress_set_and_writes_its_reports(tmp_p
     assert (
         main(["show", str(out / "new-fire" / "learned-with"), "--episode", "0", "--out", str(tmp_path / "e.png")]) == 0
     )
+
+
+def test_htlm_stress_puts_a_baseline_under_stress_on_a_named_scenario(tmp_path: Path, capsys: Any) -> None:
+    """`--baseline` instead of `--policy`: the baseline is the team under stress, on the scenario named, with its
+    own most important agent; `--scenario` without `--baseline` is refused with a message."""
+    import json
+
+    from htlm_agent.cli import main
+
+    out = tmp_path / "stress"
+    assert main(["stress", "--baseline", "auction", "--scenario", "warehouse", "--events", "lose-most-important",
+                 "--episodes", "12", "--baselines", "greedy", "--out", str(out), "--json"]) == 0  # fmt: skip
+    rows = json.loads(capsys.readouterr().out)
+    assert [(r["set"], r["policy"]) for r in rows] == [
+        ("lose-most-important", "auction"),
+        ("lose-most-important", "greedy"),
+    ]
+    assert rows[0]["with"]["episodes_with_events"] == 1.0
+    assert (out / "lose-most-important" / "auction-with" / "world.jsonl").exists()
+    data = Path(__file__).parent / "data" / "policy_heterogeneous_seed0"
+    with pytest.raises(SystemExit, match="--scenario goes with --baseline"):
+        main(["stress", "--policy", str(data), "--scenario", "warehouse", "--episodes", "4"])
 
 
 def test_random_events_are_made_for_any_operation_at_their_rate() -> None:

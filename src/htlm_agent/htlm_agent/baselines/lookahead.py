@@ -188,16 +188,18 @@ class LookaheadPolicy:
         cand = p + 1
         s_c = np.broadcast_to(s[:, :, None], (b, n, cand, m, p))
         noise_c = np.broadcast_to(noise, (b, n, cand, m, p))
-        for k in range(n):  # agent k improves on the plan, in every auctioneer's head
-            brought = self.brings[np.arange(n), np.where(plan >= 0, plan + 1, 0)]  # (B, N, N, p)
-            others = brought.sum(axis=2) - brought[:, :, k]  # (B, N, p)
+        for k in range(n):  # agent k improves on the plan in the heads of auctioneers k..N-1 (the others are settled)
+            brought = self.brings[np.arange(n), np.where(plan[:, k:] >= 0, plan[:, k:] + 1, 0)]  # (B, N-k, N, p)
+            others = brought.sum(axis=2) - brought[:, :, k]  # (B, N-k, p)
             caps = np.minimum(others[:, :, None, :] + self.brings[k][None, None], sc.capability_max)
-            nxt = model.sample_transition(s_c, np.broadcast_to(caps[:, :, :, None, :], s_c.shape), noise_c)
-            q = np.where(complete, 0.0, 1.0 + self.value(nxt)).mean(axis=-1) + self.load[k]  # (B, N, p + 1)
+            shape = s_c[:, k:].shape
+            nxt = model.sample_transition(s_c[:, k:], np.broadcast_to(caps[:, :, :, None, :], shape), noise_c[:, k:])
+            q = np.where(complete[:, k:], 0.0, 1.0 + self.value(nxt)).mean(axis=-1) + self.load[k]  # (B, N-k, p+1)
             if sc.n_idle == 0:  # HT mode: resting is staying on a task, so only the tasks are candidates
                 q[:, :, 0] = np.inf
-            q[:, :, 1:] = np.where(present[:, :, k, None], q[:, :, 1:], np.inf)  # a silent teammate brings nothing
-            q[:, :, 0] = np.where(present[:, :, k], q[:, :, 0], -np.inf)
-            plan[:, :, k] = q.argmin(axis=-1) - 1
+            here = present[:, k:, k]  # whether each auctioneer counts on agent k: a silent teammate brings nothing
+            q[:, :, 1:] = np.where(here[..., None], q[:, :, 1:], np.inf)
+            q[:, :, 0] = np.where(here, q[:, :, 0], -np.inf)
+            plan[:, k:, k] = q.argmin(axis=-1) - 1
         own = plan[:, np.arange(n), np.arange(n)]
         return np.where(own >= 0, own, model.rest_action(ctx.prev)).astype(np.int64)

@@ -1,7 +1,7 @@
-"""`htlm stress`: a trained team under a set of events (surges, new tasks, dropouts; docs/model.md, Events) beside
-the same team without them and beside the baselines: completion, failures, time to recover, unused capability before
-the event and while recovering. Writes stress.json, stress.csv and stress.png, and every run's reports (world.jsonl:
-`htlm show OUT/SET/POLICY-with --episode E` draws an episode with its events).
+"""`htlm stress`: a trained team (or a baseline) under a set of events (surges, new tasks, dropouts; docs/model.md,
+Events) beside the same team without them and beside the baselines: completion, failures, time to recover, unused
+capability before the event and while recovering. Writes stress.json, stress.csv and stress.png, and every run's
+reports (world.jsonl: `htlm show OUT/SET/POLICY-with --episode E` draws an episode with its events).
 """
 
 from __future__ import annotations
@@ -14,10 +14,26 @@ from typing import Any
 
 from htlm_agent.cli.common import checkpoint_run_dir
 
+STRESSED_BASELINES = ["random", "greedy", "auction", "qmdp", "lookahead"]
+"""The baselines `htlm stress` runs, beside a team or as the team under stress (QMDP only where the optimum can be
+computed)."""
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm stress`."""
-    p.add_argument("--policy", required=True, metavar="DIR", help="a run directory or checkpoint of `htlm train`")
+    who = p.add_mutually_exclusive_group(required=True)
+    who.add_argument("--policy", metavar="DIR", help="a run directory or checkpoint of `htlm train`")
+    who.add_argument(
+        "--baseline",
+        choices=STRESSED_BASELINES,
+        help="stress a baseline instead of a trained team, on --scenario (default: the paper's operation)",
+    )
+    p.add_argument(
+        "--scenario",
+        default=None,
+        metavar="FILE",
+        help="with --baseline: a scenario file or the name of a shipped one (default: the paper's operation)",
+    )
     p.add_argument(
         "--events",
         nargs="+",
@@ -30,12 +46,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--baselines",
         nargs="*",
         default=["greedy", "auction"],
-        choices=["random", "greedy", "auction", "lookahead"],
+        choices=STRESSED_BASELINES,
         help="baselines beside the team (default: greedy auction)",
     )
     p.add_argument("--episodes", type=int, default=500, help="episodes per run (default: 500)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the episodes (default: the run's seed)")
-    p.add_argument("--out", default=None, metavar="DIR", help="where to write (default: RUN/stress/seed{S}-{E})")
+    p.add_argument(
+        "--seed", type=int, default=None, help="seed of the episodes (default: the run's seed; 0 with --baseline)"
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        metavar="DIR",
+        help="where to write (default: RUN/stress/seed{S}-{E}; with --baseline runs/stress-NAME-SCENARIO__S-E)",
+    )
     p.add_argument("--json", action="store_true", help="print the rows as JSON on stdout (logs on stderr)")
 
 
@@ -48,30 +71,41 @@ def run(args: argparse.Namespace) -> int:
     from htlm_agent.learning.qpolicy import QPolicy
     from htlm_agent.progress import Progress
     from htlm_world.events import resolve_agent
-    from htlm_world.scenario import ScenarioError, read_events
+    from htlm_world.scenario import ScenarioError, builtin, load, read_events
 
     if args.episodes < 1:
         raise SystemExit(f"htlm stress: --episodes must be >= 1, got {args.episodes}")
     try:
-        ck = load_checkpoint(args.policy)
-        sc = ck.scenario.replace(events=()).with_shipped_stress()
+        if args.policy is not None:
+            if args.scenario is not None:
+                raise ScenarioError("--scenario goes with --baseline; a trained team brings its own scenario")
+            ck = load_checkpoint(args.policy)
+            base, seed = ck.scenario, ck.seed if args.seed is None else args.seed
+        else:
+            base, seed = load(args.scenario) if args.scenario else builtin(), 0 if args.seed is None else args.seed
+        sc = base.replace(events=()).with_shipped_stress()
         names = args.events if args.events is not None else list(sc.stress)
         if not names:
             raise ScenarioError(f"scenario {sc.name!r} has no stress sets: give events files with --events FILE")
         sets = {Path(n).stem if Path(n).suffix else n: read_events(n, sc) for n in names}
-    except (CheckpointError, ScenarioError) as e:
+        policies: dict[str, Any] = {}
+        if args.policy is not None:
+            policies["learned"] = (QPolicy.from_checkpoint(ck), sc)
+            out_default = checkpoint_run_dir(ck.path) / "stress" / f"seed{seed}-{args.episodes}"
+        else:
+            policies[args.baseline] = make_baseline(args.baseline, sc, seed=seed)
+            out_default = Path("runs") / f"stress-{args.baseline}-{sc.name}__{seed}-{args.episodes}"
+        for b in args.baselines:
+            policies.setdefault(b, make_baseline(b, sc, seed=seed))
+    except (CheckpointError, ScenarioError, ValueError) as e:
         raise SystemExit(f"htlm stress: {e}") from None
-    seed = ck.seed if args.seed is None else args.seed
-    learned = QPolicy.from_checkpoint(ck)
-    policies: dict[str, Any] = {"learned": (learned, sc)}
-    for b in args.baselines:
-        policies[b] = make_baseline(b, sc, seed=seed)
+    stressed = next(iter(policies.values()))[0]
     if any(ev.agent == "most_important" for evs in sets.values() for ev in evs):
-        table = importance_table(learned, sc, min(args.episodes, 500), seed=seed)
+        table = importance_table(stressed, sc, min(args.episodes, 500), seed=seed)
         top = max(table["agents"], key=lambda a: a["zeta"])["agent"]
         sets = {k: resolve_agent(sc, evs, top) for k, evs in sets.items()}
         print(f"htlm stress: the most important agent of the team (ζ, Eq. 6) is {top}", file=sys.stderr)
-    out = Path(args.out) if args.out else checkpoint_run_dir(ck.path) / "stress" / f"seed{seed}-{args.episodes}"
+    out = Path(args.out) if args.out else out_default
     progress = Progress(len(sets) * len(policies) * 2 * args.episodes, unit="episodes")
     rows = []
     for name, events in sets.items():
@@ -83,5 +117,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(format_stress(rows))
         first = next(iter(sets))
-        print(f"reports: {paths['png'].parent} (an episode: htlm show {out / first / 'learned-with'} --episode 0)")
+        team = next(iter(policies))
+        print(f"reports: {paths['png'].parent} (an episode: htlm show {out / first / (team + '-with')} --episode 0)")
     return 0

@@ -1,0 +1,111 @@
+"""The lookahead baseline: its value network learns the auction's steps to go, and each agent improves on the auction
+from its own belief alone."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from htlm_agent.baselines.heuristics import AuctionPolicy
+from htlm_agent.baselines.lookahead import BaseValue, LookaheadPolicy, ValueSettings, base_rollouts
+from htlm_agent.experiments.evaluate import evaluate
+from htlm_agent.mind.auction import allocate
+from htlm_agent.runtime.team import Team
+from htlm_world.model import Model
+from htlm_world.scenario import Scenario, builtin
+
+QUICK = ValueSettings(rollouts=6000, steps=1500)
+"""A smaller fit than the default, enough for the paper's operation."""
+
+
+def exact_auction_value(sc: Scenario) -> tuple[np.ndarray, np.ndarray]:
+    """Every joint state of `sc` and the expected steps the auction on the true levels takes from it (capped at
+    the horizon), by policy evaluation over the whole state space: the reference the network is checked against."""
+    model = Model.build(sc)
+    states = np.array(list(itertools.product(range(sc.levels), repeat=sc.n_tasks)))
+    plan = allocate(model, states[:, None, :])[:, 0, :]
+    rows = model.transition_rows(states, model.joint_capability(plan))  # (S, p, L)
+    step = np.ones((len(states), 1))
+    for j in range(sc.n_tasks):  # P(s' | s): the tasks move independently given the capabilities
+        step = (step[:, :, None] * rows[:, None, j, :]).reshape(len(states), -1)
+    value = np.zeros(len(states))
+    for _ in range(sc.horizon):
+        value = np.minimum(1.0 + step @ value, sc.horizon)
+        value[0] = 0.0  # every level 0 (state index 0): complete
+    return states, value
+
+
+@pytest.fixture(scope="module")
+def paper_value() -> BaseValue:
+    value = BaseValue(builtin(), QUICK, seed=0)
+    value.fit()
+    return value
+
+
+def test_rollout_targets_count_the_steps_to_the_next_completion() -> None:
+    """Every target is the steps until every level is 0, at least 1 and at most the horizon, and no complete state
+    is kept."""
+    sc = builtin()
+    x, y = base_rollouts(sc, ValueSettings(rollouts=500), seed=0)
+    assert x.shape[1] == sc.n_tasks and len(x) == len(y) > 500
+    assert x.any(axis=1).all()
+    assert y.min() >= 1 and y.max() <= sc.horizon
+    start = (x == np.array(sc.initial_levels)).all(axis=1)
+    assert y[start].mean() > y[~start].mean()  # from the start there is the most to do
+
+
+def test_value_network_matches_the_auctions_exact_value(paper_value: BaseValue) -> None:
+    states, exact = exact_auction_value(builtin())
+    learned = paper_value(states)
+    assert learned[0] == 0.0
+    start = states.tolist().index(list(builtin().initial_levels))
+    assert abs(learned[start] - exact[start]) < 0.3, (learned[start], exact[start])
+    err = np.abs(learned - exact)[1:]
+    assert np.median(err) < 0.3 and np.sqrt((err**2).mean()) < 0.6, (np.median(err), np.sqrt((err**2).mean()))
+
+
+def _certain(ctx_marginals: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    out = np.zeros_like(ctx_marginals)
+    for e, lv in enumerate(levels):
+        out[e, :, np.arange(lv.size), lv] = 1.0
+    return out
+
+
+def test_agents_rest_once_every_task_is_believed_done_and_work_a_task_believed_open(paper_value: BaseValue) -> None:
+    sc = builtin()
+    pol = LookaheadPolicy(sc, paper_value, samples=16)
+    team = Team(sc, 3, 3)
+    ctx = team.context()
+    ctx.marginals = _certain(ctx.marginals, np.array([[0, 0, 0, 0], [3, 0, 0, 0], [0, 0, 4, 0]]))
+    a = pol.act(ctx)
+    model = Model.build(sc)
+    assert (a[0] == model.rest_action(ctx.prev[0])).all()  # complete: nobody works
+    for e, task in ((1, 0), (2, 2)):
+        workers = np.flatnonzero(a[e] == task)
+        assert model.agent_caps[workers, task].sum() >= 3, a[e]  # enough capability on the one open fire
+        assert (a[e][a[e] < sc.n_tasks] == task).all(), a[e]  # and nobody on a task believed done
+
+
+def test_each_agent_acts_on_its_own_row_only(paper_value: BaseValue) -> None:
+    """Changing agent 1's belief changes no other agent's choice, and the true levels change nothing."""
+    sc = builtin()
+    team = Team(sc, 2, 5)
+    ctx = team.context()
+    before = LookaheadPolicy(sc, paper_value, seed=3).act(ctx)
+    ctx.marginals[:, 1] = _certain(ctx.marginals, np.zeros((2, sc.n_tasks), dtype=np.int64))[:, 1]
+    ctx.true_levels = np.zeros_like(ctx.true_levels)
+    after = LookaheadPolicy(sc, paper_value, seed=3).act(ctx)
+    others = np.arange(sc.n_agents) != 1
+    assert (after[:, others] == before[:, others]).all()
+    assert (after[:, 1] >= sc.n_tasks).all()  # it believes everything done
+
+
+def test_lookahead_beats_the_auction_on_the_paper_operation(paper_value: BaseValue) -> None:
+    """docs/model.md (Baselines, lookahead): on the same episodes, sooner than the auction on its own belief."""
+    sc = builtin()
+    look = evaluate(LookaheadPolicy(sc, paper_value, samples=32), sc, 100, 0)["completion"]
+    auction = evaluate(AuctionPolicy(sc), sc, 100, 0)["completion"]
+    assert look["mean"] < auction["mean"] - 0.2, (look, auction)
+    assert look["failure_rate"] <= auction["failure_rate"] + 0.02
