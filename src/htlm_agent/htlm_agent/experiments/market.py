@@ -53,13 +53,14 @@ LEARNERS: dict[str, dict[str, Any]] = {
 """The learned teams: `Settings.for_learner` changes and the credit of the scenario they train on."""
 
 BASELINES = ("greedy", "auction", "qmdp")
-"""The teams a user would pick instead, and QMDP where the optimum can be computed (left out elsewhere)."""
+"""The teams a user would pick instead, and QMDP where the optimum can be computed (left out elsewhere): the
+default of `--baselines`, which also takes `lookahead` (the auction improved by a learned value; slower)."""
 
 
-def _baselines(sc: Scenario, seed: int) -> dict[str, tuple[Any, Scenario]]:
-    """Every baseline of BASELINES that can be built for `sc` (QMDP needs the optimum: not on large scenarios)."""
+def _baselines(sc: Scenario, seed: int, names: tuple[str, ...] = BASELINES) -> dict[str, tuple[Any, Scenario]]:
+    """Every baseline of `names` that can be built for `sc` (QMDP needs the optimum: not on large scenarios)."""
     out: dict[str, tuple[Any, Scenario]] = {}
-    for b in BASELINES:
+    for b in names:
         try:
             out[b] = make_baseline(b, sc, seed=seed)
         except ProblemTooLarge:
@@ -90,10 +91,12 @@ def run_scenario(
     stress: bool,
     changes: dict[str, Any] | None = None,
     idle_incentive: float | None = None,
+    baselines: tuple[str, ...] = BASELINES,
 ) -> list[dict[str, Any]]:
     """Every run of one scenario: rows {scenario, team, condition, seed, completion, failure_rate, unused_fraction,
     recovery, train_s}. `changes`: settings of every learned team beyond its learner's (`--set`); `idle_incentive`:
-    the scale of R_II of the scenario (`--idle-incentive`, default the scenario's)."""
+    the scale of R_II of the scenario (`--idle-incentive`, default the scenario's); `baselines`: the baselines beside
+    them (`--baselines`)."""
     sc = load(name).replace(roster=True)  # the auction is the fair market: it leaves a silent teammate out
     if idle_incentive is not None:
         sc = sc.with_reward(idle_incentive=idle_incentive)
@@ -114,7 +117,7 @@ def run_scenario(
             rows[-1].update(_figures(res.metrics))
             teams[learner] = (QPolicy.from_checkpoint(load_checkpoint(run_dir)), lsc)
             _log(f"{name} {learner} seed {seed}: {rows[-1]['completion']:.2f} steps in {took:.0f} s")
-        for b, (pol, bsc) in _baselines(sc, seed).items():
+        for b, (pol, bsc) in _baselines(sc, seed, baselines).items():
             rows.append({"scenario": name, "team": b, "condition": "none", "seed": seed})
             rows[-1].update(_figures(evaluate(pol, bsc, eval_episodes, seed=seed)))
             teams[b] = (pol, bsc)
@@ -294,6 +297,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--learners", nargs="*", default=["tokens", "paper"], choices=list(LEARNERS))
     p.add_argument("--episodes", type=int, default=12_288, help="training episodes of every learned team")
     p.add_argument("--eval-episodes", type=int, default=500)
+    p.add_argument(
+        "--baselines", nargs="*", default=list(BASELINES), choices=[*BASELINES, "lookahead"], help="baselines beside"
+    )
     p.add_argument("--no-stress", action="store_true", help="skip the stress sets")
     p.add_argument("--idle-incentive", type=float, default=None, metavar="X", help="scale of R_II (0: off)")
     p.add_argument(
@@ -336,6 +342,7 @@ def main(argv: list[str] | None = None) -> int:
             not args.no_stress,
             changes,
             args.idle_incentive,
+            tuple(args.baselines),
         )
         summary = summarize(rows)
         (out / "market.json").write_text(json.dumps({"runs": rows, "summary": summary}, indent=1) + "\n")
