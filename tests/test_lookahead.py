@@ -16,9 +16,6 @@ from htlm_agent.runtime.team import Team
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario, builtin
 
-QUICK = ValueSettings(rollouts=6000, steps=1500)
-"""A smaller fit than the default, enough for the paper's operation."""
-
 
 def exact_auction_value(sc: Scenario) -> tuple[np.ndarray, np.ndarray]:
     """Every joint state of `sc` and the expected steps the auction on the true levels takes from it (capped at
@@ -39,7 +36,7 @@ def exact_auction_value(sc: Scenario) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def paper_value() -> BaseValue:
-    value = BaseValue(builtin(), QUICK, seed=0)
+    value = BaseValue(builtin(), seed=0)
     value.fit()
     return value
 

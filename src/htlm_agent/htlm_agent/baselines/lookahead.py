@@ -33,7 +33,7 @@ from htlm_world.types import FloatArray, IntArray
 class ValueSettings:
     """How `BaseValue.fit` learns: the simulated episodes and the regression."""
 
-    rollouts: int = 20_000
+    rollouts: int = 10_000
     """Episodes of the auction on the true levels, each run for twice the horizon."""
     random_start: float = 0.5
     """Share of those episodes starting from random levels (each task 0 with probability 0.3, else uniform), so
@@ -41,10 +41,12 @@ class ValueSettings:
     perturb_steps: int = 12
     """The others first act for up to this many steps (drawn uniformly) with each agent's choice replaced by a random
     task or nothing with probability 0.3; the states from then on are the auction's alone and are learned from."""
-    hidden: int = 128
+    hidden: int = 64
     """Units of the two hidden layers."""
-    steps: int = 4000
-    """Adam updates of minibatches of 512 states."""
+    steps: int = 600
+    """Adam updates (on one thread, so that every agent process that fits the value gets the same network)."""
+    batch: int = 2048
+    """States in a minibatch."""
     lr: float = 1e-3
 
 
@@ -112,12 +114,17 @@ class BaseValue:
         gen = torch.Generator().manual_seed(seeds.base_value_init(self.seed))
         opt = torch.optim.Adam(self.net.parameters(), lr=self.vs.lr)
         loss = torch.zeros(())
-        for _ in range(self.vs.steps):
-            idx = torch.randint(0, len(y), (512,), generator=gen)
-            loss = torch.nn.functional.mse_loss(self.net(x[idx])[:, 0], y[idx])
-            opt.zero_grad()
-            loss.backward()  # type: ignore[no-untyped-call]
-            opt.step()
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            for _ in range(self.vs.steps):
+                idx = torch.randint(0, len(y), (self.vs.batch,), generator=gen)
+                loss = torch.nn.functional.mse_loss(self.net(x[idx])[:, 0], y[idx])
+                opt.zero_grad()
+                loss.backward()  # type: ignore[no-untyped-call]
+                opt.step()
+        finally:
+            torch.set_num_threads(threads)
         rmse = float(loss.detach().sqrt())
         if progress:
             print(
