@@ -106,3 +106,24 @@ def test_lookahead_beats_the_auction_on_the_paper_operation(paper_value: BaseVal
     auction = evaluate(AuctionPolicy(sc), sc, 100, 0)["completion"]
     assert look["mean"] < auction["mean"] - 0.2, (look, auction)
     assert look["failure_rate"] <= auction["failure_rate"] + 0.02
+
+
+def test_an_agent_process_works_out_its_own_head_only(paper_value: BaseValue) -> None:
+    """`policy:=lookahead` (`builtin_policy`): agent i's process, from its own knowledge state alone, takes an
+    action of its reduced action space, and works on the one open task it is needed on."""
+    from htlm_agent.baselines.heuristics import builtin_policy
+    from htlm_agent.baselines.lookahead import AgentLookahead
+
+    sc = builtin()
+    team = Team(sc, 4, 7)
+    ctx = team.context()
+    ctx.marginals = _certain(ctx.marginals, np.array([[4, 4, 4, 4], [0, 0, 3, 0], [0, 0, 0, 0], [1, 2, 3, 4]]))
+    k = team.knowledge()
+    k[..., : sc.n_tasks * sc.levels] = ctx.marginals.reshape(4, sc.n_agents, -1)
+    for i in range(sc.n_agents):
+        agent = AgentLookahead(sc, LookaheadPolicy(sc, paper_value, samples=16), i)
+        a = agent.act(k[:, i], ctx.mask[:, i])
+        assert ctx.mask[np.arange(4), i, a].all(), a
+        assert a[2] >= sc.n_tasks  # believed complete: it rests
+        assert a[1] in (2, Model.build(sc).rest_action(ctx.prev[1, i]))  # the open fire, or rest
+    assert type(builtin_policy(sc, "random", 0)[0]).__name__ == "RowPolicy"

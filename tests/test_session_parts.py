@@ -141,7 +141,7 @@ def test_the_policy_source_picks_by_mode_and_takes_the_trainers_weights() -> Non
     assert net is not None and src.policy is net
     evaluate = JoinedRun.from_record(_record(mode="evaluate"), NAMES[0])
     assert src.choose(evaluate, SessionEffects()) == (
-        "mode evaluate: no policy: set checkpoint:=DIR, or policy:=greedy, auction, qmdp or random"
+        "mode evaluate: no policy: set checkpoint:=DIR, or policy:= one of greedy, auction, qmdp, lookahead, random"
     )
     greedy = PolicySource(NAMES[0], "greedy", "", 0.3, 2.0)
     assert greedy.choose(evaluate, SessionEffects()) is None and greedy.policy is not None

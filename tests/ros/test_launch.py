@@ -51,6 +51,26 @@ def test_team_script_runs_an_evaluation(repo_root: Path, tmp_path: Path) -> None
     assert alive_with(str(run)) == []
 
 
+def test_agents_run_the_lookahead_each_with_its_own_value_network(tmp_path: Path) -> None:
+    """`--policy lookahead`: every agent process fits the value network when it joins (before the first step, within
+    the join timeout) and acts on its own belief; no agent misses a step and the team completes its episodes."""
+    run = tmp_path / "eval"
+    r = subprocess.run(
+        [sys.executable, "-m", "htlm_agent.cli", "launch", "evaluate", "--policy", "lookahead", "--episodes", "8",
+         "--batch", "8", "--domain-id", str(next_domain()), "--run-dir", str(run), "--json", "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=110,
+        check=False,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stdout + r.stderr
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    assert summary["episodes"] == 8 and summary["absent_agent_steps"] == 0, summary
+    for i in range(1, 6):
+        assert "policy lookahead" in (run / "logs" / f"agent{i}.log").read_text()
+    assert summary["completion_mean"] < 15.0, summary  # random: 21.5, greedy: 10.1
+
+
 def test_json_is_the_only_output_on_stdout(tmp_path: Path) -> None:
     """`htlm launch ... --json | jq .` works: the world's episode lines and the launcher's messages go to stderr."""
     run = tmp_path / "eval"

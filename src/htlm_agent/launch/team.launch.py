@@ -33,7 +33,7 @@ ARGUMENTS = {
     "scenario": ("--scenario", "scenario YAML file or shipped scenario name (default: the built-in 'paper')"),
     "team": ("--team", "a built-in team instead of a scenario file"),
     "checkpoint": ("--checkpoint", "checkpoint directory of `htlm train` (evaluate, deploy)"),
-    "policy": ("--policy", "agents' policy: auto, checkpoint, greedy, auction, qmdp, random"),
+    "policy": ("--policy", "agents' policy: auto, checkpoint, greedy, auction, qmdp, lookahead, random"),
     "robots": ("--robots", "sim: a simulated robot per agent and their stand-in operation; none"),
     "episodes": ("--episodes", "episodes to run (deploy: 0, until stopped)"),
     "batch": ("--batch", "B, episodes run at once"),

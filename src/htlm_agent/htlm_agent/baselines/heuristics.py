@@ -33,7 +33,7 @@ BASELINES = ("random", "greedy", "auction", "qmdp", "lookahead", "ht", "optimal"
 """Names accepted by `registry.make_baseline` and `htlm evaluate --baseline` (here, in a module without torch, so
 that the command line lists them without loading the learner)."""
 
-BUILTIN_POLICIES = ("greedy", "auction", "qmdp", "random")
+BUILTIN_POLICIES = ("greedy", "auction", "qmdp", "lookahead", "random")
 """Baselines an agent process runs by name, without a network (`policies.builtin_policy`; the agent node's
 `policy:=NAME`, `htlm launch --policy NAME`)."""
 
@@ -145,11 +145,17 @@ class AuctionPolicy:
 def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPolicy, float]:
     """A policy that needs no network, and its ε (one of `BUILTIN_POLICIES`): "greedy" (`GreedyPolicy` on the
     agent's own row), "auction" (`AuctionPolicy`: the auction the agent runs on its own belief, keeping its own
-    assignment) or "random" (uniform over Â(a_o) from the agent's exploration generator, ε = 1)."""
+    assignment), "qmdp" (`QmdpPolicy`, where the optimum can be computed), "lookahead" (`LookaheadPolicy`: its value
+    network fitted here, a few seconds, the same in every process) or "random" (uniform over Â(a_o) from the agent's
+    exploration generator, ε = 1)."""
     if name not in BUILTIN_POLICIES:
         raise ValueError(f"unknown built-in policy {name!r}; choose one of {', '.join(BUILTIN_POLICIES)}")
     if name == "auction":
         return RowPolicy(scenario, AuctionPolicy(scenario), agent), 0.0
     if name == "qmdp":
         return RowPolicy(scenario, QmdpPolicy(scenario), agent), 0.0
+    if name == "lookahead":
+        from htlm_agent.baselines.lookahead import AgentLookahead, LookaheadPolicy  # torch: only when asked for
+
+        return AgentLookahead(scenario, LookaheadPolicy(scenario), agent), 0.0
     return RowPolicy(scenario, GreedyPolicy(scenario), agent), (1.0 if name == "random" else 0.0)

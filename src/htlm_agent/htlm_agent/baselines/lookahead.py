@@ -22,11 +22,12 @@ from htlm_agent.baselines.optimal import QMDP_LOAD_COST
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate
 from htlm_agent.mind.context import Context
+from htlm_agent.mind.policies import RowPolicy
 from htlm_agent.mind.reward import RewardTables, confident_levels
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.types import FloatArray, IntArray
+from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
 @dataclass(frozen=True)
@@ -180,33 +181,53 @@ class LookaheadPolicy:
 
     def act(self, ctx: Context) -> IntArray:
         """One action per agent, each from its own row's marginals and roster."""
+        return self.act_rows(ctx, np.arange(self.sc.n_agents))
+
+    def act_rows(self, ctx: Context, who: IntArray) -> IntArray:
+        """The actions (B, R) of the agents `who` (R,), each from its own row of the Context: only their heads'
+        sequences are worked out (an agent process asks for its own)."""
         sc, model = self.sc, self.model
         p, n, m = sc.n_tasks, sc.n_agents, self.samples
-        marg = ctx.marginals  # (B, N, p, L): row i is agent i's belief
-        b = marg.shape[0]
-        present = knowledge.roster(ctx.knowledge, sc).reshape(b, n, n)  # row i: the teammates i counts on
-        plan = allocate(model, confident_levels(marg, self.threshold), present if sc.roster else None)  # (B, N, N)
+        marg = ctx.marginals[:, who]  # (B, R, p, L): row r is agent who[r]'s belief
+        b, r = marg.shape[0], who.size
+        present = knowledge.roster(ctx.knowledge[:, who], sc)  # (B, R, N): row r, the teammates who[r] counts on
+        plan = allocate(model, confident_levels(marg, self.threshold[who]), present if sc.roster else None)  # (B, R, N)
         # every auctioneer's draws of the joint state from its belief (product of its marginals), and the noise of
         # the step after it, shared by every candidate
-        u = self._stratified(b, n, p)[..., None]
-        s = np.minimum((u > marg.cumsum(axis=-1)[:, :, None]).sum(axis=-1), sc.levels - 1)  # (B, N, M, p)
-        noise = self._stratified(b, n, p)[:, :, None]
-        complete = (s == 0).all(axis=-1)[:, :, None, :]  # (B, N, 1, M)
+        u = self._stratified(b, r, p)[..., None]
+        s = np.minimum((u > marg.cumsum(axis=-1)[:, :, None]).sum(axis=-1), sc.levels - 1)  # (B, R, M, p)
+        noise = self._stratified(b, r, p)[:, :, None]
+        complete = (s == 0).all(axis=-1)[:, :, None, :]  # (B, R, 1, M)
         cand = p + 1
-        s_c = np.broadcast_to(s[:, :, None], (b, n, cand, m, p))
-        noise_c = np.broadcast_to(noise, (b, n, cand, m, p))
-        for k in range(n):  # agent k improves on the plan in the heads of auctioneers k..N-1 (the others are settled)
-            brought = self.brings[np.arange(n), np.where(plan[:, k:] >= 0, plan[:, k:] + 1, 0)]  # (B, N-k, N, p)
-            others = brought.sum(axis=2) - brought[:, :, k]  # (B, N-k, p)
+        s_c = np.broadcast_to(s[:, :, None], (b, r, cand, m, p))
+        noise_c = np.broadcast_to(noise, (b, r, cand, m, p))
+        for k in range(int(who.max()) + 1):  # agent k improves on the plan in the heads of agents k.. (the rest are
+            rows = np.flatnonzero(who >= k)  # settled)
+            mine = plan[:, rows]
+            brought = self.brings[np.arange(n), np.where(mine >= 0, mine + 1, 0)]  # (B, R', N, p)
+            others = brought.sum(axis=2) - brought[:, :, k]  # (B, R', p)
             caps = np.minimum(others[:, :, None, :] + self.brings[k][None, None], sc.capability_max)
-            shape = s_c[:, k:].shape
-            nxt = model.sample_transition(s_c[:, k:], np.broadcast_to(caps[:, :, :, None, :], shape), noise_c[:, k:])
-            q = np.where(complete[:, k:], 0.0, 1.0 + self.value(nxt)).mean(axis=-1) + self.load[k]  # (B, N-k, p+1)
+            shape = s_c[:, rows].shape
+            nxt = model.sample_transition(
+                s_c[:, rows], np.broadcast_to(caps[:, :, :, None, :], shape), noise_c[:, rows]
+            )
+            q = np.where(complete[:, rows], 0.0, 1.0 + self.value(nxt)).mean(axis=-1) + self.load[k]  # (B, R', p+1)
             if sc.n_idle == 0:  # HT mode: resting is staying on a task, so only the tasks are candidates
                 q[:, :, 0] = np.inf
-            here = present[:, k:, k]  # whether each auctioneer counts on agent k: a silent teammate brings nothing
+            here = present[:, rows, k]  # whether each head counts on agent k: a silent teammate brings nothing
             q[:, :, 1:] = np.where(here[..., None], q[:, :, 1:], np.inf)
             q[:, :, 0] = np.where(here, q[:, :, 0], -np.inf)
-            plan[:, k:, k] = q.argmin(axis=-1) - 1
-        own = plan[:, np.arange(n), np.arange(n)]
-        return np.where(own >= 0, own, model.rest_action(ctx.prev)).astype(np.int64)
+            plan[:, rows, k] = q.argmin(axis=-1) - 1
+        own = plan[:, np.arange(r), who]
+        return np.where(own >= 0, own, model.rest_action(ctx.prev[:, who])).astype(np.int64)
+
+
+class AgentLookahead(RowPolicy):
+    """Agent `agent`'s lookahead in its own process (`policy:=lookahead`): its own head's sequence only, on its own
+    knowledge state."""
+
+    policy: LookaheadPolicy
+
+    def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
+        """See AgentPolicy.act."""
+        return self.policy.act_rows(self.context(knowledge, mask), np.array([self.agent]))[:, 0]

@@ -86,13 +86,16 @@ class RowPolicy:
         self.policy = policy
         self.agent = agent
 
-    def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
-        """See AgentPolicy.act: read the agent's marginals and a_o from K = {b, a_o} and ask the team policy."""
+    def context(self, knowledge: FloatArray, mask: BoolArray) -> Context:
+        """The team policy's Context with the agent's own (B, K) knowledge and (B, |Ḡ|) mask in every row."""
         n = self.scenario.n_agents
-        ctx = knowledge_context(
+        return knowledge_context(
             self.scenario, np.repeat(knowledge[:, None], n, axis=1), np.repeat(mask[:, None], n, axis=1)
         )
-        return np.asarray(self.policy.act(ctx)[:, self.agent], dtype=np.int64)
+
+    def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
+        """See AgentPolicy.act: read the agent's marginals and a_o from K = {b, a_o} and ask the team policy."""
+        return np.asarray(self.policy.act(self.context(knowledge, mask))[:, self.agent], dtype=np.int64)
 
 
 def knowledge_context(scenario: Scenario, knowledge: FloatArray, mask: BoolArray) -> Context:

@@ -6,7 +6,7 @@ transitions with acknowledgements and resends) around the agent's `AgentMind`: t
 them and the time to the session and publishes what it returns: the action, the broadcast, the ready, the
 transition, the belief summary and, when the site of its assignment changes, a geometry_msgs/PoseStamped goal pose.
 The policy comes from a checkpoint (evaluate, deploy), from the trainer's weights (train), or is a built-in one
-(greedy, auction, qmdp, random).
+(greedy, auction, qmdp, lookahead, random).
 Run: `ros2 run htlm_agent agent_node --ros-args -p agent:=agent1` or `python -m htlm_agent.ros.agent_node ...`.
 """
 

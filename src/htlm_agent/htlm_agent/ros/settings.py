@@ -28,7 +28,7 @@ class AgentSettings:
     """This agent's name in the scenario (agent1, agent2, ...); required."""
     policy: str = setting("auto", choices=("auto", "checkpoint", "trainer", *BUILTIN_POLICIES))
     """auto (train: from the trainer; else the checkpoint), checkpoint, trainer, or a built-in baseline: greedy,
-    auction, qmdp (where the optimum can be computed) or random."""
+    auction, qmdp (where the optimum can be computed), lookahead or random."""
     checkpoint: str = setting("")
     """Checkpoint directory of `htlm train` (policy checkpoint, or auto outside training)."""
     epsilon: float = setting(-1.0, lo=-1.0, hi=1.0)

@@ -40,7 +40,8 @@ class PolicySource:
         if kind == "auto":
             kind = "trainer" if run.mode == "train" else ("checkpoint" if self.checkpoint else "")
             if not kind:
-                return f"mode {run.mode}: no policy: set checkpoint:=DIR, or policy:=greedy, auction, qmdp or random"
+                names = ", ".join(BUILTIN_POLICIES)
+                return f"mode {run.mode}: no policy: set checkpoint:=DIR, or policy:= one of {names}"
         self.kind = kind
         try:
             self._make(kind, run, out)
