@@ -25,7 +25,7 @@ from htlm_world.scenario import Scenario
 FIELDS = ("policy", "runtime", "episodes", "completion_mean", "completion_se", "failure_rate", "unused_fraction")
 """Columns of result.csv (and keys of every row of result.json)."""
 
-BASELINES = ("random", "greedy", "auction", "qmdp", "optimal")
+BASELINES = ("random", "greedy", "auction", "qmdp", "lookahead", "optimal")
 """Baselines shown beside the learned team."""
 
 
@@ -75,7 +75,8 @@ def learned_row(world_log: Path, name: str = "learned (HTLM DQN)") -> dict[str, 
 def baseline_rows(
     scenario: Scenario, episodes: int, seed: int, skipped: dict[str, str] | None = None
 ) -> list[dict[str, Any]]:
-    """random, greedy, auction, QMDP and the optimum, evaluated in process on `episodes` episodes of master seed `seed`.
+    """`BASELINES` (random, greedy, auction, QMDP, the lookahead, the optimum), evaluated in process on `episodes`
+    episodes of master seed `seed`.
     A baseline that cannot be computed here (the optimum of a large scenario) is left out, and why goes into
     `skipped` by its name."""
     rows = []
