@@ -310,7 +310,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _report(sc: Any, seed: int, train_episodes: int, episodes: int, run_dir: Path, eval_dir: Path) -> dict[str, Any]:
-    """The learned team (evaluated over ROS) beside random, greedy, auction and the optimum:
+    """The learned team (evaluated over ROS) beside the baselines (`ros_report.BASELINES`):
     run_dir/result.{csv,json,png}."""
     from htlm_agent.experiments.ros_report import baseline_rows, learned_row, write_report
 
