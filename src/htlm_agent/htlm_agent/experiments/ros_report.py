@@ -117,7 +117,7 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
         r["policy"].replace(" (", "\n(") for r in rows
     ]  # "learned (HTLM DQN)" on two lines, clear of its neighbour
     x = np.arange(len(rows))
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(max(10.0, 1.8 * len(rows)), 4))  # room for every label
     colors = ["tab:green" if r["runtime"] == "ROS 2" else "tab:gray" for r in rows]
     ax1.bar(x, [r["completion_mean"] for r in rows], yerr=[2 * r["completion_se"] for r in rows], color=colors)
     ax1.set_xticks(x, names)
