@@ -13,7 +13,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("htlm_agent.cli.train", "train a team with decentralized deep Q-learning"),
     "evaluate": ("htlm_agent.cli.evaluate", "evaluate a trained team or a baseline"),
     "importance": ("htlm_agent.cli.importance", "agent importance table (Eqs. 6-9)"),
-    "stress": ("htlm_agent.cli.stress", "a trained team under events (surges, dropouts) beside the baselines"),
+    "stress": ("htlm_agent.cli.stress", "a trained team or a baseline under events (surges, dropouts)"),
     "bench": ("htlm_agent.cli.bench", "measure simulator, learner and ROS runtime speed"),
     "reproduce": ("htlm_agent.cli.reproduce", "regenerate the paper's results"),
     "launch": ("htlm_agent.cli.launch", "start a team over ROS 2 (world + one process per agent + trainer)"),
