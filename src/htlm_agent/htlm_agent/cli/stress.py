@@ -12,11 +12,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from htlm_agent.baselines.heuristics import BASELINES
 from htlm_agent.cli.common import checkpoint_run_dir
 
-STRESSED_BASELINES = ["random", "greedy", "auction", "qmdp", "lookahead"]
-"""The baselines `htlm stress` runs, beside a team or as the team under stress (QMDP only where the optimum can be
-computed)."""
+STRESSED_BASELINES = [b for b in BASELINES if b not in ("ht", "optimal")]
+"""The baselines `htlm stress` runs, beside a team or as the team under stress: every baseline but the HT learner
+(trained apart) and the optimum (it reads the true levels); QMDP only where the optimum can be computed."""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
