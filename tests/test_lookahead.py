@@ -4,6 +4,7 @@ from its own belief alone."""
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -127,3 +128,67 @@ def test_an_agent_process_works_out_its_own_head_only(paper_value: BaseValue) ->
         assert a[2] >= sc.n_tasks  # believed complete: it rests
         assert a[1] in (2, Model.build(sc).rest_action(ctx.prev[1, i]))  # the open fire, or rest
     assert type(builtin_policy(sc, "random", 0)[0]).__name__ == "RowPolicy"
+
+
+def test_an_agent_draws_the_same_in_any_batch(paper_value: BaseValue) -> None:
+    """The draws are a hash of the agent and its own knowledge state: an episode's actions do not depend on the
+    episodes batched with it, nor on whether the team or one agent's process asks."""
+    from htlm_agent.baselines.lookahead import AgentLookahead
+
+    sc = builtin()
+    team = Team(sc, 6, 11)
+    for _ in range(2):  # beliefs that are not the start's
+        team.step(AuctionPolicy(sc).act(team.context()))
+    ctx = team.context()
+    pol = LookaheadPolicy(sc, paper_value, samples=16)
+    whole = pol.act(ctx)
+    k, mask = team.knowledge(), ctx.mask
+    for i in range(sc.n_agents):
+        agent = AgentLookahead(sc, LookaheadPolicy(sc, paper_value, samples=16), i)
+        assert (agent.act(k[:, i], mask[:, i]) == whole[:, i]).all()
+        assert (agent.act(k[3:5, i], mask[3:5, i]) == whole[3:5, i]).all()
+
+
+def test_a_run_of_the_lookahead_learner_holds_its_value_network(tmp_path: Path) -> None:
+    """`htlm train --learner lookahead`: the checkpoint gives every agent a copy of the value network the same
+    settings and seed fit, and the run's evaluation is the team acting with it."""
+    from htlm_agent.baselines.lookahead import team_policy, value_of
+    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.checkpoint import load_checkpoint
+    from htlm_agent.learning.settings import Settings
+
+    sc = builtin()
+    settings = Settings.for_learner(
+        learner="lookahead", episodes=400, value_updates=40, batch_size=256, eval_episodes=20, seed=3
+    )
+    res = train(sc, settings, tmp_path / "run", progress=False, tensorboard=False)
+    ck = load_checkpoint(tmp_path / "run")
+    assert ck.settings.learner == "lookahead" and ck.n_agents == sc.n_agents
+    assert all(all((a == b).all() for a, b in zip(w, ck.weights[0], strict=True)) for w in ck.weights)
+    ref = BaseValue(sc, ValueSettings.of(settings), seed=3)
+    ref.fit()
+    states = np.random.default_rng(0).integers(0, sc.levels, size=(50, sc.n_tasks))
+    np.testing.assert_allclose(value_of(ck)(states), ref(states), rtol=1e-6)
+    assert res.metrics["completion"] == evaluate(team_policy(ck), sc, 20, seed=3)["completion"]
+    assert (tmp_path / "run" / "eval" / "metrics.json").exists()
+
+
+def test_the_lookahead_learner_learns_in_process_only(tmp_path: Path) -> None:
+    """Over ROS it has nothing to learn from (the agents' transitions): `htlm launch train` says so and where to
+    train it instead; a run has nothing to resume."""
+    import subprocess
+    import sys
+
+    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.checkpoint import CheckpointError
+    from htlm_agent.learning.settings import Settings
+
+    cmd = [sys.executable, "-m", "htlm_agent.cli", "launch", "train", "--set", "learner=lookahead"]
+    r = subprocess.run([*cmd, "--run-dir", str(tmp_path / "ros")], capture_output=True, text=True, check=False)
+    assert r.returncode != 0
+    assert "learner=lookahead learns in process only" in r.stderr and "htlm train --learner lookahead" in r.stderr
+    assert not (tmp_path / "ros").exists()
+    settings = Settings.for_learner(learner="lookahead", episodes=100, value_updates=5, batch_size=64)
+    train(builtin(), settings, tmp_path / "run", progress=False, tensorboard=False, evaluate_at_end=False)
+    with pytest.raises(CheckpointError, match="nothing to resume"):
+        train(builtin(), settings, tmp_path / "run", progress=False, tensorboard=False, resume=True)

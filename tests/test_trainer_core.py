@@ -437,6 +437,9 @@ def test_learner_data_from_a_file_and_json(tmp_path: Path) -> None:
     bad = TrainerCore(tmp_path / "run2", SCHED, {"hidden": [16], "memory": 0}, str(f))
     eff = bad.on_scenario(_scenario(), 0.0)
     assert eff.fatal is not None and str(f) in eff.fatal and "memory" in eff.fatal
+    inproc = TrainerCore(tmp_path / "run3", SCHED, {"learner": "lookahead"}, str(f))
+    eff = inproc.on_scenario(_scenario(), 0.0)  # a learner with nothing to learn from the agents' transitions
+    assert eff.fatal is not None and "learns in process only" in eff.fatal and "htlm train" in eff.fatal
 
 
 def test_no_transition_record_can_break_a_round(tmp_path: Path) -> None:

@@ -66,23 +66,33 @@ def test_ros_evaluation_of_a_checkpoint_equals_in_process(
 def _checkpoint_run_equals_in_process(team: Any, tmp_path: Path, settings: Any, seed: int, batch: int) -> int:
     """Run `team` (not started, policy checkpoint, master seed `seed`) with fresh networks of a learner of `settings`
     and check its episodes against Team(scenario, batch, seed, b) acting with the same networks; their number."""
-    from htlm_agent.learning.checkpoint import load_checkpoint
     from htlm_agent.learning.dqn import Learner
-    from htlm_agent.learning.qnet import AgentQ
 
-    sc = team.cfg.scenario
-    learner = Learner(sc, settings, seed=42)
+    learner = Learner(team.cfg.scenario, settings, seed=42)
     with np.errstate(all="ignore"):
         ckpt = learner.save(tmp_path / "ckpt")
+    return _run_equals_in_process(team, ckpt, seed, batch)
+
+
+def _run_equals_in_process(team: Any, ckpt: Path, seed: int, batch: int, team_wide: bool = False) -> int:
+    """Run `team` (not started, policy checkpoint, master seed `seed`) on the checkpoint `ckpt` and check its episodes
+    against Team(scenario, batch, seed, b) with every agent's policy from the same checkpoint (`team_wide`: with the
+    team policy `htlm evaluate` acts with, one call for every agent); their number."""
+    from htlm_agent.baselines.lookahead import agent_policy, team_policy
+    from htlm_agent.learning.checkpoint import load_checkpoint
+
+    sc = team.cfg.scenario
     team.cfg.checkpoint = str(ckpt)
     team.start()
     assert team.wait("world", 90) == 0
     assert team.wait_all(30) == dict.fromkeys(team.procs, 0)
     ck = load_checkpoint(ckpt)
-    nets = [AgentQ.from_checkpoint(ck, i) for i in range(sc.n_agents)]
+    nets = [agent_policy(ck, i) for i in range(sc.n_agents)]
 
     def reference(b: int) -> Any:
-        dp = DecentralizedPolicy(nets, seed, 0.0)  # type: ignore[arg-type]
+        if team_wide:
+            return rollout(Team(sc, batch, seed, episode=b), team_policy(ck))
+        dp = DecentralizedPolicy(nets, seed, 0.0)
         dp.begin(b)
         return rollout(Team(sc, batch, seed, episode=b), dp)
 
@@ -162,6 +172,25 @@ def test_token_networks_with_a_roster_over_ros_equal_in_process(ros_team: Any, t
     team = ros_team(policy="checkpoint", seed=6, episodes=4, batch=4, scenario=sc, scenario_file=str(path))
     settings = Settings(learner="tokens", hidden=(16, 16), memory=1000, envs=1)
     assert _checkpoint_run_equals_in_process(team, tmp_path, settings, 6, 4) == 4
+
+
+def test_the_lookahead_learner_over_ros_equals_in_process(ros_team: Any, tmp_path: Path) -> None:
+    """The lookahead learner's checkpoint (a copy of its value network in every agent process) with the roster and a
+    dropout: every agent draws its states from a hash of its own knowledge state, so its process draws what the
+    team policy of `htlm evaluate` draws for it in one call for the whole team, and the 4 episodes equal
+    Team(scenario, 4, seed, b) acting with that policy bit for bit."""
+    import yaml
+
+    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.settings import Settings
+    from htlm_world.scenario import EventSpec, builtin
+
+    sc = builtin().replace(roster=True).with_events((EventSpec("dropout", agent="agent2", at=3),))
+    (path := tmp_path / "roster.yaml").write_text(yaml.safe_dump(sc.to_dict()))
+    team = ros_team(policy="checkpoint", seed=8, episodes=4, batch=4, scenario=sc, scenario_file=str(path))
+    settings = Settings.for_learner(learner="lookahead", episodes=500, value_updates=50, batch_size=256)
+    train(sc, settings, tmp_path / "run", progress=False, tensorboard=False, evaluate_at_end=False)
+    assert _run_equals_in_process(team, tmp_path / "run" / "checkpoint", 8, 4, team_wide=True) == 4
 
 
 def test_the_fair_market_over_ros_equals_in_process(ros_team: Any, tmp_path: Path) -> None:

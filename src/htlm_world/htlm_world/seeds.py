@@ -185,9 +185,10 @@ def base_value_init(seed: int) -> int:
     return derived_seed(seed, Stream.BASE_ROLLOUTS, 1)
 
 
-def lookahead(seed: int) -> np.random.Generator:
-    """The lookahead baseline's draws of states from the agents' beliefs."""
-    return generator(seed, Stream.LOOKAHEAD)
+def lookahead(seed: int) -> int:
+    """The key of the lookahead's draws of states from an agent's belief (hashed with the agent and its knowledge
+    state, so that an agent draws the same in any batch and in its own process)."""
+    return derived_seed(seed, Stream.LOOKAHEAD)
 
 
 def validation(seed: int) -> int:

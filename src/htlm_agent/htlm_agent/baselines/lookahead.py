@@ -13,16 +13,23 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
+from numpy.typing import NDArray
 
 from htlm_agent.baselines.optimal import QMDP_LOAD_COST
+from htlm_agent.learning.checkpoint import Checkpoint
+from htlm_agent.learning.qnet import AgentQ
+from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.settings import Settings
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate
-from htlm_agent.mind.context import Context
-from htlm_agent.mind.policies import RowPolicy
+from htlm_agent.mind.context import Context, Policy
+from htlm_agent.mind.policies import AgentPolicy, RowPolicy
 from htlm_agent.mind.reward import RewardTables, confident_levels
 from htlm_world import seeds
 from htlm_world.model import Model
@@ -42,13 +49,25 @@ class ValueSettings:
     perturb_steps: int = 12
     """The others first act for up to this many steps (drawn uniformly) with each agent's choice replaced by a random
     task or nothing with probability 0.3; the states from then on are the auction's alone and are learned from."""
-    hidden: int = 64
-    """Units of the two hidden layers."""
+    hidden: tuple[int, ...] = (64, 64)
+    """Units of the hidden layers."""
     steps: int = 600
     """Adam updates (on one thread, so that every agent process that fits the value gets the same network)."""
     batch: int = 2048
     """States in a minibatch."""
     lr: float = 1e-3
+
+    @staticmethod
+    def of(settings: Settings) -> ValueSettings:
+        """The value fit of a run of the lookahead learner: `episodes` simulated episodes, its `hidden` layers,
+        `value_updates` Adam updates at `lr` on minibatches of `batch_size` states."""
+        return ValueSettings(
+            rollouts=settings.episodes,
+            hidden=tuple(int(h) for h in settings.hidden),
+            steps=settings.value_updates,
+            batch=settings.batch_size,
+            lr=settings.lr,
+        )
 
 
 LOOKAHEAD_SAMPLES = 64
@@ -89,26 +108,56 @@ def base_rollouts(sc: Scenario, vs: ValueSettings, seed: int = 0) -> tuple[IntAr
     return x, y
 
 
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+
+
+def _mix(z: NDArray[np.uint64]) -> NDArray[np.uint64]:
+    """SplitMix64's finalizer on every element (wrapping 64-bit arithmetic)."""
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
 class BaseValue:
     """The expected steps the auction on the true levels takes to finish from a joint state: an MLP on the one-hot
     levels of every task, 0 for the complete state."""
 
     def __init__(self, sc: Scenario, vs: ValueSettings | None = None, seed: int = 0) -> None:
-        """A network of `vs.hidden` units, its weights from the seed; `fit` trains it."""
+        """A network of `vs.hidden` layers, its weights from the seed; `fit` trains it."""
         self.sc, self.vs, self.seed = sc, vs or ValueSettings(), seed
         torch.manual_seed(seeds.base_value_init(seed))
-        d, hid = sc.n_tasks * sc.levels, self.vs.hidden
-        layers = [torch.nn.Linear(d, hid), torch.nn.ReLU(), torch.nn.Linear(hid, hid), torch.nn.ReLU()]
-        self.net = torch.nn.Sequential(*layers, torch.nn.Linear(hid, 1))
+        sizes = (sc.n_tasks * sc.levels, *self.vs.hidden)
+        layers: list[torch.nn.Module] = []
+        for i in range(len(sizes) - 1):
+            layers += [torch.nn.Linear(sizes[i], sizes[i + 1]), torch.nn.ReLU()]
+        self.net = torch.nn.Sequential(*layers, torch.nn.Linear(sizes[-1], 1))
+
+    def params(self) -> list[NDArray[np.float32]]:
+        """The parameters in a checkpoint's order (`qnet.network_shapes` of the lookahead learner): per layer the
+        weight (in, out), then the bias."""
+        out: list[NDArray[np.float32]] = []
+        for layer in self.net:
+            if isinstance(layer, torch.nn.Linear):
+                out += [layer.weight.detach().numpy().T.copy(), layer.bias.detach().numpy().copy()]
+        return out
+
+    def load_params(self, params: Sequence[NDArray[np.floating[Any]]]) -> BaseValue:
+        """Take the parameters of `params` (the order of `params()`); returns self."""
+        linear = [m for m in self.net if isinstance(m, torch.nn.Linear)]
+        with torch.no_grad():
+            for i, layer in enumerate(linear):
+                layer.weight.copy_(torch.as_tensor(np.asarray(params[2 * i], dtype=np.float32).T))
+                layer.bias.copy_(torch.as_tensor(np.asarray(params[2 * i + 1], dtype=np.float32)))
+        return self
 
     def encode(self, levels: IntArray) -> torch.Tensor:
         """(..., p) levels -> (..., p L) one-hot inputs."""
         x = torch.from_numpy(np.ascontiguousarray(levels, dtype=np.int64))
         return torch.nn.functional.one_hot(x, self.sc.levels).reshape(*x.shape[:-1], -1).to(torch.float32)
 
-    def fit(self, progress: bool = False) -> float:
+    def fit(self, progress: bool = False, on_update: Callable[[int, float], None] | None = None) -> float:
         """Learn from `base_rollouts`: mean squared error, Adam. Returns the last minibatch's root mean squared
-        error (steps)."""
+        error (steps). `on_update(updates done, minibatch loss)` is called after every update."""
         t0 = time.monotonic()
         x_np, y_np = base_rollouts(self.sc, self.vs, self.seed)
         x, y = self.encode(x_np), torch.from_numpy(y_np.astype(np.float32))
@@ -118,12 +167,14 @@ class BaseValue:
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
         try:
-            for _ in range(self.vs.steps):
+            for done in range(1, self.vs.steps + 1):
                 idx = torch.randint(0, len(y), (self.vs.batch,), generator=gen)
                 loss = torch.nn.functional.mse_loss(self.net(x[idx])[:, 0], y[idx])
                 opt.zero_grad()
                 loss.backward()  # type: ignore[no-untyped-call]
                 opt.step()
+                if on_update is not None:
+                    on_update(done, float(loss.detach()))
         finally:
             torch.set_num_threads(threads)
         rmse = float(loss.detach().sqrt())
@@ -163,7 +214,7 @@ class LookaheadPolicy:
             value.fit(progress=True)
         self.value = value
         self.threshold = RewardTables.build(sc).threshold
-        self.rng = seeds.lookahead(seed)
+        self.key = np.uint64(seeds.lookahead(seed))
         p = sc.n_tasks
         # candidate 0: no task; candidate 1 + j: task j (N, p + 1, p) the capability each brings to every task
         self.brings = np.zeros((sc.n_agents, p + 1, p), dtype=np.int64)
@@ -171,13 +222,23 @@ class LookaheadPolicy:
         # mission first, load second: QMDP's price of a unit of committed capability (at least one: working counts)
         self.load = QMDP_LOAD_COST * np.maximum(self.brings.sum(axis=-1), 1) * (np.arange(p + 1) > 0)
 
-    def _stratified(self, b: int, n: int, p: int) -> FloatArray:
-        """(B, N, M, p) uniforms, each task's M of them one in each of M equal strata, in random order (fewer draws
-        for the same accuracy than independent ones)."""
-        m = self.samples
-        order = self.rng.random((b, n, p, m)).argsort(axis=-1)
-        u = (order + self.rng.random((b, n, p, m))) / m
-        return np.ascontiguousarray(u.transpose(0, 1, 3, 2))
+    def _draws(self, knowledge: FloatArray, who: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Two (B, R, M, p) arrays of uniforms for the agents `who` with knowledge states (B, R, K), stratified: each
+        task's M of them one in each of M equal strata, in random order (fewer draws for the same accuracy than
+        independent ones); the first for the states, the second for the step's noise. They are a hash of the
+        seed, the agent and its knowledge state (as float32, the precision of the wire), so an agent draws the
+        same whatever the batch, in process and in its own process."""
+        m, p = self.samples, self.sc.n_tasks
+        bits = np.ascontiguousarray(knowledge, dtype=np.float32).view(np.uint32).astype(np.uint64)
+        h = _mix(np.broadcast_to(self.key + who.astype(np.uint64) * _GOLDEN, bits.shape[:-1]))
+        for k in range(bits.shape[-1]):
+            h = _mix(h ^ bits[..., k])
+        z = _mix(h[..., None] + np.arange(1, 4 * p * m + 1, dtype=np.uint64) * _GOLDEN)
+        u = (z >> np.uint64(11)).astype(np.float64) * 2.0**-53
+        u = u.reshape(*h.shape, 2, 2, p, m)  # (B, R, which, order or jitter, p, M)
+        strata = (u[..., 0, :, :].argsort(axis=-1) + u[..., 1, :, :]) / m
+        out = np.ascontiguousarray(strata.swapaxes(-1, -2))  # (B, R, which, M, p)
+        return out[:, :, 0], out[:, :, 1]
 
     def act(self, ctx: Context) -> IntArray:
         """One action per agent, each from its own row's marginals and roster."""
@@ -194,9 +255,9 @@ class LookaheadPolicy:
         plan = allocate(model, confident_levels(marg, self.threshold[who]), present if sc.roster else None)  # (B, R, N)
         # every auctioneer's draws of the joint state from its belief (product of its marginals), and the noise of
         # the step after it, shared by every candidate
-        u = self._stratified(b, r, p)[..., None]
-        s = np.minimum((u > marg.cumsum(axis=-1)[:, :, None]).sum(axis=-1), sc.levels - 1)  # (B, R, M, p)
-        noise = self._stratified(b, r, p)[:, :, None]
+        u, noise = self._draws(ctx.knowledge[:, who], who)
+        s = np.minimum((u[..., None] > marg.cumsum(axis=-1)[:, :, None]).sum(axis=-1), sc.levels - 1)  # (B, R, M, p)
+        noise = noise[:, :, None]
         complete = (s == 0).all(axis=-1)[:, :, None, :]  # (B, R, 1, M)
         cand = p + 1
         s_c = np.broadcast_to(s[:, :, None], (b, r, cand, m, p))
@@ -231,3 +292,23 @@ class AgentLookahead(RowPolicy):
     def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
         """See AgentPolicy.act."""
         return self.policy.act_rows(self.context(knowledge, mask), np.array([self.agent]))[:, 0]
+
+
+def value_of(ck: Checkpoint) -> BaseValue:
+    """The value network of a checkpoint of the lookahead learner (every agent holds the same copy)."""
+    return BaseValue(ck.scenario, ValueSettings.of(ck.settings), ck.seed).load_params(ck.weights[0])
+
+
+def team_policy(ck: Checkpoint) -> Policy:
+    """The team policy of a checkpoint of any learner: the lookahead with its value network, else the agents'
+    Q-networks."""
+    if ck.settings.learner == "lookahead":
+        return LookaheadPolicy(ck.scenario, value_of(ck), seed=ck.seed)
+    return QPolicy.from_checkpoint(ck)
+
+
+def agent_policy(ck: Checkpoint, agent: int) -> AgentPolicy:
+    """Agent `agent`'s policy in its own process from a checkpoint of any learner (`team_policy`'s column)."""
+    if ck.settings.learner == "lookahead":
+        return AgentLookahead(ck.scenario, LookaheadPolicy(ck.scenario, value_of(ck), seed=ck.seed), agent)
+    return AgentQ.from_checkpoint(ck, agent)

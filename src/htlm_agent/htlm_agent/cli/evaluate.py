@@ -110,10 +110,10 @@ def format_metrics(m: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate, print and write the reports."""
+    from htlm_agent.baselines.lookahead import team_policy
     from htlm_agent.experiments.baselines import make_baseline
     from htlm_agent.experiments.evaluate import evaluate_run, write_reports
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-    from htlm_agent.learning.qpolicy import QPolicy
 
     if args.episodes < 1:
         raise SystemExit(f"htlm evaluate: --episodes must be >= 1, got {args.episodes}")
@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
                 raise SystemExit(f"htlm evaluate: {given} apply to --baseline; a policy acts in its own scenario")
             ck = load_checkpoint(args.policy)
             sc = with_events_from_args(ck.scenario, args)
-            policy: Any = QPolicy.from_checkpoint(ck)
+            policy: Any = team_policy(ck)
             learner_settings: Any = ck.settings
             name = "htlm-dqn" if sc.mode == "htlm" else "ht-dqn"
             seed = ck.seed if args.seed is None else args.seed

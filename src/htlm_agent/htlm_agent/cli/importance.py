@@ -25,9 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Compute, print and write the table."""
+    from htlm_agent.baselines.lookahead import team_policy
     from htlm_agent.experiments.evaluate import format_importance, importance_table, write_importance
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-    from htlm_agent.learning.qpolicy import QPolicy
 
     if args.episodes < 1:
         raise SystemExit(f"htlm importance: --episodes must be >= 1, got {args.episodes}")
@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     except CheckpointError as e:
         raise SystemExit(f"htlm importance: {e}") from None
     seed = ck.seed if args.seed is None else args.seed
-    table = importance_table(QPolicy.from_checkpoint(ck), ck.scenario, args.episodes, seed=seed)
+    table = importance_table(team_policy(ck), ck.scenario, args.episodes, seed=seed)
     run_dir = checkpoint_run_dir(ck.path)
     out = Path(args.out) if args.out else run_dir / "importance" / f"seed{seed}-{args.episodes}"
     paths = write_importance(table, out)

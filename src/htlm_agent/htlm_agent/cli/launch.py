@@ -190,7 +190,7 @@ def config(argv: list[str]) -> LaunchConfig:
 
 def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     """The launch of parsed `htlm launch` options and every problem of its input (empty: it can start)."""
-    from htlm_agent.learning.settings import DEFAULT_LEARNER, Settings
+    from htlm_agent.learning.settings import DEFAULT_LEARNER, IN_PROCESS_ONLY, IN_PROCESS_WHY, Settings
     from htlm_agent.ros.launch import LaunchConfig
     from htlm_agent.ros.launch_check import check_launch
 
@@ -207,6 +207,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         learner = Settings.from_dict(Settings.for_users(dict(args.learner)), "--set")  # for the defaults
     except ValueError:  # check_launch reports every bad key
         learner = Settings()
+    if args.mode == "train" and learner.learner == IN_PROCESS_ONLY:
+        bad.append(f"train: --set learner={IN_PROCESS_ONLY} {IN_PROCESS_WHY}")
     if args.mode == "train" and learner.dropout > 0:
         bad.append(f"train: --set dropout={learner.dropout!r}: training for resilience runs in process only")
     default_episodes = {"train": learner.episodes, "evaluate": 500, "deploy": 0}[args.mode]

@@ -65,11 +65,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate and write the table."""
+    from htlm_agent.baselines.lookahead import team_policy
     from htlm_agent.experiments.baselines import make_baseline
     from htlm_agent.experiments.evaluate import importance_table
     from htlm_agent.experiments.stress import format_stress, run_stress, write_stress
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-    from htlm_agent.learning.qpolicy import QPolicy
     from htlm_agent.progress import Progress
     from htlm_world.events import resolve_agent
     from htlm_world.scenario import ScenarioError, builtin, load, read_events
@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         sets = {Path(n).stem if Path(n).suffix else n: read_events(n, sc) for n in names}
         policies: dict[str, Any] = {}
         if args.policy is not None:
-            policies["learned"] = (QPolicy.from_checkpoint(ck), sc)
+            policies["learned"] = (team_policy(ck), sc)
             out_default = checkpoint_run_dir(ck.path) / "stress" / f"seed{seed}-{args.episodes}"
         else:
             policies[args.baseline] = make_baseline(args.baseline, sc, seed=seed)

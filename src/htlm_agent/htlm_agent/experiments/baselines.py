@@ -7,11 +7,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from htlm_agent.baselines.heuristics import BASELINES, AuctionPolicy, GreedyPolicy, RandomPolicy
-from htlm_agent.baselines.lookahead import LookaheadPolicy
+from htlm_agent.baselines.lookahead import LookaheadPolicy, team_policy
 from htlm_agent.baselines.optimal import OptimalPolicy, QmdpPolicy
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind.context import Policy
 from htlm_world.scenario import Scenario
@@ -29,7 +28,7 @@ def train_ht(
     sc = ht_scenario(scenario) if scenario.mode != "ht" else scenario
     res = train(sc, settings, out_dir, progress=progress, evaluate_at_end=False)
     ck = load_checkpoint(res.out_dir / "checkpoint")
-    return QPolicy.from_checkpoint(ck), sc
+    return team_policy(ck), sc
 
 
 def make_baseline(
@@ -71,7 +70,7 @@ def make_baseline(
                 raise CheckpointError(
                     f"{ck.path}: not an HT learner (mode {ck.scenario.mode!r}); train one with `htlm train --mode ht`"
                 )
-            return QPolicy.from_checkpoint(ck), ck.scenario
+            return team_policy(ck), ck.scenario
         if ht_out is None:
             raise ValueError("the ht baseline needs a checkpoint (ht_policy) or a directory to train one in (ht_out)")
         s = settings if settings is not None else Settings(seed=seed)

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from htlm_agent.baselines.lookahead import team_policy
 from htlm_agent.baselines.optimal import ProblemTooLarge
 from htlm_agent.experiments.baselines import make_baseline
 from htlm_agent.experiments.evaluate import evaluate, importance_table
@@ -115,7 +116,7 @@ def run_scenario(
             took = time.perf_counter() - t0
             rows.append({"scenario": name, "team": learner, "condition": "none", "seed": seed, "train_s": took})
             rows[-1].update(_figures(res.metrics))
-            teams[learner] = (QPolicy.from_checkpoint(load_checkpoint(run_dir)), lsc)
+            teams[learner] = (team_policy(load_checkpoint(run_dir)), lsc)
             _log(f"{name} {learner} seed {seed}: {rows[-1]['completion']:.2f} steps in {took:.0f} s")
         for b, (pol, bsc) in _baselines(sc, seed, baselines).items():
             rows.append({"scenario": name, "team": b, "condition": "none", "seed": seed})

@@ -27,12 +27,12 @@ import torch
 import yaml
 
 from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
+from htlm_agent.baselines.lookahead import BaseValue, ValueSettings, team_policy
 from htlm_agent.baselines.optimal import ProblemTooLarge, QmdpPolicy
 from htlm_agent.experiments.evaluate import evaluate, evaluate_run, write_reports
-from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.loop import LaggedNets, Selection, episode_epsilons
-from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind.context import Policy
 from htlm_agent.mind.policies import knowledge_context, team_epsilon_greedy
@@ -376,23 +376,45 @@ class _Run:
 def final_evaluation(run: _Run, out: Path) -> dict[str, Any]:
     """Greedy evaluation of the checkpoint's networks (settings.eval_episodes episodes, seed settings.seed) into
     out/eval; returns its metrics."""
-    s, scenario = run.learner.settings, run.learner.scenario
-    policy = QPolicy.from_checkpoint(load_checkpoint(run.ckpt_dir))
-    evaluation = evaluate_run(policy, scenario, s.eval_episodes, seed=s.seed, policy_name="htlm-dqn")
+    metrics = evaluate_checkpoint(run.ckpt_dir, out, "htlm-dqn")
+    run.log.evaluation(metrics, run.learner.episodes_done)
+    return metrics
+
+
+def evaluate_checkpoint(ckpt_dir: Path, out: Path, name: str) -> dict[str, Any]:
+    """Greedy evaluation of a run's checkpoint, as its agents act (settings.eval_episodes episodes, seed
+    settings.seed) into out/eval; returns its metrics."""
+    ck = load_checkpoint(ckpt_dir)
+    s = ck.settings
+    evaluation = evaluate_run(team_policy(ck), ck.scenario, s.eval_episodes, seed=s.seed, policy_name=name)
     write_reports(evaluation, out / "eval")
-    run.log.evaluation(evaluation.metrics, run.learner.episodes_done)
     return evaluation.metrics
 
 
 def write_result(run: _Run, out: Path, metrics: dict[str, Any], progress: bool) -> float:
     """result.json (and the final line on stderr with `progress`); returns the wall time of the run."""
     s = run.learner.settings
-    wall = time.perf_counter() - run.t_start
+    selected = run.selection.episode if s.select_best else None
+    return result_json(out, run.learner.episodes_done, run.t_start, run.train_time, selected, metrics, progress)
+
+
+def result_json(
+    out: Path,
+    episodes: int,
+    t_start: float,
+    train_time: float,
+    selected: int | None,
+    metrics: dict[str, Any],
+    progress: bool,
+) -> float:
+    """Write result.json (and the final line on stderr with `progress`) for a run that began at `t_start`
+    (`time.perf_counter`); returns its wall time."""
+    wall = time.perf_counter() - t_start
     summary = {
-        "episodes": run.learner.episodes_done,
+        "episodes": episodes,
         "wall_time_s": round(wall, 2),
-        "train_time_s": round(run.train_time, 2),
-        "selected_episode": run.selection.episode if s.select_best else None,
+        "train_time_s": round(train_time, 2),
+        "selected_episode": selected,
         "metrics": metrics,
     }
     (out / "result.json").write_text(json.dumps(summary, indent=2) + "\n")
@@ -430,6 +452,8 @@ def train(
     """
     t_start = time.perf_counter()
     out = Path(out_dir)
+    if settings.learner == "lookahead":
+        return train_lookahead(scenario, settings, out, progress, resume, tensorboard, evaluate_at_end)
     torch.set_num_threads(settings.threads)
     deterministic_torch()
     keep_freed_memory()
@@ -469,3 +493,71 @@ def train(
         run.log.close()
     wall = write_result(run, out, metrics, progress)
     return TrainResult(out, scenario, s, learner.episodes_done, wall, run.train_time, metrics, run.history)
+
+
+def train_lookahead(
+    scenario: Scenario,
+    settings: Settings,
+    out: Path,
+    progress: bool = True,
+    resume: bool = False,
+    tensorboard: bool = True,
+    evaluate_at_end: bool = True,
+) -> TrainResult:
+    """`train` for the lookahead learner (docs/model.md, The lookahead learner): its value network learns from
+    `settings.episodes` simulated episodes in one go; the checkpoint gives every agent a copy, and the final
+    evaluation acts as the agents do, each improving on the auction from its own belief with it."""
+    t_start = time.perf_counter()
+    ckpt_dir = out / "checkpoint"
+    if resume:
+        raise CheckpointError(
+            f"{out}: a run of the lookahead learner has nothing to resume (it learns in one go, in seconds); "
+            "train again into another output directory"
+        )
+    if (ckpt_dir / "meta.json").exists():
+        raise FileExistsError(f"{out}: already holds a run; choose another output directory")
+    write_run_files(out, scenario, settings)
+    value = BaseValue(scenario, ValueSettings.of(settings), settings.seed)
+    bars: list[Progress] = []  # the regression's, from its first update on (after the simulation)
+
+    def show(done: int, loss: float) -> None:
+        if not bars:
+            bars.append(Progress(settings.value_updates, unit="upd", enabled=progress))
+        bars[0].update(done, rmse=f"{math.sqrt(loss):.2f}")
+
+    if progress:
+        print(f"lookahead: simulating {settings.episodes:,} episodes of the auction", file=sys.stderr, flush=True)
+    try:
+        rmse = value.fit(on_update=show)
+    finally:
+        for bar in bars:
+            bar.close()
+    train_time = time.perf_counter() - t_start
+    row = {
+        "episodes": settings.episodes,
+        "wall_s": round(train_time, 3),
+        "episodes_per_s": settings.episodes / max(train_time, 1e-9),
+        "updates": settings.value_updates,
+        "loss": rmse**2,
+    }
+    save_checkpoint(
+        ckpt_dir,
+        scenario,
+        settings,
+        settings.seed,
+        settings.episodes,
+        [value.params()] * scenario.n_agents,
+        info={"value_rmse": rmse},
+    )
+    log = RunLog(out, 0, False, tensorboard)
+    metrics: dict[str, Any] = {}
+    try:
+        log.row(row, settings.episodes)
+        log.close_progress()
+        if evaluate_at_end and settings.eval_episodes > 0:
+            metrics = evaluate_checkpoint(ckpt_dir, out, "htlm-lookahead")
+            log.evaluation(metrics, settings.episodes)
+    finally:
+        log.close()
+    wall = result_json(out, settings.episodes, t_start, train_time, None, metrics, progress)
+    return TrainResult(out, scenario, settings, settings.episodes, wall, train_time, metrics, [row])

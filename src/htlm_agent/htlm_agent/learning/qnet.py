@@ -260,6 +260,8 @@ def network_shapes(scenario: Scenario, settings: Any) -> list[tuple[int, ...]]:
     """Shapes of one agent's parameters for the learner of `settings` (a `learning.settings.Settings`)."""
     if settings.learner == "tokens":
         return token_shapes(scenario.levels, settings.hidden)
+    if settings.learner == "lookahead":  # the value network: one-hot levels of every task -> steps to go
+        return param_shapes((scenario.n_tasks * scenario.levels, *[int(h) for h in settings.hidden], 1))
     return param_shapes(layer_sizes(scenario, settings.hidden))
 
 

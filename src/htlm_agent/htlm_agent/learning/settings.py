@@ -13,8 +13,8 @@ from typing import Any
 from htlm_msgs_py.validation import ConversionError, convert_value
 from htlm_world.episode import TRAINER_LAG
 
-LEARNERS = ("paper", "tokens")
-"""The Q-networks a run can train (`Settings.learner`)."""
+LEARNERS = ("paper", "tokens", "lookahead")
+"""The learners a run can train (`Settings.learner`)."""
 
 IMITATE = ("none", "auction", "greedy", "qmdp")
 """The baselines a warm start can imitate (`Settings.imitate`)."""
@@ -37,6 +37,25 @@ TOKENS_PRESET: dict[str, Any] = {
 """The settings the token learner starts from (`with_preset`; docs/model.md, The token learner): smaller layers than
 the paper's MLPs (one network serves every action), a warm start on the auction, and less exploration after it."""
 
+LOOKAHEAD_PRESET: dict[str, Any] = {
+    "learner": "lookahead",
+    "episodes": 10_000,
+    "batch_size": 2048,
+}
+"""The settings the lookahead learner starts from (`with_preset`; docs/model.md, The lookahead learner): 10,000
+simulated episodes and minibatches of 2,048 states for its value network."""
+
+IN_PROCESS_ONLY = "lookahead"
+"""The learner that learns in process only: its value network learns from simulated episodes, not from the agents'
+transitions, so a trainer node has nothing to learn from (`IN_PROCESS_WHY`)."""
+IN_PROCESS_WHY = (
+    "learns in process only, from simulated episodes: train it with `htlm train --learner lookahead`, then run the "
+    "team with `htlm launch evaluate --checkpoint RUN`"
+)
+
+PRESETS: dict[str, dict[str, Any]] = {"tokens": TOKENS_PRESET, "lookahead": LOOKAHEAD_PRESET}
+"""The preset of every learner that has one: what `htlm train --learner NAME` starts from."""
+
 
 @dataclass(frozen=True)
 class Settings:
@@ -45,7 +64,9 @@ class Settings:
     learner: str = "paper"
     """The Q-network: `paper`, one MLP per agent from K to one Q-value per element of Ḡ (the paper's learner);
     `tokens`, one network scoring every action from its own features, shared across tasks (docs/model.md, The
-    token learner)."""
+    token learner); `lookahead`, a value network of the auction learned from simulated episodes, with which every
+    agent improves on the auction from its own belief (docs/model.md, The lookahead learner; it learns in process
+    only, `htlm train`)."""
     shared: bool = True
     """tokens: the agents share one network (their capabilities and preferences are inputs); False: each agent
     trains its own."""
@@ -98,7 +119,9 @@ class Settings:
     eps_spread: bool = False
     """Spread ε over the B parallel episodes, linearly from 0 to 2ε (mean ε), so some run the greedy team."""
     episodes: int = 12_288
-    """Training episodes in total."""
+    """Training episodes in total (lookahead: the simulated episodes its value network learns from)."""
+    value_updates: int = 600
+    """lookahead: Adam updates of the value network (minibatches of `batch_size` states)."""
     dropout: float = 0.0
     """Training for resilience: the share of training episodes in which one teammate, drawn uniformly, sits out
     the whole episode (idles at its site, as a robot that drops out); 0 trains every episode with the full team."""
@@ -140,6 +163,7 @@ class Settings:
             "episodes",
             "envs",
             "updates_per_step",
+            "value_updates",
             "threads",
         )
         for name in positive:
@@ -212,13 +236,14 @@ class Settings:
 
     @staticmethod
     def with_preset(changes: dict[str, Any]) -> dict[str, Any]:
-        """Settings changes as plain data, after `TOKENS_PRESET` when they choose the token learner (what
+        """Settings changes as plain data, after the preset of the learner they choose (`PRESETS`: what
         `htlm train --learner tokens` and `htlm launch train --set learner=tokens` start from). A budget of
-        `episodes` below twice the preset's warm start keeps half of it for the warm start."""
-        if changes.get("learner") != "tokens":
+        `episodes` below twice the token preset's warm start keeps half of it for the warm start."""
+        learner = changes.get("learner")
+        if learner not in PRESETS:
             return dict(changes)
-        base = dict(TOKENS_PRESET)
-        if isinstance(changes.get("episodes"), int):
+        base = dict(PRESETS[learner])
+        if learner == "tokens" and isinstance(changes.get("episodes"), int):
             base["imitate_episodes"] = min(base["imitate_episodes"], max(changes["episodes"], 0) // 2)
         return {**base, **changes}
 
@@ -230,7 +255,7 @@ class Settings:
 
     @staticmethod
     def for_learner(**changes: Any) -> Settings:
-        """Settings with `changes`, starting from `TOKENS_PRESET` when they choose the token learner."""
+        """Settings with `changes`, starting from the preset of the learner they choose (`PRESETS`)."""
         return Settings(**Settings.with_preset(changes))
 
     def replace(self, **changes: Any) -> Settings:

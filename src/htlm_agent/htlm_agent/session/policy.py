@@ -53,11 +53,11 @@ class PolicySource:
         if kind in BUILTIN_POLICIES:
             self.policy, self.own_epsilon = builtin_policy(run.scenario, kind, run.index)
         elif kind == "checkpoint":
-            from htlm_agent.learning.checkpoint import load_checkpoint  # torch only for the policies that need it
-            from htlm_agent.learning.qnet import AgentQ
+            from htlm_agent.baselines.lookahead import agent_policy  # torch only for the policies that need it
+            from htlm_agent.learning.checkpoint import load_checkpoint
 
             ck = load_checkpoint(self.checkpoint, run.scenario)
-            self.policy = AgentQ.from_checkpoint(ck, run.index)
+            self.policy = agent_policy(ck, run.index)
             self.weights.learner = ck.settings
             self.own_epsilon = 0.0
         else:  # trainer: the first weights record creates the network

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from htlm_agent.learning.settings import Settings
+from htlm_agent.learning.settings import IN_PROCESS_ONLY, IN_PROCESS_WHY, Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
 from htlm_msgs_py.payload import seal
 from htlm_msgs_py.run_control import REFUSED, RunControl, Verdict
@@ -295,6 +295,8 @@ class TrainerCore:
         if self.mode != "train":  # evaluate, deploy: record metrics and any transitions, learn nothing
             out.log.append(("info", f"run {self.run}: mode {self.mode}: recording only (store {store_path})"))
             return
+        if settings.learner == IN_PROCESS_ONLY:
+            raise ValueError(f"{self.learner_source}: settings.learner: {IN_PROCESS_ONLY!r} {IN_PROCESS_WHY}")
         fed = 0
         info: dict[str, Any] = {}
         if (ckpt / "meta.json").exists():
