@@ -187,6 +187,32 @@ class BaseValue:
             )
         return rmse
 
+    def after_step(self, none: IntArray, work: IntArray, tasks: IntArray) -> FloatArray:
+        """The values of an agent's candidate next states, from (..., p) next levels without it (`none`) and with it
+        on every task (`work`; a task's next level depends on its own capability only): (..., 1 + T), the value of
+        `none`, then of `none` with the level of task tasks[c] from `work`; 0 for a complete state. The first layer
+        is linear in the one-hot levels, so every candidate's is the none state's with one task's term replaced."""
+        first = self.net[0]
+        assert isinstance(first, torch.nn.Linear)
+        lv, hid = self.sc.levels, first.out_features
+        shape, p = none.shape[:-1], none.shape[-1]
+        none2, work2 = none.reshape(-1, p), work[..., tasks].reshape(-1, tasks.size)
+        out = np.zeros((none2.shape[0], 1 + tasks.size))
+        with torch.no_grad():
+            emb = first.weight.T.reshape(p, lv, hid)  # (p, L, H): task j's term for each of its levels
+            task_ix, cand_ix = torch.arange(p), torch.from_numpy(tasks)
+            rest = self.net[1:]
+            for i in range(0, none2.shape[0], 4096):
+                n_t = torch.from_numpy(none2[i : i + 4096])
+                e_none = emb[task_ix, n_t]  # (S, p, H)
+                h_none = first.bias + e_none.sum(dim=1)  # (S, H)
+                h_c = h_none[:, None] - e_none[:, cand_ix] + emb[cand_ix, torch.from_numpy(work2[i : i + 4096])]
+                out[i : i + 4096] = rest(torch.cat([h_none[:, None], h_c], dim=1))[..., 0].numpy()
+        open_none = (none2 > 0).sum(axis=-1)
+        open_c = open_none[:, None] - (none2[:, tasks] > 0) + (work2 > 0)
+        out[np.concatenate([open_none[:, None], open_c], axis=1) == 0] = 0.0
+        return out.reshape(*shape, 1 + tasks.size)
+
     def __call__(self, levels: IntArray) -> FloatArray:
         """(..., p) levels -> (...,) expected steps to finish (0 where every level is 0)."""
         shape = levels.shape[:-1]
@@ -221,6 +247,10 @@ class LookaheadPolicy:
         self.brings[:, 1 + np.arange(p), np.arange(p)] = self.model.agent_caps[:, :p]
         # mission first, load second: QMDP's price of a unit of committed capability (at least one: working counts)
         self.load = QMDP_LOAD_COST * np.maximum(self.brings.sum(axis=-1), 1) * (np.arange(p + 1) > 0)
+        # the tasks each agent may take: those it brings capability to (working elsewhere changes nothing and costs
+        # load), every task for an agent with none (HT mode: it must take one)
+        caps = self.model.agent_caps[:, :p] > 0
+        self.candidates = [np.flatnonzero(c) if c.any() else np.arange(p) for c in caps]
 
     def _draws(self, knowledge: FloatArray, who: IntArray) -> tuple[FloatArray, FloatArray]:
         """Two (B, R, M, p) arrays of uniforms for the agents `who` with knowledge states (B, R, K), stratified: each
@@ -257,28 +287,38 @@ class LookaheadPolicy:
         # the step after it, shared by every candidate
         u, noise = self._draws(ctx.knowledge[:, who], who)
         s = np.minimum((u[..., None] > marg.cumsum(axis=-1)[:, :, None]).sum(axis=-1), sc.levels - 1)  # (B, R, M, p)
-        noise = noise[:, :, None]
-        complete = (s == 0).all(axis=-1)[:, :, None, :]  # (B, R, 1, M)
-        cand = p + 1
-        s_c = np.broadcast_to(s[:, :, None], (b, r, cand, m, p))
-        noise_c = np.broadcast_to(noise, (b, r, cand, m, p))
+        complete = (s == 0).all(axis=-1)  # (B, R, M)
+        # a head whose every draw is complete rests: every candidate is worth 0 steps and resting costs no load (in
+        # HT mode, where resting is no candidate, every head works the sequence out)
+        rest = complete.all(axis=-1) if sc.n_idle > 0 else np.zeros((b, r), dtype=bool)
+        plan[rest] = -1
         for k in range(int(who.max()) + 1):  # agent k improves on the plan in the heads of agents k.. (the rest are
-            rows = np.flatnonzero(who >= k)  # settled)
-            mine = plan[:, rows]
-            brought = self.brings[np.arange(n), np.where(mine >= 0, mine + 1, 0)]  # (B, R', N, p)
-            others = brought.sum(axis=2) - brought[:, :, k]  # (B, R', p)
-            caps = np.minimum(others[:, :, None, :] + self.brings[k][None, None], sc.capability_max)
-            shape = s_c[:, rows].shape
+            bi, ri = np.nonzero((who >= k)[None, :] & ~rest)  # settled): every (episode, head) pair
+            if bi.size == 0:
+                continue
+            mine = plan[bi, ri]  # (P, N)
+            brought = self.brings[np.arange(n), np.where(mine >= 0, mine + 1, 0)]  # (P, N, p)
+            others = brought.sum(axis=1) - brought[:, k]  # (P, p)
+            # a task's next level depends on its own capability only: every candidate's next state is the one
+            # without agent k, with the level of its task taken from the next levels with agent k on every task
+            caps = np.stack([others, others + self.model.agent_caps[k, :p]], axis=1)  # (P, 2, p)
+            shape = (bi.size, 2, m, p)
             nxt = model.sample_transition(
-                s_c[:, rows], np.broadcast_to(caps[:, :, :, None, :], shape), noise_c[:, rows]
-            )
-            q = np.where(complete[:, rows], 0.0, 1.0 + self.value(nxt)).mean(axis=-1) + self.load[k]  # (B, R', p+1)
+                np.broadcast_to(s[bi, ri][:, None], shape),
+                np.minimum(caps, sc.capability_max)[:, :, None, :],
+                np.broadcast_to(noise[bi, ri][:, None], shape),
+            )  # (P, 2, M, p)
+            tasks = self.candidates[k]
+            v = self.value.after_step(nxt[:, 0], nxt[:, 1], tasks)  # (P, M, 1 + T)
+            q = np.full((bi.size, p + 1), np.inf)
+            q[:, np.concatenate([[0], 1 + tasks])] = np.where(complete[bi, ri][..., None], 0.0, 1.0 + v).mean(axis=1)
+            q += self.load[k]
             if sc.n_idle == 0:  # HT mode: resting is staying on a task, so only the tasks are candidates
-                q[:, :, 0] = np.inf
-            here = present[:, rows, k]  # whether each head counts on agent k: a silent teammate brings nothing
-            q[:, :, 1:] = np.where(here[..., None], q[:, :, 1:], np.inf)
-            q[:, :, 0] = np.where(here, q[:, :, 0], -np.inf)
-            plan[:, rows, k] = q.argmin(axis=-1) - 1
+                q[:, 0] = np.inf
+            here = present[bi, ri, k]  # whether each head counts on agent k: a silent teammate brings nothing
+            q[:, 1:] = np.where(here[:, None], q[:, 1:], np.inf)
+            q[:, 0] = np.where(here, q[:, 0], -np.inf)
+            plan[bi, ri, k] = q.argmin(axis=-1) - 1
         own = plan[:, np.arange(r), who]
         return np.where(own >= 0, own, model.rest_action(ctx.prev[:, who])).astype(np.int64)
 

@@ -50,6 +50,7 @@ LEARNERS: dict[str, dict[str, Any]] = {
         "credit": "difference",
     },
     "paper": {"settings": {}, "credit": None},
+    "lookahead": {"settings": {"learner": "lookahead"}, "credit": None},
 }
 """The learned teams: `Settings.for_learner` changes and the credit of the scenario they train on."""
 
@@ -86,7 +87,7 @@ def run_scenario(
     name: str,
     seeds: list[int],
     learners: list[str],
-    episodes: int,
+    episodes: int | None,
     eval_episodes: int,
     out: Path,
     stress: bool,
@@ -107,8 +108,9 @@ def run_scenario(
         for learner in learners:
             spec = LEARNERS[learner]
             lsc = sc.with_credit(spec["credit"]) if spec["credit"] else sc
+            budget = {} if episodes is None else {"episodes": episodes}
             settings = Settings.for_learner(
-                **{**spec["settings"], **(changes or {})}, seed=seed, episodes=episodes, eval_episodes=eval_episodes
+                **{**spec["settings"], **(changes or {})}, seed=seed, eval_episodes=eval_episodes, **budget
             )
             run_dir = out / "runs" / f"{name}__{learner}__{seed}"
             t0 = time.perf_counter()
@@ -170,11 +172,12 @@ def changed_operations(sc: Scenario) -> dict[str, Scenario]:
     }
 
 
-def run_transfer(name: str, seed: int, episodes: int, eval_episodes: int, out: Path) -> list[dict[str, Any]]:
+def run_transfer(name: str, seed: int, episodes: int | None, eval_episodes: int, out: Path) -> list[dict[str, Any]]:
     """The token team of `name` trained once, acting on every `changed_operations` without retraining, beside a
     token team retrained on the change, greedy and the auction, on the same episodes."""
     sc = load(name).replace(roster=True).with_credit("difference")
-    settings = Settings.for_learner(learner="tokens", seed=seed, episodes=episodes, eval_episodes=eval_episodes)
+    budget = {} if episodes is None else {"episodes": episodes}
+    settings = Settings.for_learner(learner="tokens", seed=seed, eval_episodes=eval_episodes, **budget)
     base = out / "runs" / f"{name}__transfer__{seed}"
     train(sc, settings, base, progress=False, tensorboard=False)
     weights = load_checkpoint(base).weights[0]  # the shared network
@@ -296,7 +299,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenarios", nargs="+", required=True, help="shipped scenario names or files")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--learners", nargs="*", default=["tokens", "paper"], choices=list(LEARNERS))
-    p.add_argument("--episodes", type=int, default=12_288, help="training episodes of every learned team")
+    p.add_argument(
+        "--episodes", type=int, default=None, help="training episodes of every learned team (default: its learner's)"
+    )
     p.add_argument("--eval-episodes", type=int, default=500)
     p.add_argument(
         "--baselines", nargs="*", default=list(BASELINES), choices=[*BASELINES, "lookahead"], help="baselines beside"
