@@ -192,3 +192,24 @@ def test_the_lookahead_learner_learns_in_process_only(tmp_path: Path) -> None:
     train(builtin(), settings, tmp_path / "run", progress=False, tensorboard=False, evaluate_at_end=False)
     with pytest.raises(CheckpointError, match="nothing to resume"):
         train(builtin(), settings, tmp_path / "run", progress=False, tensorboard=False, resume=True)
+
+
+def test_htlm_train_trains_the_lookahead_where_it_is_affordable(tmp_path: Path) -> None:
+    """The default of `htlm train`: the lookahead learner on the paper's operation, the token learner where a team
+    step of the lookahead costs too much (facility-20) or where a Q-learner's setting is given; a named learner
+    always."""
+    import json
+
+    from htlm_agent.baselines.lookahead import LOOKAHEAD_DEFAULT_COST, default_learner, lookahead_cost
+    from htlm_agent.cli import main
+    from htlm_world.scenario import load
+
+    assert lookahead_cost(builtin()) <= LOOKAHEAD_DEFAULT_COST < lookahead_cost(load("facility-20"))
+    assert default_learner(builtin(), {"episodes": 100}) == "lookahead"
+    assert default_learner(builtin(), {"imitate": "qmdp"}) == "tokens"
+    assert default_learner(load("facility-20"), {}) == "tokens"
+    assert default_learner(load("facility-20"), {"learner": "lookahead"}) == "lookahead"
+    args = ["--episodes", "200", "--value-updates", "10", "--eval-episodes", "4", "--no-progress", "--no-tensorboard"]
+    assert main(["train", "--out", str(tmp_path / "run"), *args]) == 0
+    assert json.loads((tmp_path / "run" / "settings.json").read_text())["learner"] == "lookahead"
+    assert (tmp_path / "run" / "eval" / "metrics.json").exists()

@@ -25,7 +25,7 @@ from htlm_agent.baselines.optimal import QMDP_LOAD_COST
 from htlm_agent.learning.checkpoint import Checkpoint
 from htlm_agent.learning.qnet import AgentQ
 from htlm_agent.learning.qpolicy import QPolicy
-from htlm_agent.learning.settings import Settings
+from htlm_agent.learning.settings import DEFAULT_LEARNER, Settings
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate
 from htlm_agent.mind.context import Context, Policy
@@ -226,6 +226,42 @@ class BaseValue:
         return out.reshape(shape)
 
 
+def candidate_tasks(model: Model) -> list[IntArray]:
+    """The tasks each agent may take in the lookahead: those it brings capability to (working elsewhere changes
+    nothing and costs load), every task for an agent with none (HT mode: it must take one)."""
+    caps = model.agent_caps[:, : model.scenario.n_tasks] > 0
+    return [np.flatnonzero(c) if c.any() else np.arange(model.scenario.n_tasks) for c in caps]
+
+
+def lookahead_cost(sc: Scenario) -> int:
+    """The candidates a team step of the lookahead judges in process (each on `LOOKAHEAD_SAMPLES` draws): agent k
+    is worked out in the heads of the agents k.. (N - k of them), with none and each of its candidate tasks."""
+    n = sc.n_agents
+    return sum((n - k) * (1 + t.size) for k, t in enumerate(candidate_tasks(Model.build(sc))))
+
+
+LOOKAHEAD_DEFAULT_COST = 500
+"""The largest `lookahead_cost` at which `htlm train` trains the lookahead learner unless told otherwise
+(`default_learner`): a 500-episode evaluation of it then takes minutes on a 2-core machine."""
+
+LOOKAHEAD_FIELDS = frozenset(
+    {"learner", "episodes", "value_updates", "hidden", "lr", "batch_size", "seed", "threads", "eval_episodes"}
+)
+"""The settings the lookahead learner uses (`ValueSettings.of`, the run's seed and evaluation)."""
+
+
+def default_learner(sc: Scenario, changes: dict[str, object]) -> str:
+    """The learner `htlm train` trains on `sc` unless `changes` name one: the lookahead learner, measured better than
+    greedy, the auction and the token learner on every operation it was measured on (docs/results/market.md),
+    where it is affordable (`LOOKAHEAD_DEFAULT_COST`) and no setting of a Q-learner is given; else
+    `DEFAULT_LEARNER` (what `htlm launch train` trains over ROS)."""
+    if "learner" in changes:
+        return str(changes["learner"])
+    if set(changes) <= LOOKAHEAD_FIELDS and lookahead_cost(sc) <= LOOKAHEAD_DEFAULT_COST:
+        return "lookahead"
+    return DEFAULT_LEARNER
+
+
 class LookaheadPolicy:
     """Every agent on its own belief: the auction, improved one agent at a time by a one-step lookahead with the
     learned value of the auction on the true levels (module docstring; docs/model.md, Baselines)."""
@@ -247,10 +283,7 @@ class LookaheadPolicy:
         self.brings[:, 1 + np.arange(p), np.arange(p)] = self.model.agent_caps[:, :p]
         # mission first, load second: QMDP's price of a unit of committed capability (at least one: working counts)
         self.load = QMDP_LOAD_COST * np.maximum(self.brings.sum(axis=-1), 1) * (np.arange(p + 1) > 0)
-        # the tasks each agent may take: those it brings capability to (working elsewhere changes nothing and costs
-        # load), every task for an agent with none (HT mode: it must take one)
-        caps = self.model.agent_caps[:, :p] > 0
-        self.candidates = [np.flatnonzero(c) if c.any() else np.arange(p) for c in caps]
+        self.candidates = candidate_tasks(self.model)
 
     def _draws(self, knowledge: FloatArray, who: IntArray) -> tuple[FloatArray, FloatArray]:
         """Two (B, R, M, p) arrays of uniforms for the agents `who` with knowledge states (B, R, K), stratified: each

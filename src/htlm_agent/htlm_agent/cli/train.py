@@ -31,12 +31,13 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
 
     docs = field_docs(Settings)
     g = p.add_argument_group(
-        "learner settings (defaults: the token learner, TOKENS_PRESET over htlm_agent.learning.settings.Settings)"
+        "learner settings (defaults: the lookahead learner where it is affordable and no Q-learner setting is given, "
+        "else the token learner; the learner's preset over htlm_agent.learning.settings.Settings)"
     )
     for f in dataclasses.fields(Settings):
         if f.name in EXPLICIT:
             continue
-        default = DEFAULT_LEARNER if f.name == "learner" else f.default
+        default = f"lookahead or {DEFAULT_LEARNER}" if f.name == "learner" else f.default
         help_text = f"{docs.get(f.name, '')} (default: {default})".replace("%", "%%")
         if f.name == "hidden":
             g.add_argument(_flag(f.name), type=_int_list, default=None, metavar="H1,H2", help=help_text)
@@ -84,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
     """Train and print where the run went and its final greedy evaluation."""
     import json
 
+    from htlm_agent.baselines.lookahead import default_learner
     from htlm_agent.experiments.train import RESUMABLE_CHANGES, train
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
     from htlm_agent.learning.settings import Settings
@@ -108,12 +110,12 @@ def run(args: argparse.Namespace) -> int:
             sc = ck.scenario
         else:
             sc = scenario_from_args(args)
-            settings = Settings(**Settings.for_users(changes))
+            settings = Settings(**Settings.for_users({**changes, "learner": default_learner(sc, changes)}))
             out = Path(args.out) if args.out else Path("runs") / run_name(experiment_name(sc), settings.seed)
         if not args.no_progress:
             print(
                 f"htlm train: {'resuming' if args.resume else 'run'} {out} ({experiment_name(sc)}, seed "
-                f"{settings.seed}, {settings.episodes} episodes)",
+                f"{settings.seed}, learner {settings.learner}, {settings.episodes} episodes)",
                 file=sys.stderr,
             )
         res = train(

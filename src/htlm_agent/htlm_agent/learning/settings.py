@@ -62,7 +62,7 @@ class Settings:
     """Everything that decides a training run besides the scenario. Saved with every run (settings.json)."""
 
     learner: str = "paper"
-    """The Q-network: `paper`, one MLP per agent from K to one Q-value per element of Ḡ (the paper's learner);
+    """The learner: `paper`, one MLP per agent from K to one Q-value per element of Ḡ (the paper's learner);
     `tokens`, one network scoring every action from its own features, shared across tasks (docs/model.md, The
     token learner); `lookahead`, a value network of the auction learned from simulated episodes, with which every
     agent improves on the auction from its own belief (docs/model.md, The lookahead learner; it learns in process
