@@ -82,7 +82,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Train and print where the run went and its final greedy evaluation."""
+    """Train and print where the run went and its final evaluation."""
     import json
 
     from htlm_agent.baselines.lookahead import default_learner

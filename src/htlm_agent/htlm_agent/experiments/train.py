@@ -1,5 +1,6 @@
 """`htlm train` in process: Algorithm 1 with B parallel episodes, validation and selection of the best networks,
-checkpoints, progress.csv / TensorBoard logs and the final greedy evaluation.
+checkpoints, progress.csv / TensorBoard logs and the final greedy evaluation; and the lookahead learner
+(`train_lookahead`: its value network fitted in one go, the same run files).
 
 A run directory holds: settings.json, scenario.yaml, progress.csv (one row per batch of episodes), tb/ (TensorBoard),
 checkpoint/ (periodic and final; with select_best its networks are the best validated ones, the latest are in its
@@ -421,7 +422,7 @@ def result_json(
     if progress and metrics:
         c = metrics["completion"]
         print(
-            f"final greedy evaluation ({metrics['episodes']} episodes): completion {c['mean']:.2f} ± {c['se']:.2f}"
+            f"final evaluation ({metrics['episodes']} episodes): completion {c['mean']:.2f} ± {c['se']:.2f}"
             f", failures {c['failure_rate']:.1%}, unused capability {metrics['unused_fraction']['mean']:.1%}"
             f" ({wall:.0f} s)",
             file=sys.stderr,
