@@ -245,7 +245,18 @@ LOOKAHEAD_DEFAULT_COST = 500
 (`default_learner`): a 500-episode evaluation of it then takes minutes on a 2-core machine."""
 
 LOOKAHEAD_FIELDS = frozenset(
-    {"learner", "episodes", "value_updates", "hidden", "lr", "batch_size", "seed", "threads", "eval_episodes"}
+    {
+        "learner",
+        "episodes",
+        "value_updates",
+        "load_price",
+        "hidden",
+        "lr",
+        "batch_size",
+        "seed",
+        "threads",
+        "eval_episodes",
+    }
 )
 """The settings the lookahead learner uses (`ValueSettings.of`, the run's seed and evaluation)."""
 
@@ -267,9 +278,15 @@ class LookaheadPolicy:
     learned value of the auction on the true levels (module docstring; docs/model.md, Baselines)."""
 
     def __init__(
-        self, sc: Scenario, value: BaseValue | None = None, samples: int = LOOKAHEAD_SAMPLES, seed: int = 0
+        self,
+        sc: Scenario,
+        value: BaseValue | None = None,
+        samples: int = LOOKAHEAD_SAMPLES,
+        seed: int = 0,
+        load_price: float = QMDP_LOAD_COST,
     ) -> None:
-        """`value`: a fitted `BaseValue` (default: one fitted here with `seed`)."""
+        """`value`: a fitted `BaseValue` (default: one fitted here with `seed`); `load_price`: the steps a unit of
+        committed capability is worth (`Settings.load_price`)."""
         self.sc, self.model, self.samples = sc, Model.build(sc), samples
         if value is None:
             value = BaseValue(sc, seed=seed)
@@ -282,7 +299,7 @@ class LookaheadPolicy:
         self.brings = np.zeros((sc.n_agents, p + 1, p), dtype=np.int64)
         self.brings[:, 1 + np.arange(p), np.arange(p)] = self.model.agent_caps[:, :p]
         # mission first, load second: QMDP's price of a unit of committed capability (at least one: working counts)
-        self.load = QMDP_LOAD_COST * np.maximum(self.brings.sum(axis=-1), 1) * (np.arange(p + 1) > 0)
+        self.load = load_price * np.maximum(self.brings.sum(axis=-1), 1) * (np.arange(p + 1) > 0)
         self.candidates = candidate_tasks(self.model)
 
     def _draws(self, knowledge: FloatArray, who: IntArray) -> tuple[FloatArray, FloatArray]:
@@ -376,12 +393,12 @@ def team_policy(ck: Checkpoint) -> Policy:
     """The team policy of a checkpoint of any learner: the lookahead with its value network, else the agents'
     Q-networks."""
     if ck.settings.learner == "lookahead":
-        return LookaheadPolicy(ck.scenario, value_of(ck), seed=ck.seed)
+        return LookaheadPolicy(ck.scenario, value_of(ck), seed=ck.seed, load_price=ck.settings.load_price)
     return QPolicy.from_checkpoint(ck)
 
 
 def agent_policy(ck: Checkpoint, agent: int) -> AgentPolicy:
     """Agent `agent`'s policy in its own process from a checkpoint of any learner (`team_policy`'s column)."""
     if ck.settings.learner == "lookahead":
-        return AgentLookahead(ck.scenario, LookaheadPolicy(ck.scenario, value_of(ck), seed=ck.seed), agent)
+        return AgentLookahead(ck.scenario, team_policy(ck), agent)
     return AgentQ.from_checkpoint(ck, agent)

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from htlm_agent.mind.context import Context
+from htlm_agent.mind.reward import LOAD_PRICE
 from htlm_agent.progress import Progress
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
@@ -384,9 +385,8 @@ def action_values(sol: OptimalSolution, steps_left: int) -> FloatArray:
     return np.ascontiguousarray(q)
 
 
-QMDP_LOAD_COST = 0.001
-"""Steps of expected completion that one unit of committed capability is worth to `QmdpPolicy`: mission first, load
-second (among capability vectors within a hundredth of a step per unit of each other, the one that commits less)."""
+QMDP_LOAD_COST = LOAD_PRICE
+"""Steps of expected completion that one unit of committed capability is worth to `QmdpPolicy` (`LOAD_PRICE`)."""
 
 
 class QmdpPolicy:

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from htlm_agent.baselines.lookahead import team_policy
+from htlm_agent.baselines.lookahead import LookaheadPolicy, team_policy, value_of
 from htlm_agent.baselines.optimal import ProblemTooLarge
 from htlm_agent.experiments.baselines import make_baseline
 from htlm_agent.experiments.evaluate import evaluate, importance_table
@@ -172,28 +172,41 @@ def changed_operations(sc: Scenario) -> dict[str, Scenario]:
     }
 
 
-def run_transfer(name: str, seed: int, episodes: int | None, eval_episodes: int, out: Path) -> list[dict[str, Any]]:
-    """The token team of `name` trained once, acting on every `changed_operations` without retraining, beside a
-    token team retrained on the change, greedy and the auction, on the same episodes."""
-    sc = load(name).replace(roster=True).with_credit("difference")
+def run_transfer(
+    name: str, seed: int, episodes: int | None, eval_episodes: int, out: Path, learner: str = "tokens"
+) -> list[dict[str, Any]]:
+    """The team of `learner` (tokens or lookahead) trained once on `name`, acting on every `changed_operations`
+    without retraining, beside a team retrained on the change, greedy and the auction, on the same episodes. The
+    lookahead's value network reads every task's level, so it acts on a change that keeps the tasks (not a site
+    added: its team is retrained only)."""
+    sc = load(name).replace(roster=True)
+    sc = sc.with_credit("difference") if learner == "tokens" else sc
     budget = {} if episodes is None else {"episodes": episodes}
-    settings = Settings.for_learner(learner="tokens", seed=seed, eval_episodes=eval_episodes, **budget)
-    base = out / "runs" / f"{name}__transfer__{seed}"
+    settings = Settings.for_learner(learner=learner, seed=seed, eval_episodes=eval_episodes, **budget)
+    base = out / "runs" / f"{name}__{learner}__transfer__{seed}"
     train(sc, settings, base, progress=False, tensorboard=False)
-    weights = load_checkpoint(base).weights[0]  # the shared network
+    ck = load_checkpoint(base)
     rows = []
     for change, changed in changed_operations(sc).items():
-        net = build_network(changed, settings, [weights])
-        net.requires_grad_(False)
-        teams: dict[str, Any] = {"trained before": QPolicy(changed, net)}
-        retrained = out / "runs" / f"{name}__{change.replace(' ', '-')}__{seed}"
-        train(changed, settings, retrained, progress=False, tensorboard=False)
-        teams["retrained"] = QPolicy.from_checkpoint(load_checkpoint(retrained))
+        teams: dict[str, Any] = {}
+        if learner == "tokens":
+            net = build_network(changed, settings, [ck.weights[0]])  # the shared network
+            net.requires_grad_(False)
+            teams["trained before"] = QPolicy(changed, net)
+        elif changed.n_tasks == sc.n_tasks:
+            teams["trained before"] = LookaheadPolicy(changed, value_of(ck), seed=seed)
+        retrained = out / "runs" / f"{name}__{learner}__{change.replace(' ', '-')}__{seed}"
+        t0 = time.perf_counter()
+        train(changed, settings, retrained, progress=False, tensorboard=False, evaluate_at_end=False)
+        took = time.perf_counter() - t0
+        teams["retrained"] = team_policy(load_checkpoint(retrained))
         for b, (pol, _) in _baselines(changed, seed).items():
             teams[b] = pol
         for team, pol in teams.items():
-            row = {"scenario": name, "change": change, "team": team, "seed": seed}
+            row = {"scenario": name, "learner": learner, "change": change, "team": team, "seed": seed}
             row.update(_figures(evaluate(pol, changed, eval_episodes, seed=seed)))
+            if team == "retrained":
+                row["train_s"] = took
             rows.append(row)
         _log(f"{name} {change}: " + ", ".join(f"{r['team']} {r['completion']:.2f}" for r in rows[-len(teams) :]))
     return rows
@@ -316,8 +329,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--transfer",
         action="store_true",
-        help="instead: train the token team of each scenario once (the first seed) and act on a changed team and "
-        "operation without retraining, beside a team retrained on the change (transfer.json, transfer.csv)",
+        help="instead: train the team of each of --learners (tokens, lookahead; default tokens) on each scenario once "
+        "(the first seed) and act on a changed team and operation without retraining, beside a team retrained on "
+        "the change (transfer.json, transfer.csv)",
     )
     args = p.parse_args(argv)
     out = Path(args.out)
@@ -325,11 +339,14 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict[str, Any]]
     if args.transfer:
         rows = [
-            r for n in args.scenarios for r in run_transfer(n, args.seeds[0], args.episodes, args.eval_episodes, out)
+            r
+            for n in args.scenarios
+            for learner in [x for x in args.learners if x in ("tokens", "lookahead")] or ["tokens"]
+            for r in run_transfer(n, args.seeds[0], args.episodes, args.eval_episodes, out, learner)
         ]
         (out / "transfer.json").write_text(json.dumps(rows, indent=1) + "\n")
         with (out / "transfer.csv").open("w", newline="") as f:
-            w = csv.DictWriter(f, list(rows[0]))
+            w = csv.DictWriter(f, list(dict.fromkeys(k for r in rows for k in r)))
             w.writeheader()
             w.writerows(rows)
         if args.json:

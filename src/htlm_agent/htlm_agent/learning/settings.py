@@ -10,6 +10,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+from htlm_agent.mind.reward import LOAD_PRICE
 from htlm_msgs_py.validation import ConversionError, convert_value
 from htlm_world.episode import TRAINER_LAG
 
@@ -122,6 +123,9 @@ class Settings:
     """Training episodes in total (lookahead: the simulated episodes its value network learns from)."""
     value_updates: int = 600
     """lookahead: Adam updates of the value network (minibatches of `batch_size` states)."""
+    load_price: float = LOAD_PRICE
+    """lookahead: the steps of completion a unit of committed capability is worth (load management second: the
+    default, QMDP's, only breaks near ties; more keeps more capability in reserve at some cost in steps)."""
     dropout: float = 0.0
     """Training for resilience: the share of training episodes in which one teammate, drawn uniformly, sits out
     the whole episode (idles at its site, as a robot that drops out); 0 trains every episode with the full team."""
@@ -181,6 +185,8 @@ class Settings:
         ):
             if getattr(self, name) < 0:
                 raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be >= 0")
+        if not self.load_price >= 0.0:
+            raise ValueError(f"settings.load_price: {self.load_price!r} must be >= 0")
         for name in ("eps_start", "eps_end", "eps_fraction", "advantage_learning", "dropout"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be in [0, 1]")

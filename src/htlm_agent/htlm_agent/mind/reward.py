@@ -11,6 +11,11 @@ from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.types import BoolArray, FloatArray, IntArray, Marginals
 
+LOAD_PRICE = 0.001
+"""The steps of expected completion one unit of committed capability is worth to the planners that count steps (QMDP,
+the lookahead; `Settings.load_price`): mission first, load second (it decides only between choices whose expected
+completions differ by less than the price of the capability they commit: the one that commits less)."""
+
 
 @dataclass(frozen=True)
 class RewardTables:
