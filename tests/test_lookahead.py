@@ -159,7 +159,7 @@ def test_a_run_of_the_lookahead_learner_holds_its_value_network(tmp_path: Path) 
 
     sc = builtin()
     settings = Settings.for_learner(
-        learner="lookahead", episodes=400, value_updates=40, batch_size=256, eval_episodes=20, seed=3
+        learner="lookahead", episodes=400, value_updates=40, batch_size=256, eval_episodes=20, seed=3, load_price=0.02
     )
     res = train(sc, settings, tmp_path / "run", progress=False, tensorboard=False)
     ck = load_checkpoint(tmp_path / "run")
@@ -170,6 +170,9 @@ def test_a_run_of_the_lookahead_learner_holds_its_value_network(tmp_path: Path) 
     states = np.random.default_rng(0).integers(0, sc.levels, size=(50, sc.n_tasks))
     np.testing.assert_allclose(value_of(ck)(states), ref(states), rtol=1e-6)
     assert res.metrics["completion"] == evaluate(team_policy(ck), sc, 20, seed=3)["completion"]
+    policy = team_policy(ck)
+    assert isinstance(policy, LookaheadPolicy) and policy.load[:, 0].max() == 0.0
+    assert policy.load[:, 1:].min() == 0.02  # the run's price of a unit of committed capability
     assert (tmp_path / "run" / "eval" / "metrics.json").exists()
 
 
