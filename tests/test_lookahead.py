@@ -207,6 +207,10 @@ def test_htlm_train_trains_the_lookahead_where_it_is_affordable(tmp_path: Path) 
     from htlm_agent.cli import main
     from htlm_world.scenario import load
 
+    from htlm_agent.learning.settings import Settings
+
+    # the default run learns what the baseline does (the launch report's row `lookahead (htlm train)` says so)
+    assert ValueSettings.of(Settings.for_learner(learner="lookahead")) == ValueSettings()
     assert lookahead_cost(builtin()) <= LOOKAHEAD_DEFAULT_COST < lookahead_cost(load("facility-20"))
     assert default_learner(builtin(), {"episodes": 100}) == "lookahead"
     assert default_learner(builtin(), {"imitate": "qmdp"}) == "tokens"

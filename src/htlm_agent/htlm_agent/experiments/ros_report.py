@@ -28,6 +28,10 @@ FIELDS = ("policy", "runtime", "episodes", "completion_mean", "completion_se", "
 BASELINES = ("random", "greedy", "auction", "qmdp", "lookahead", "optimal")
 """Baselines shown beside the learned team."""
 
+LABELS = {"lookahead": "lookahead (htlm train)"}
+"""Row names other than the baseline's own: the lookahead with the run's seed is the lookahead learner `htlm train`
+trains by default on this operation (same settings and seed), in process; over ROS it acts the same, bit for bit."""
+
 
 class ReportError(ValueError):
     """No finished episode to report on; names the file."""
@@ -89,7 +93,7 @@ def baseline_rows(
             continue
         ev = evaluate_run(policy, sc, episodes, seed=seed, policy_name=name)
         em = ev.episodes
-        rows.append(_row(name, "in process", em.completion, em.failed, em.unused_fraction))
+        rows.append(_row(LABELS.get(name, name), "in process", em.completion, em.failed, em.unused_fraction))
     return rows
 
 
