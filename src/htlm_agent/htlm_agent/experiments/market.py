@@ -306,6 +306,23 @@ def plot(summary: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def write_outputs(out: Path, rows: list[dict[str, Any]]) -> None:
+    """market.json (every run and the summary), market.csv, market.png and tables.md of the runs `rows`."""
+    summary = summarize(rows)
+    (out / "market.json").write_text(json.dumps({"runs": rows, "summary": summary}, indent=1) + "\n")
+    fields = ["scenario", "condition", "team", "seeds"] + [
+        f + s
+        for f in ("completion", "failure_rate", "unused_fraction", "recovery", "never", "train_s")
+        for s in ("", "_se")
+    ]
+    with (out / "market.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fields, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(summary)
+    plot(summary, out / "market.png")
+    (out / "tables.md").write_text(tables(summary))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the comparison and write market.json, market.csv and market.png."""
     p = argparse.ArgumentParser(prog="python -m htlm_agent.experiments.market", description=__doc__.splitlines()[0])
@@ -367,19 +384,7 @@ def main(argv: list[str] | None = None) -> int:
             args.idle_incentive,
             tuple(args.baselines),
         )
-        summary = summarize(rows)
-        (out / "market.json").write_text(json.dumps({"runs": rows, "summary": summary}, indent=1) + "\n")
-        fields = ["scenario", "condition", "team", "seeds"] + [
-            f + s
-            for f in ("completion", "failure_rate", "unused_fraction", "recovery", "never", "train_s")
-            for s in ("", "_se")
-        ]
-        with (out / "market.csv").open("w", newline="") as f:
-            w = csv.DictWriter(f, fields, extrasaction="ignore")
-            w.writeheader()
-            w.writerows(summary)
-        plot(summary, out / "market.png")
-        (out / "tables.md").write_text(tables(summary))
+        write_outputs(out, rows)
     if args.json:
         print(json.dumps(rows))
     return 0
