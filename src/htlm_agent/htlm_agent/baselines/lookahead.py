@@ -7,6 +7,10 @@ agent, from its own belief alone, improves on the auction with it (`LookaheadPol
 each pick the action that minimizes the expected steps to go, one step ahead, over states drawn from the belief,
 with the teammates before it on their improved choices and those after it on the auction's. An agent runs that
 sequence in its head and keeps its own choice, as it does the auction (one-agent-at-a-time rollout, Bertsekas 2020).
+
+Trained as a run of `htlm train` it is the lookahead learner (docs/model.md, The lookahead learner): its value network
+is the checkpoint, and `team_policy` / `agent_policy` make the policy of a checkpoint of any learner; `default_learner`
+says which learner `htlm train` trains unless told.
 """
 
 from __future__ import annotations
