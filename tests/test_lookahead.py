@@ -205,9 +205,8 @@ def test_htlm_train_trains_the_lookahead_where_it_is_affordable(tmp_path: Path) 
 
     from htlm_agent.baselines.lookahead import LOOKAHEAD_DEFAULT_COST, default_learner, lookahead_cost
     from htlm_agent.cli import main
-    from htlm_world.scenario import load
-
     from htlm_agent.learning.settings import Settings
+    from htlm_world.scenario import load
 
     # the default run learns what the baseline does (the launch report's row `lookahead (htlm train)` says so)
     assert ValueSettings.of(Settings.for_learner(learner="lookahead")) == ValueSettings()
