@@ -34,7 +34,7 @@ from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate
 from htlm_agent.mind.context import Context, Policy
 from htlm_agent.mind.policies import AgentPolicy, RowPolicy
-from htlm_agent.mind.reward import RewardTables, confident_levels
+from htlm_agent.mind.reward import RewardTables, confident_levels, reward
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
@@ -164,24 +164,7 @@ class BaseValue:
         error (steps). `on_update(updates done, minibatch loss)` is called after every update."""
         t0 = time.monotonic()
         x_np, y_np = base_rollouts(self.sc, self.vs, self.seed)
-        x, y = self.encode(x_np), torch.from_numpy(y_np.astype(np.float32))
-        gen = torch.Generator().manual_seed(seeds.base_value_init(self.seed))
-        opt = torch.optim.Adam(self.net.parameters(), lr=self.vs.lr)
-        loss = torch.zeros(())
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
-            for done in range(1, self.vs.steps + 1):
-                idx = torch.randint(0, len(y), (self.vs.batch,), generator=gen)
-                loss = torch.nn.functional.mse_loss(self.net(x[idx])[:, 0], y[idx])
-                opt.zero_grad()
-                loss.backward()  # type: ignore[no-untyped-call]
-                opt.step()
-                if on_update is not None:
-                    on_update(done, float(loss.detach()))
-        finally:
-            torch.set_num_threads(threads)
-        rmse = float(loss.detach().sqrt())
+        rmse = self.regress(x_np, y_np, self.vs.steps, seeds.base_value_init(self.seed), on_update)
         if progress:
             print(
                 f"lookahead: value of the auction on the true levels learned from {len(y_np):,} states "
@@ -191,11 +174,42 @@ class BaseValue:
             )
         return rmse
 
-    def after_step(self, none: IntArray, work: IntArray, tasks: IntArray) -> FloatArray:
+    def regress(
+        self,
+        levels: IntArray,
+        to_go: FloatArray,
+        updates: int,
+        seed: int,
+        on_update: Callable[[int, float], None] | None = None,
+    ) -> float:
+        """`updates` Adam updates (a fresh optimizer, `vs.lr`, minibatches of `vs.batch` drawn with `seed`) of the
+        mean squared error between the network on the (S, p) `levels` and the steps `to_go` (S,), on one thread so
+        that every process gets the same network; returns the last minibatch's root mean squared error."""
+        x, y = self.encode(levels), torch.from_numpy(np.asarray(to_go, dtype=np.float32))
+        gen = torch.Generator().manual_seed(seed)
+        opt = torch.optim.Adam(self.net.parameters(), lr=self.vs.lr)
+        loss = torch.zeros(())
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            for done in range(1, updates + 1):
+                idx = torch.randint(0, len(y), (self.vs.batch,), generator=gen)
+                loss = torch.nn.functional.mse_loss(self.net(x[idx])[:, 0], y[idx])
+                opt.zero_grad()
+                loss.backward()  # type: ignore[no-untyped-call]
+                opt.step()
+                if on_update is not None:
+                    on_update(done, float(loss.detach()))
+        finally:
+            torch.set_num_threads(threads)
+        return float(loss.detach().sqrt())
+
+    def after_step(self, none: IntArray, work: IntArray, tasks: IntArray, floor: float | None = None) -> FloatArray:
         """The values of an agent's candidate next states, from (..., p) next levels without it (`none`) and with it
         on every task (`work`; a task's next level depends on its own capability only): (..., 1 + T), the value of
-        `none`, then of `none` with the level of task tasks[c] from `work`; 0 for a complete state. The first layer
-        is linear in the one-hot levels, so every candidate's is the none state's with one task's term replaced."""
+        `none`, then of `none` with the level of task tasks[c] from `work`; 0 for a complete state, at least `floor`
+        for the others when given. The first layer is linear in the one-hot levels, so every candidate's is the none
+        state's with one task's term replaced."""
         first = self.net[0]
         assert isinstance(first, torch.nn.Linear)
         lv, hid = self.sc.levels, first.out_features
@@ -214,7 +228,10 @@ class BaseValue:
                 out[i : i + 4096] = rest(torch.cat([h_none[:, None], h_c], dim=1))[..., 0].numpy()
         open_none = (none2 > 0).sum(axis=-1)
         open_c = open_none[:, None] - (none2[:, tasks] > 0) + (work2 > 0)
-        out[np.concatenate([open_none[:, None], open_c], axis=1) == 0] = 0.0
+        is_open = np.concatenate([open_none[:, None], open_c], axis=1) > 0
+        if floor is not None:
+            np.maximum(out, floor, out=out)
+        out[~is_open] = 0.0
         return out.reshape(*shape, 1 + tasks.size)
 
     def __call__(self, levels: IntArray) -> FloatArray:
@@ -288,9 +305,12 @@ class LookaheadPolicy:
         samples: int = LOOKAHEAD_SAMPLES,
         seed: int = 0,
         load_price: float = QMDP_LOAD_COST,
+        floor: float | None = None,
     ) -> None:
         """`value`: a fitted `BaseValue` (default: one fitted here with `seed`); `load_price`: the steps a unit of
-        committed capability is worth (`Settings.load_price`)."""
+        committed capability is worth (`Settings.load_price`); `floor`: the least value of an open state (the
+        `Teacher`'s 1: a mission not finished takes at least one more step)."""
+        self.floor = floor
         self.sc, self.model, self.samples = sc, Model.build(sc), samples
         if value is None:
             value = BaseValue(sc, seed=seed)
@@ -328,9 +348,13 @@ class LookaheadPolicy:
         """One action per agent, each from its own row's marginals and roster."""
         return self.act_rows(ctx, np.arange(self.sc.n_agents))
 
-    def act_rows(self, ctx: Context, who: IntArray) -> IntArray:
+    def act_rows(
+        self, ctx: Context, who: IntArray, own_load: FloatArray | None = None, q_out: FloatArray | None = None
+    ) -> IntArray:
         """The actions (B, R) of the agents `who` (R,), each from its own row of the Context: only their heads'
-        sequences are worked out (an agent process asks for its own)."""
+        sequences are worked out (an agent process asks for its own). `own_load` (B, R, |Ḡ|): the steps each head's
+        own agent counts for every action of Ḡ besides the load price; `q_out` (B, R, |Ḡ|), filled with inf:
+        receives what every action of Ḡ its head judged is worth to each head's own agent (both the `Teacher`'s)."""
         sc, model = self.sc, self.model
         p, n, m = sc.n_tasks, sc.n_agents, self.samples
         marg = ctx.marginals[:, who]  # (B, R, p, L): row r is agent who[r]'s belief
@@ -346,6 +370,9 @@ class LookaheadPolicy:
         # HT mode, where resting is no candidate, every head works the sequence out)
         rest = complete.all(axis=-1) if sc.n_idle > 0 else np.zeros((b, r), dtype=bool)
         plan[rest] = -1
+        rest_of = model.rest_action(ctx.prev[:, who])  # (B, R)
+        if q_out is not None:  # a resting head: resting is worth 0 steps, the rest is not judged
+            q_out[rest, rest_of[rest]] = 0.0
         for k in range(int(who.max()) + 1):  # agent k improves on the plan in the heads of agents k.. (the rest are
             bi, ri = np.nonzero((who >= k)[None, :] & ~rest)  # settled): every (episode, head) pair
             if bi.size == 0:
@@ -363,16 +390,27 @@ class LookaheadPolicy:
                 np.broadcast_to(noise[bi, ri][:, None], shape),
             )  # (P, 2, M, p)
             tasks = self.candidates[k]
-            v = self.value.after_step(nxt[:, 0], nxt[:, 1], tasks)  # (P, M, 1 + T)
+            v = self.value.after_step(nxt[:, 0], nxt[:, 1], tasks, self.floor)  # (P, M, 1 + T)
             q = np.full((bi.size, p + 1), np.inf)
             q[:, np.concatenate([[0], 1 + tasks])] = np.where(complete[bi, ri][..., None], 0.0, 1.0 + v).mean(axis=1)
             q += self.load[k]
+            if own_load is not None:  # the heads' own agents: their own load terms instead of the price
+                mine = who[ri] == k
+                rows = own_load[bi[mine], ri[mine]]  # (P', |Ḡ|)
+                resting = rows[np.arange(rows.shape[0]), rest_of[bi[mine], ri[mine]]]
+                q[mine] += np.concatenate([resting[:, None], rows[:, :p]], axis=1)  # the price still breaks ties
             if sc.n_idle == 0:  # HT mode: resting is staying on a task, so only the tasks are candidates
                 q[:, 0] = np.inf
             here = present[bi, ri, k]  # whether each head counts on agent k: a silent teammate brings nothing
             q[:, 1:] = np.where(here[:, None], q[:, 1:], np.inf)
             q[:, 0] = np.where(here, q[:, 0], -np.inf)
             plan[bi, ri, k] = q.argmin(axis=-1) - 1
+            if q_out is not None:
+                mine = who[ri] == k
+                bm, rm = bi[mine], ri[mine]
+                q_out[bm, rm, :p] = q[mine, 1:]
+                if sc.n_idle:
+                    q_out[bm, rm, rest_of[bm, rm]] = q[mine, 0]
         own = plan[:, np.arange(r), who]
         return np.where(own >= 0, own, model.rest_action(ctx.prev[:, who])).astype(np.int64)
 
@@ -406,3 +444,55 @@ def agent_policy(ck: Checkpoint, agent: int) -> AgentPolicy:
     if ck.settings.learner == "lookahead":
         return AgentLookahead(ck.scenario, team_policy(ck), agent)
     return AgentQ.from_checkpoint(ck, agent)
+
+
+LOAD_CAP = 0.45
+"""The most steps the load-management reward of one choice counts for in the `Teacher`'s choice, either way: two
+choices' load terms then differ by less than a step, so a choice sure to finish the mission at the next step is
+never beaten by one that leaves it unfinished (mission first)."""
+
+
+def load_rates(sc: Scenario, weight: float) -> FloatArray:
+    """The steps a unit of each agent's load-management reward is worth to the `Teacher` (N,): `weight` over what one
+    step of the mission left unfinished costs the team's reward, R_0 − R_4 of the agent's own `level_rewards` for
+    each of the N agents (the paper's operation: a unit is worth 1/50 of a step, a medium reassignment 0.02 steps)."""
+    tables = RewardTables.build(sc)
+    span = (tables.level_rewards[:, 0] - tables.level_rewards[:, -1]) * sc.n_agents
+    return np.where(span > 0, weight / np.maximum(span, 1e-12), 0.0)
+
+
+class Teacher:
+    """The lookahead as the teacher of the expert-iteration learner (docs/model.md, The expert-iteration learner).
+
+    Every agent works out in its own head, from its own belief, the lookahead's sequence (`LookaheadPolicy`) with a
+    value of the steps the team's current policy takes to finish, and its own choice in it weighs, besides one step
+    plus the value, the steps its own load-management reward is worth (R_II + T_RP of the scenario's reward with
+    the agent's own fields, `load_rates`, at most `LOAD_CAP` either way). Its choice is a function of its own
+    knowledge state, so the policy network it teaches can learn it exactly."""
+
+    def __init__(self, sc: Scenario, value: BaseValue, seed: int = 0, load_weight: float = 1.0) -> None:
+        """`value`: the steps to go of the policy the team plays; `load_weight`: `Settings.load_weight`."""
+        self.look = LookaheadPolicy(sc, value, seed=seed, floor=1.0)
+        self.sc, self.model, self.value = sc, self.look.model, value
+        self.tables = RewardTables.build(sc)
+        self.rates = load_rates(sc, load_weight)
+
+    def load_steps(self, marg: FloatArray, prev: IntArray) -> FloatArray:
+        """(B, N, |Ḡ|): the steps every action of Ḡ costs every agent in load-management reward (minus R_II + T_RP
+        times its rate, within ±`LOAD_CAP`), from its marginals now (B, N, p, L) and a_o (B, N); 0 in HT mode."""
+        b, n = prev.shape
+        out = np.zeros((b, n, self.sc.n_actions))
+        if not self.tables.load_management or not self.rates.any():
+            return out
+        prior = marg if self.tables.difference.any() else None
+        for g in range(self.sc.n_actions):
+            _, parts = reward(self.model, self.tables, prev, marg, np.full((b, n), g, dtype=np.int64), prior)
+            out[:, :, g] = -(parts["idle"] + parts["reassign"]) * self.rates[None, :]
+        return np.clip(out, -LOAD_CAP, LOAD_CAP)
+
+    def improve(self, ctx: Context, who: IntArray) -> tuple[IntArray, FloatArray]:
+        """The teacher's choices (B, R) of the agents `who` (R,) at the step of `ctx`, each from its own row, and
+        what every action of Ḡ is worth to them (B, R, |Ḡ|), in steps (inf: not judged)."""
+        load = self.load_steps(ctx.marginals, ctx.prev)[:, who]
+        q = np.full(load.shape, np.inf)
+        return self.look.act_rows(ctx, who, load, q), q

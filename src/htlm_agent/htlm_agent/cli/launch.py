@@ -207,8 +207,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         learner = Settings.from_dict(Settings.for_users(dict(args.learner)), "--set")  # for the defaults
     except ValueError:  # check_launch reports every bad key
         learner = Settings()
-    if args.mode == "train" and learner.learner == IN_PROCESS_ONLY:
-        bad.append(f"train: --set learner={IN_PROCESS_ONLY} {IN_PROCESS_WHY}")
+    if args.mode == "train" and learner.learner in IN_PROCESS_ONLY:
+        bad.append(f"train: --set learner={learner.learner} {IN_PROCESS_WHY}")
     if args.mode == "train" and learner.dropout > 0:
         bad.append(f"train: --set dropout={learner.dropout!r}: training for resilience runs in process only")
     default_episodes = {"train": learner.episodes, "evaluate": 500, "deploy": 0}[args.mode]

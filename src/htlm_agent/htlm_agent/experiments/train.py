@@ -1,6 +1,7 @@
 """`htlm train` in process: Algorithm 1 with B parallel episodes, validation and selection of the best networks,
 checkpoints, progress.csv / TensorBoard logs and the final greedy evaluation; and the lookahead learner
-(`train_lookahead`: its value network fitted in one go, the same run files).
+(`train_lookahead`: its value network fitted in one go, the same run files); and the expert-iteration learner
+(`train_expert_run`: its rounds, rounds.csv and rounds.png besides the same run files).
 
 A run directory holds: settings.json, scenario.yaml, progress.csv (one row per batch of episodes), tb/ (TensorBoard),
 checkpoint/ (periodic and final; with select_best its networks are the best validated ones, the latest are in its
@@ -19,7 +20,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
 from htlm_agent.baselines.lookahead import BaseValue, ValueSettings, team_policy
 from htlm_agent.baselines.optimal import ProblemTooLarge, QmdpPolicy
 from htlm_agent.experiments.evaluate import evaluate, evaluate_run, write_reports
+from htlm_agent.experiments.expert import train_expert, write_rounds
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.loop import LaggedNets, Selection, episode_epsilons
@@ -455,6 +457,8 @@ def train(
     out = Path(out_dir)
     if settings.learner == "lookahead":
         return train_lookahead(scenario, settings, out, progress, resume, tensorboard, evaluate_at_end)
+    if settings.learner == "expert":
+        return train_expert_run(scenario, settings, out, progress, resume, tensorboard, evaluate_at_end)
     torch.set_num_threads(settings.threads)
     deterministic_torch()
     keep_freed_memory()
@@ -509,14 +513,7 @@ def train_lookahead(
     `settings.episodes` simulated episodes in one go; the checkpoint gives every agent a copy, and the final
     evaluation acts as the agents do, each improving on the auction from its own belief with it."""
     t_start = time.perf_counter()
-    ckpt_dir = out / "checkpoint"
-    if resume:
-        raise CheckpointError(
-            f"{out}: a run of the lookahead learner has nothing to resume (it learns in one go, in seconds); "
-            "train again into another output directory"
-        )
-    if (ckpt_dir / "meta.json").exists():
-        raise FileExistsError(f"{out}: already holds a run; choose another output directory")
+    ckpt_dir = fresh_run_dir(out, resume, "lookahead", "it learns in one go, in seconds")
     write_run_files(out, scenario, settings)
     value = BaseValue(scenario, ValueSettings.of(settings), settings.seed)
     bars: list[Progress] = []  # the regression's, from its first update on (after the simulation)
@@ -562,3 +559,62 @@ def train_lookahead(
         log.close()
     wall = result_json(out, settings.episodes, t_start, train_time, None, metrics, progress)
     return TrainResult(out, scenario, settings, settings.episodes, wall, train_time, metrics, [row])
+
+
+def fresh_run_dir(out: Path, resume: bool, learner: str, why: str) -> Path:
+    """The checkpoint directory of a new run of a learner that cannot resume (`why`: what it does instead);
+    raises when asked to resume or when `out` already holds a run."""
+    ckpt_dir = out / "checkpoint"
+    if resume:
+        raise CheckpointError(f"{out}: a run of the {learner} learner has nothing to resume ({why}); train again "
+                              "into another output directory")
+    if (ckpt_dir / "meta.json").exists():
+        raise FileExistsError(f"{out}: already holds a run; choose another output directory")
+    return ckpt_dir
+
+
+def train_expert_run(
+    scenario: Scenario,
+    settings: Settings,
+    out: Path,
+    progress: bool = True,
+    resume: bool = False,
+    tensorboard: bool = True,
+    evaluate_at_end: bool = True,
+) -> TrainResult:
+    """`train` for the expert-iteration learner (docs/model.md, The expert-iteration learner): its rounds
+    (`experiments.expert`), the best round's policy network as the checkpoint (every agent a copy), rounds.csv and
+    rounds.png, one progress.csv row a round, and the final evaluation as the agents act."""
+    t_start = time.perf_counter()
+    ckpt_dir = fresh_run_dir(out, resume, "expert-iteration", "its rounds are quick to run again")
+    write_run_files(out, scenario, settings)
+    run = train_expert(scenario, settings, progress)
+    train_time = time.perf_counter() - t_start
+    write_rounds(out, run.rows)
+    info = {"best_round": run.best_round, "rounds": [asdict(r) for r in run.rows]}
+    save_checkpoint(ckpt_dir, scenario, settings, settings.seed, run.episodes, run.best_weights, info=info)
+    log = RunLog(out, 0, False, tensorboard)
+    history: list[dict[str, float]] = []
+    metrics: dict[str, Any] = {}
+    try:
+        for r in run.rows[1:]:
+            row = {
+                "episodes": r.episodes,
+                "wall_s": r.wall_s,
+                "episodes_per_s": r.episodes / max(r.wall_s, 1e-9),
+                "loss": r.policy_loss,
+                "val_completion": r.val_completion,
+                "val_failure_rate": r.val_failure_rate,
+                "val_unused_fraction": r.val_unused_fraction,
+            }
+            log.row(row, r.episodes)
+            history.append(row)
+        log.close_progress()
+        if evaluate_at_end and settings.eval_episodes > 0:
+            metrics = evaluate_checkpoint(ckpt_dir, out, "htlm-expert")
+            log.evaluation(metrics, run.episodes)
+    finally:
+        log.close()
+    selected = run.rows[run.best_round].episodes
+    wall = result_json(out, run.episodes, t_start, train_time, selected, metrics, progress)
+    return TrainResult(out, scenario, settings, run.episodes, wall, train_time, metrics, history)

@@ -258,16 +258,16 @@ QNetwork = StackedQ | TokenQ
 
 def network_shapes(scenario: Scenario, settings: Any) -> list[tuple[int, ...]]:
     """Shapes of one agent's parameters for the learner of `settings` (a `learning.settings.Settings`)."""
-    if settings.learner == "tokens":
+    if settings.network == "tokens":
         return token_shapes(scenario.levels, settings.hidden)
-    if settings.learner == "lookahead":  # the value network: one-hot levels of every task -> steps to go
+    if settings.network == "value":  # the value network: one-hot levels of every task -> steps to go
         return param_shapes((scenario.n_tasks * scenario.levels, *[int(h) for h in settings.hidden], 1))
     return param_shapes(layer_sizes(scenario, settings.hidden))
 
 
 def init_params(scenario: Scenario, settings: Any, seed: int) -> list[torch.Tensor]:
     """Fresh parameters of one agent's network for the learner of `settings`."""
-    if settings.learner == "tokens":
+    if settings.network == "tokens":
         return init_token_params(scenario.levels, settings.hidden, seed)
     return init_agent_params(layer_sizes(scenario, settings.hidden), seed)
 
@@ -278,7 +278,7 @@ def build_network(
     """The networks of the agents `agents` (default: the whole team) with the given parameters, one list per agent
     (`network_shapes` order), for the learner of `settings`."""
     tparams = [[torch.as_tensor(np.asarray(t, dtype=np.float32)) for t in ps] for ps in params]
-    if settings.learner == "tokens":
+    if settings.network == "tokens":
         return TokenQ(scenario, settings.hidden, tparams, agents, shared=settings.shared)
     return StackedQ(layer_sizes(scenario, settings.hidden), tparams)
 

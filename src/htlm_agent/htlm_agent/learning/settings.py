@@ -14,7 +14,7 @@ from htlm_agent.mind.reward import LOAD_PRICE
 from htlm_msgs_py.validation import ConversionError, convert_value
 from htlm_world.episode import TRAINER_LAG
 
-LEARNERS = ("paper", "tokens", "lookahead")
+LEARNERS = ("paper", "tokens", "lookahead", "expert")
 """The learners a run can train (`Settings.learner`)."""
 
 IMITATE = ("none", "auction", "greedy", "qmdp")
@@ -46,15 +46,34 @@ LOOKAHEAD_PRESET: dict[str, Any] = {
 """The settings the lookahead learner starts from (`with_preset`; docs/model.md, The lookahead learner): 10,000
 simulated episodes and minibatches of 2,048 states for its value network."""
 
-IN_PROCESS_ONLY = "lookahead"
-"""The learner that learns in process only: its value network learns from simulated episodes, not from the agents'
-transitions, so a trainer node has nothing to learn from (`IN_PROCESS_WHY`)."""
+IN_PROCESS_ONLY = frozenset({"lookahead", "expert"})
+"""The learners that learn in process only (`IN_PROCESS_WHY`): the lookahead's value network learns from simulated
+episodes, and the expert-iteration learner's value network from the true levels of its own play, which the
+trainer node does not receive."""
 IN_PROCESS_WHY = (
-    "learns in process only, from simulated episodes: train it with `htlm train --learner lookahead`, then run the "
-    "team with `htlm launch evaluate --checkpoint RUN`"
+    "learns in process only (from the true levels of simulated episodes, which a trainer node does not receive): "
+    "train it with `htlm train`, then run the team with `htlm launch evaluate --checkpoint RUN`"
 )
 
-PRESETS: dict[str, dict[str, Any]] = {"tokens": TOKENS_PRESET, "lookahead": LOOKAHEAD_PRESET}
+NETWORKS = {"paper": "mlp", "tokens": "tokens", "lookahead": "value", "expert": "tokens"}
+"""The network every learner's checkpoint holds per agent (`Settings.network`): `mlp`, the paper's Q-network;
+`tokens`, the token network (Q-values, or the expert-iteration learner's policy scores); `value`, the lookahead's
+value network of the levels."""
+
+EXPERT_PRESET: dict[str, Any] = {
+    "learner": "expert",
+    "hidden": (32, 32),
+    "rounds": 4,
+    "episodes": 8192,
+    "envs": 256,
+    "batch_size": 1024,
+    "value_updates": 1500,
+}
+"""The settings the expert-iteration learner starts from (`with_preset`; docs/model.md, The expert-iteration
+learner): the token network's layers for its policy, up to 8,192 episodes of its own play (4 rounds of 2,048), 1,500 updates of the value network a round on what the team played, minibatches of 1,024 agent-steps
+for the policy."""
+
+PRESETS: dict[str, dict[str, Any]] = {"tokens": TOKENS_PRESET, "lookahead": LOOKAHEAD_PRESET, "expert": EXPERT_PRESET}
 """The preset of every learner that has one: what `htlm train --learner NAME` starts from."""
 
 
@@ -123,6 +142,14 @@ class Settings:
     """Training episodes in total (lookahead: the simulated episodes its value network learns from)."""
     value_updates: int = 600
     """lookahead: Adam updates of the value network (minibatches of `batch_size` states)."""
+    rounds: int = 4
+    """expert: the most rounds of play, evaluation and improvement (`episodes` / `rounds` episodes each); training
+    stops at the first round whose policy validates no sooner than the best one so far."""
+    policy_updates: int = 1500
+    """expert: Adam updates of the policy network per round (minibatches of `batch_size` agent-steps)."""
+    load_weight: float = 1.0
+    """expert: the weight of the load-management reward R_II + T_RP against completion in the teacher's choice (1: the
+    reward's own exchange rate, a unit of reward worth 1 / (R_0 − R_4) steps; 0: completion alone)."""
     load_price: float = LOAD_PRICE
     """lookahead: the steps of completion a unit of committed capability is worth (load management second: the
     default, QMDP's, only breaks near ties; more keeps more capability in reserve at some cost in steps)."""
@@ -169,6 +196,8 @@ class Settings:
             "updates_per_step",
             "value_updates",
             "threads",
+            "rounds",
+            "policy_updates",
         )
         for name in positive:
             if not getattr(self, name) > 0:
@@ -185,6 +214,8 @@ class Settings:
         ):
             if getattr(self, name) < 0:
                 raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be >= 0")
+        if not self.load_weight >= 0.0:
+            raise ValueError(f"settings.load_weight: {self.load_weight!r} must be >= 0")
         if not self.load_price >= 0.0:
             raise ValueError(f"settings.load_price: {self.load_price!r} must be >= 0")
         for name in ("eps_start", "eps_end", "eps_fraction", "advantage_learning", "dropout"):
@@ -210,6 +241,11 @@ class Settings:
             raise ValueError(f"settings.imitate: {self.imitate!r} needs learner 'tokens', not {self.learner!r}")
         if self.envs > self.memory:
             raise ValueError(f"settings.envs: {self.envs!r} must not exceed settings.memory {self.memory!r}")
+
+    @property
+    def network(self) -> str:
+        """The network of this learner's checkpoints (`NETWORKS`): `mlp`, `tokens` or `value`."""
+        return NETWORKS[self.learner]
 
     def epsilon(self, episode: float) -> float:
         """ε of ε-greedy at training episode `episode`: linear decay from eps_start to eps_end over the first

@@ -295,8 +295,8 @@ class TrainerCore:
         if self.mode != "train":  # evaluate, deploy: record metrics and any transitions, learn nothing
             out.log.append(("info", f"run {self.run}: mode {self.mode}: recording only (store {store_path})"))
             return
-        if settings.learner == IN_PROCESS_ONLY:
-            raise ValueError(f"{self.learner_source}: settings.learner: {IN_PROCESS_ONLY!r} {IN_PROCESS_WHY}")
+        if settings.learner in IN_PROCESS_ONLY:
+            raise ValueError(f"{self.learner_source}: settings.learner: {settings.learner!r} {IN_PROCESS_WHY}")
         fed = 0
         info: dict[str, Any] = {}
         if (ckpt / "meta.json").exists():

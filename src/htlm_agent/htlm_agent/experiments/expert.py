@@ -1,0 +1,407 @@
+"""The expert-iteration learner (`htlm train --learner expert`; docs/model.md, The expert-iteration learner):
+approximate policy iteration in rounds, with the lookahead as the teacher and a token policy network as the student.
+
+Every round:
+
+1. **Play.** The team plays its policy (the auction in the first round, then the last round's policy network, every
+   agent ε-greedily with `eps_end` on its own knowledge state) for `episodes / rounds` training episodes; the run
+   records every agent's knowledge state, Â and action, and the true levels.
+2. **Evaluate.** A value network (`BaseValue`, the one-hot levels of every task to steps to go) is fitted to the steps
+   the played policy took to finish from every true state it visited (the horizon's remaining steps plus the last
+   value where an episode did not finish), continuing from the last round's network (the first from the lookahead's
+   value of the auction on simulated episodes).
+3. **Improve.** The `Teacher` improves every recorded joint action with that value: each agent, from its own belief,
+   takes the action that finishes soonest, its own load-management reward weighed second.
+4. **Learn.** The policy network (the token network of `learning.tokens`, one set of weights for the team) learns to
+   choose the teacher's action from the agent's own knowledge state (cross-entropy over Â, Adam), on this round's
+   and the last round's improved choices; it is validated on the run's validation episodes.
+
+Training stops at the first round whose policy validates no sooner than the best so far (or after `rounds`); the best
+round's network is the run's policy. Acting with it is one forward pass of the token network per agent and step,
+whatever the size of the team. The run writes rounds.csv (one row per round) and rounds.png beside the usual files.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from htlm_agent.baselines.heuristics import AuctionPolicy
+from htlm_agent.baselines.lookahead import BaseValue, Teacher, ValueSettings
+from htlm_agent.experiments.evaluate import evaluate
+from htlm_agent.learning.qnet import init_params, masked_argmax
+from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.settings import Settings
+from htlm_agent.learning.tokens import TokenQ
+from htlm_agent.mind.context import Policy
+from htlm_agent.mind.policies import knowledge_context, team_epsilon_greedy
+from htlm_agent.mind.reward import RewardTables
+from htlm_agent.progress import Progress
+from htlm_agent.runtime.team import Team
+from htlm_world import seeds
+from htlm_world.metrics import completion_step
+from htlm_world.scenario import Scenario
+from htlm_world.types import BoolArray, FloatArray, IntArray
+
+LABEL_WORK = 131_072
+"""The teacher's work a round, in agent-heads: agent k's choice is worked out by the lookahead's sequence of the k + 1
+agents up to it, so a team step costs the sum of k + 1 over the agents judged (`labeled_heads`). The round's play
+keeps a random share of its team steps for the teacher within this budget (the paper's operation: 8,738 team steps,
+about 15 s; every visited state feeds the value)."""
+
+
+def labeled_heads(n: int) -> float:
+    """The expected agent-heads of the teacher's work at one team step of a team of n (`LABEL_WORK`)."""
+    return n * (n + 1) / 2 if n <= LABELED_AGENTS else LABELED_AGENTS * (n + 1) / 2
+
+
+@dataclass
+class RoundRow:
+    """One round of rounds.csv."""
+
+    round: int
+    episodes: int
+    """Training episodes played so far."""
+    wall_s: float
+    value_rmse: float
+    """The value network's last minibatch error (steps)."""
+    changed: float
+    """The share of played agent-steps whose action the teacher changed."""
+    policy_loss: float
+    agreement: float
+    """The share of the round's improved choices the new policy makes."""
+    val_completion: float
+    val_se: float
+    val_failure_rate: float
+    val_unused_fraction: float
+    reassignments: float
+    """Moves to another site per episode before completion in validation, the team's."""
+
+
+def unread_settings(sc: Scenario, settings: Settings) -> list[str]:
+    """What of the scenario's reward this learner does not read, one sentence each (warned about at the start of a
+    run): the teacher counts steps to finish, then R_II and T_RP; `credit`, γ and the level rewards between R_0 and
+    R_4 do not enter."""
+    out: list[str] = []
+    tables = RewardTables.build(sc)
+    if tables.difference.any():
+        out.append("reward.credit 'difference' is not read: the teacher counts the team's steps to finish")
+    levels = tables.level_rewards
+    if not np.allclose(levels, levels[:1]) or not np.allclose(levels[0], (10.0, 5.0, 2.0, 1.0, 0.0)[: levels.shape[1]]):
+        out.append(
+            "reward.level_rewards: only R_0 − R_4 is read (the exchange rate of the load terms), the levels between "
+            "do not enter"
+        )
+    if not math.isclose(sc.gamma, 0.95):
+        out.append(f"gamma {sc.gamma!r} is not read: the teacher counts undiscounted steps to finish")
+    if settings.load_weight > 0 and tables.load_management:
+        from htlm_agent.baselines.lookahead import LOAD_CAP, load_rates
+
+        rates = load_rates(sc, settings.load_weight)
+        for i in range(sc.n_agents):
+            r = sc.agent_reward(i)
+            worth = abs(r.reassign_cost) * rates[i]
+            if worth > LOAD_CAP:
+                out.append(
+                    f"agents[{i}] ({sc.agents[i].name}): reassign_cost {r.reassign_cost!r} is worth {worth:.2f} steps a "
+                    f"move, more than the {LOAD_CAP} a choice's load terms may count for (mission first): it acts as "
+                    f"{-LOAD_CAP / rates[i]:.2f}"
+                )
+            bonus = r.idle_bonus * r.idle_incentive * rates[i]
+            if bonus > LOAD_CAP:
+                out.append(
+                    f"agents[{i}] ({sc.agents[i].name}): idle_bonus {r.idle_bonus!r} is worth {bonus:.2f} steps, more "
+                    f"than the {LOAD_CAP} a choice's load terms may count for: it acts as {LOAD_CAP / rates[i]:.2f}"
+                )
+    return out
+
+
+class PolicyNet:
+    """The student: the shared token network, scoring every action of Ḡ from the agent's own knowledge state."""
+
+    def __init__(self, sc: Scenario, settings: Settings) -> None:
+        """Fresh weights from the run's seed."""
+        self.sc, self.settings = sc, settings
+        params = init_params(sc, settings, seeds.network_init(settings.seed, 0))
+        self.net = TokenQ(sc, settings.hidden, [params], shared=True)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=settings.lr)
+
+    def policy(self) -> Policy:
+        """The team policy of the current weights (every agent the masked argmax of its own scores)."""
+        return QPolicy(self.sc, self.net)
+
+    def weights(self) -> list[list[Any]]:
+        """Every agent's copy of the weights, for a checkpoint."""
+        return [self.net.agent_params(i) for i in range(self.sc.n_agents)]
+
+    def tokens(
+        self, k: FloatArray, m: BoolArray, worth: FloatArray, chunk: int = 512
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The tokens (X, |Ḡ|, F), Â (X, |Ḡ|) and the teacher's worth (X, |Ḡ|) of every agent-step the teacher
+        judged, from knowledge states (S, N, K), masks (S, N, |Ḡ|) and worth (S, N, |Ḡ|): the tokens depend on the
+        knowledge state alone, so they are made once for all of a round's updates."""
+        toks, ms, ws = [], [], []
+        judged = np.isfinite(worth).any(axis=-1)  # (S, N)
+        with torch.no_grad():
+            for i in range(0, k.shape[0], chunk):
+                x = torch.from_numpy(np.ascontiguousarray(k[i : i + chunk].transpose(1, 0, 2), dtype=np.float32))
+                tok = self.net.spec.features(x)  # (N, C, |Ḡ|, F)
+                on = torch.from_numpy(np.ascontiguousarray(judged[i : i + chunk].T))
+                toks.append(tok[on])
+                ms.append(torch.from_numpy(np.ascontiguousarray(m[i : i + chunk].transpose(1, 0, 2)))[on])
+                ws.append(torch.from_numpy(np.ascontiguousarray(worth[i : i + chunk].transpose(1, 0, 2)))[on])
+        return torch.cat(toks), torch.cat(ms), torch.cat(ws)
+
+    def learn(
+        self, tok: torch.Tensor, allowed: torch.Tensor, worth: torch.Tensor, updates: int, seed: int
+    ) -> tuple[float, float]:
+        """`updates` Adam updates of the cross-entropy between the network's choice over Â and the teacher's
+        `soft_targets`, from the tokens (X, |Ḡ|, F), Â and worth (X, |Ḡ|; inf where not judged) of `tokens`,
+        minibatches of `batch_size` agent-steps; returns the mean loss of the last tenth of the updates and
+        the share of the teacher's best choices the network then makes."""
+        gen = torch.Generator().manual_seed(seed)
+        batch = min(self.settings.batch_size, tok.shape[0])
+        losses: list[float] = []
+        for _ in range(updates):
+            idx = torch.randint(0, tok.shape[0], (batch,), generator=gen)
+            logits = self.net.score(tok[idx][None])[0]
+            logp = torch.log_softmax(logits.masked_fill(~allowed[idx], -1e9), dim=-1)
+            loss = -(soft_targets(worth[idx]) * logp.clamp(min=-1e4)).sum(dim=-1).mean()
+            self.opt.zero_grad()
+            loss.backward()  # type: ignore[no-untyped-call]
+            self.opt.step()
+            losses.append(float(loss.detach()))
+        with torch.no_grad():
+            agree = sum(
+                int(
+                    (
+                        self.net.score(tok[i : i + 4096][None])[0].masked_fill(~allowed[i : i + 4096], -torch.inf).argmax(-1)
+                        == worth[i : i + 4096].argmin(-1)
+                    ).sum()
+                )
+                for i in range(0, tok.shape[0], 4096)
+            )
+        tail = losses[-max(1, updates // 10) :]
+        return float(np.mean(tail)) if tail else float("nan"), agree / max(1, tok.shape[0])
+
+
+@dataclass
+class Played:
+    """One round of play: what the teacher improves and what the value learns from."""
+
+    knowledge: FloatArray  # (S, N, K) float32 values, the team steps kept
+    mask: BoolArray  # (S, N, |Ḡ|)
+    actions: IntArray  # (S, N) what the team played
+    levels: IntArray  # (X, p) every open true state visited
+    to_go: FloatArray  # (X,) the steps the played policy took from it (bootstrapped past the horizon)
+    completion: float
+    failure_rate: float
+
+
+def play(
+    sc: Scenario, policy: Policy, settings: Settings, first_batch: int, batches: int, value: BaseValue
+) -> Played:
+    """`batches` batches of `envs` training episodes from training batch `first_batch` on (the training streams of
+    `seeds`), every agent ε-greedily (`eps_end`) around `policy`'s choice from its own knowledge state."""
+    s, n, h = settings, sc.n_agents, sc.horizon
+    keep_share = min(1.0, LABEL_WORK / labeled_heads(n) / max(1, batches * s.envs * h))
+    team = Team(sc, s.envs, s.seed)
+    ks, ms, acts, xs, ys, comps, fails = [], [], [], [], [], [], []
+    for bi in range(first_batch, first_batch + batches):
+        team.sim.rng = seeds.train_world(s.seed, bi)
+        team.sim.channel_rngs = [seeds.train_channel(s.seed, i, bi) for i in range(n)]
+        team.event_rng = seeds.train_events(s.seed, bi)
+        rngs = [seeds.train_explore(s.seed, i, bi) for i in range(n)]
+        keep_rng = seeds.train_dropout(s.seed, bi)
+        k = team.reset()
+        levels = [team.sim.levels.copy()]
+        for _ in range(h):
+            m = team.mask()
+            k32 = k.astype(np.float32).astype(np.float64)  # what a policy reads off the wire
+            a = team.force_inactive(team_epsilon_greedy(policy.act(knowledge_context(sc, k32, m)), m, s.eps_end, rngs))
+            keep = keep_rng.random(s.envs) < keep_share
+            ks.append(k32[keep].astype(np.float32))
+            ms.append(m[keep])
+            acts.append(a[keep])
+            k, _, info = team.step(a)
+            levels.append(info.levels)
+        lv = np.stack(levels)  # (h + 1, B, p)
+        comp, failed = completion_step(lv)
+        comps.append(comp)
+        fails.append(failed)
+        open_ = lv[:h].any(axis=-1)  # (h, B)
+        t = np.arange(h)[:, None]
+        finished = np.where(failed, h + value(lv[h]), comp)[None, :]  # the step the episode finished (or would)
+        xs.append(lv[:h][open_])
+        ys.append(np.broadcast_to(finished - t, (h, s.envs))[open_])
+    return Played(
+        np.concatenate(ks),
+        np.concatenate(ms),
+        np.concatenate(acts),
+        np.concatenate(xs),
+        np.concatenate(ys).astype(np.float64),
+        float(np.concatenate(comps).mean()),
+        float(np.concatenate(fails).mean()),
+    )
+
+
+LABELED_AGENTS = 8
+"""The agents whose choices the teacher works out at every kept team step (all of a team this size or smaller; a
+random set of this many in a larger one, new for every chunk of team steps): agent k's choice costs the lookahead's
+sequence of the k agents before it."""
+
+
+def improve(teacher: Teacher, sc: Scenario, played: Played, seed: int, chunk: int = 1024) -> tuple[IntArray, FloatArray]:
+    """The teacher's choices (S, N) at every kept team step of `played`, -1 for the agents not labeled there, and
+    what every action is worth to them (S, N, |Ḡ|, float32 steps; inf where not judged)."""
+    n = sc.n_agents
+    out = np.full_like(played.actions, -1)
+    worth = np.full((*out.shape, sc.n_actions), np.inf, dtype=np.float32)
+    rng = np.random.default_rng(seed)
+    for i in range(0, len(out), chunk):
+        who = np.arange(n) if n <= LABELED_AGENTS else np.sort(rng.choice(n, LABELED_AGENTS, replace=False))
+        k = played.knowledge[i : i + chunk].astype(np.float64)
+        ctx = knowledge_context(sc, k, played.mask[i : i + chunk])
+        a, q = teacher.improve(ctx, who)
+        out[i : i + chunk, who] = a
+        worth[i : i + chunk, who] = q
+    return out, worth
+
+
+def soft_targets(worth: torch.Tensor) -> torch.Tensor:
+    """The policy's targets from what the teacher judged every action worth (..., |Ḡ|) steps: a softmax of minus the
+    steps over `TEMPERATURE` (0 where not judged), so that near-ties, which the teacher's 64 draws decide by chance,
+    teach the network both actions."""
+    z = -(worth - worth.amin(dim=-1, keepdim=True)) / TEMPERATURE
+    return torch.softmax(torch.nan_to_num(z, nan=-torch.inf), dim=-1)
+
+
+TEMPERATURE = 0.02
+"""Steps: the temperature of `soft_targets` (an action a fiftieth of a step worse than the best gets e⁻¹ of its
+weight: soft enough to share near-ties, sharp enough that the network ranks as the teacher does)."""
+
+
+def reassignments(sc: Scenario, metrics: dict[str, Any]) -> float:
+    """Moves to another site per episode before completion, the team's (`reassign_before_completion`)."""
+    return float(metrics["reassign_before_completion"]["mean"])
+
+
+def write_rounds(out: Path, rows: list[RoundRow]) -> None:
+    """rounds.csv and rounds.png: every round's validation completion (± se), failures and the teacher's changes."""
+    with (out / "rounds.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(asdict(rows[0])))
+        w.writeheader()
+        for r in rows:
+            w.writerow(asdict(r))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.4))
+    x = [r.round for r in rows]
+    ax1.errorbar(x, [r.val_completion for r in rows], yerr=[r.val_se for r in rows], marker="o", capsize=3)
+    ax1.set_xlabel("round (0: the auction's play)")
+    ax1.set_ylabel("validation completion step")
+    ax1.set_xticks(x)
+    ax1.grid(alpha=0.3)
+    ax2.plot(x, [100 * r.val_failure_rate for r in rows], marker="o", label="failures (%)")
+    ax2.plot(x, [100 * r.changed for r in rows], marker="s", label="choices the teacher changed (%)")
+    ax2.set_xlabel("round")
+    ax2.set_xticks(x)
+    ax2.legend(fontsize=8)
+    ax2.grid(alpha=0.3)
+    fig.suptitle(f"expert iteration on {rows and 'its operation'}: one point per round", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out / "rounds.png", dpi=110)
+    plt.close(fig)
+
+
+@dataclass
+class ExpertRun:
+    """What `train_expert` learned: the best round's network and every round's row."""
+
+    student: PolicyNet
+    best_weights: list[list[Any]]
+    best_round: int
+    rows: list[RoundRow]
+    episodes: int
+    value: BaseValue
+
+
+def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> ExpertRun:
+    """The rounds of the module docstring; returns the best round's weights and every round's row."""
+    s = settings
+    t0 = time.perf_counter()
+    for warning in unread_settings(sc, s):
+        print(f"warning: expert learner: {warning}", file=sys.stderr, flush=True)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(s.threads)
+    per_round = max(1, math.ceil(s.episodes / s.rounds / s.envs))  # batches of `envs` episodes a round
+    value = BaseValue(sc, ValueSettings(), s.seed)  # the lookahead learner's value of the auction, first
+    bar = Progress(s.rounds * per_round * s.envs, unit="ep", enabled=progress)
+    try:
+        if progress:
+            print("expert: the value of the auction on simulated episodes (round 0's teacher)", file=sys.stderr)
+        value.fit()
+        student = PolicyNet(sc, s)
+        acting: Policy = AuctionPolicy(sc)
+        base = evaluate(acting, sc, s.validate_episodes, seed=seeds.validation(s.seed))
+        rows = [
+            RoundRow(
+                0, 0, round(time.perf_counter() - t0, 2), float("nan"), float("nan"), float("nan"), float("nan"),
+                base["completion"]["mean"], base["completion"]["se"], base["completion"]["failure_rate"],
+                base["unused_fraction"]["mean"], reassignments(sc, base),
+            )
+        ]  # fmt: skip
+        best = (math.inf, 0, student.weights())
+        data: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        done = 0
+        for r in range(1, s.rounds + 1):
+            played = play(sc, acting, s, (r - 1) * per_round, per_round, value)
+            done += per_round * s.envs
+            bar.update(done, round=r)
+            rmse = float("nan")  # the first round's value: the auction's on simulated true levels (the lookahead's)
+            if r > 1:
+                rmse = value.regress(played.levels, played.to_go, s.value_updates, seeds.base_value_init(s.seed) + r)
+            teacher = Teacher(sc, value, s.seed, s.load_weight)
+            better, worth = improve(teacher, sc, played, seeds.derived_seed(s.seed, seeds.Stream.IMITATION, r))
+            labeled = better >= 0
+            changed = float((better != played.actions)[labeled].mean())
+            data = [*data[-1:], student.tokens(played.knowledge, played.mask, worth)]
+            tok, allowed, w = (torch.cat([d[j] for d in data]) for j in range(3))
+            loss, agree = student.learn(tok, allowed, w, s.policy_updates, seeds.network_init(s.seed, r))
+            val = evaluate(student.policy(), sc, s.validate_episodes, seed=seeds.validation(s.seed))
+            c = val["completion"]
+            rows.append(
+                RoundRow(
+                    r, done, round(time.perf_counter() - t0, 2), rmse, changed, loss, agree, c["mean"], c["se"],
+                    c["failure_rate"], val["unused_fraction"]["mean"], reassignments(sc, val),
+                )
+            )  # fmt: skip
+            if progress:
+                print(
+                    f"expert: round {r}: validation {c['mean']:.2f} ± {c['se']:.2f} steps, failures "
+                    f"{c['failure_rate']:.1%} (teacher changed {changed:.1%} of the play, policy agrees with "
+                    f"{agree:.1%}; value rmse {rmse:.2f})",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            if c["mean"] < best[0]:  # a failed episode counts as the horizon
+                best = (c["mean"], r, student.weights())
+            else:
+                break
+            acting = student.policy()
+    finally:
+        bar.close()
+        torch.set_num_threads(threads)
+    return ExpertRun(student, best[2], best[1], rows, done, value)
+

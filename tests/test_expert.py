@@ -1,0 +1,102 @@
+"""The expert-iteration learner: its teacher weighs each agent's own reward, its policy network learns the teacher's
+choices and acts as one forward pass, and a run's files and checkpoint serve every command that takes a policy."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from htlm_agent.baselines.heuristics import AuctionPolicy
+from htlm_agent.baselines.lookahead import LOAD_CAP, BaseValue, Teacher, load_rates, team_policy
+from htlm_agent.experiments.evaluate import evaluate
+from htlm_agent.experiments.expert import soft_targets, unread_settings
+from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+from htlm_agent.learning.settings import Settings
+from htlm_agent.runtime.team import Team
+from htlm_world.scenario import Scenario, builtin
+
+
+def with_own_reward(sc: Scenario, agent: int, **fields: float) -> Scenario:
+    """`sc` with agent `agent` carrying its own reward: the shared one with `fields` changed."""
+    agents = list(sc.agents)
+    agents[agent] = dataclasses.replace(agents[agent], reward=dataclasses.replace(sc.reward, **fields))
+    return sc.replace(agents=tuple(agents))
+
+
+@pytest.fixture(scope="module")
+def value() -> BaseValue:
+    v = BaseValue(builtin(), seed=0)
+    v.fit()
+    return v
+
+
+def test_an_agents_own_reassignment_cost_prices_only_its_own_moves(value: BaseValue) -> None:
+    """With agent 1's reassign_cost at -4 (the others at the shared -1), moving to the other site costs agent 1 four
+    times what it costs its teammates, in the teacher's steps; staying at the site costs nobody."""
+    sc = with_own_reward(builtin(), 1, reassign_cost=-4.0)
+    team = Team(sc, 8, seed=0)
+    ctx = team.context()
+    load = Teacher(sc, value, load_weight=1.0).load_steps(ctx.marginals, ctx.prev)  # (B, N, |Ḡ|)
+    far = sc.n_tasks + 1  # the idle location of the other site (every agent starts at site 1)
+    rate = load_rates(sc, 1.0)
+    assert rate[0] == pytest.approx(1.0 / (5 * 10.0))  # a unit of reward: 1/(N (R_0 - R_4)) steps
+    assert load[:, 0, far] == pytest.approx(1.0 * rate[0])
+    assert load[:, 1, far] == pytest.approx(4.0 * rate[1])
+    assert (np.abs(load) <= LOAD_CAP).all()
+    assert (Teacher(sc, value, load_weight=0.0).load_steps(ctx.marginals, ctx.prev) == 0).all()
+
+
+def test_settings_the_teacher_does_not_read_are_warned_about() -> None:
+    """Difference credit, γ and a reassignment cost beyond the cap are named; the paper's scenario has none."""
+    s = Settings.for_learner(learner="expert")
+    assert unread_settings(builtin(), s) == []
+    sc = with_own_reward(builtin(), 3, reassign_cost=-40.0).replace(gamma=0.9).with_credit("difference")
+    warnings = " | ".join(unread_settings(sc, s))
+    assert "credit 'difference'" in warnings and "gamma 0.9" in warnings
+    assert f"agents[3] ({sc.agents[3].name}): reassign_cost -40.0" in warnings and "acts as" in warnings
+
+
+def test_soft_targets_share_near_ties_and_ignore_what_was_not_judged() -> None:
+    import torch
+
+    w = torch.tensor([[1.0, 1.0, 3.0, float("inf")], [2.0, 2.5, 2.0 + 1e-3, float("inf")]])
+    t = soft_targets(w)
+    assert torch.allclose(t.sum(-1), torch.ones(2))
+    assert t[0, 0] == pytest.approx(0.5) and t[0, 2] < 1e-6 and t[0, 3] == 0
+    assert t[1, 0] > t[1, 2] > 0.4 and t[1, 1] < 1e-6
+
+
+def test_a_short_run_learns_the_teachers_choices_and_beats_the_auction(tmp_path: Path) -> None:
+    """One round on the paper's operation: the network agrees with most of the teacher's best choices, and the
+    team that acts with the run's checkpoint is sooner than the auction on the same episodes; rounds.csv holds
+    round 0 (the auction) and round 1, and the run cannot be resumed."""
+    from htlm_agent.experiments.train import train
+
+    s = Settings.for_learner(
+        learner="expert", episodes=512, rounds=1, policy_updates=400, validate_episodes=100, eval_episodes=0
+    )
+    res = train(builtin(), s, tmp_path / "run", progress=False, tensorboard=False)
+    rows = list(csv.DictReader((tmp_path / "run" / "rounds.csv").open()))
+    assert [r["round"] for r in rows] == ["0", "1"] and float(rows[1]["agreement"]) > 0.7
+    assert (tmp_path / "run" / "rounds.png").stat().st_size > 0
+    ck = load_checkpoint(tmp_path / "run" / "checkpoint")
+    assert ck.settings.network == "tokens" and res.episodes == 512
+    learned = evaluate(team_policy(ck), builtin(), 200, seed=3)["completion"]
+    auction = evaluate(AuctionPolicy(builtin()), builtin(), 200, seed=3)["completion"]
+    assert learned["mean"] < auction["mean"] and learned["failure_rate"] <= auction["failure_rate"]
+    with pytest.raises(CheckpointError, match="nothing to resume"):
+        train(builtin(), s, tmp_path / "run", progress=False, tensorboard=False, resume=True)
+
+
+def test_training_over_ros_refuses_the_expert_learner(tmp_path: Path) -> None:
+    """Its value learns from the true levels of the team's play, which the trainer node does not receive."""
+    cmd = [sys.executable, "-m", "htlm_agent.cli", "launch", "train", "--set", "learner=expert"]
+    r = subprocess.run([*cmd, "--run-dir", str(tmp_path / "ros")], capture_output=True, text=True, check=False)
+    assert r.returncode != 0 and "learner=expert learns in process only" in r.stderr
+    assert not (tmp_path / "ros").exists()
