@@ -51,6 +51,7 @@ LEARNERS: dict[str, dict[str, Any]] = {
     },
     "paper": {"settings": {}, "credit": None},
     "lookahead": {"settings": {"learner": "lookahead"}, "credit": None},
+    "expert": {"settings": {"learner": "expert"}, "credit": None},
 }
 """The learned teams: `Settings.for_learner` changes and the credit of the scenario they train on."""
 
