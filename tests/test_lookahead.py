@@ -198,9 +198,9 @@ def test_the_lookahead_learner_learns_in_process_only(tmp_path: Path) -> None:
 
 
 def test_htlm_train_trains_the_lookahead_where_it_is_affordable(tmp_path: Path) -> None:
-    """The default of `htlm train`: the lookahead learner on the paper's operation, the token learner where a team
-    step of the lookahead costs too much (facility-20) or where a Q-learner's setting is given; a named learner
-    always."""
+    """The default of `htlm train`: the lookahead learner on the paper's operation, the expert-iteration learner where
+    a team step of the lookahead costs too much (facility-20), the token learner where a Q-learner's setting is
+    given; a named learner always."""
     import json
 
     from htlm_agent.baselines.lookahead import LOOKAHEAD_DEFAULT_COST, default_learner, lookahead_cost
@@ -213,7 +213,8 @@ def test_htlm_train_trains_the_lookahead_where_it_is_affordable(tmp_path: Path) 
     assert lookahead_cost(builtin()) <= LOOKAHEAD_DEFAULT_COST < lookahead_cost(load("facility-20"))
     assert default_learner(builtin(), {"episodes": 100}) == "lookahead"
     assert default_learner(builtin(), {"imitate": "qmdp"}) == "tokens"
-    assert default_learner(load("facility-20"), {}) == "tokens"
+    assert default_learner(load("facility-20"), {}) == "expert"
+    assert default_learner(load("facility-20"), {"memory": 1000}) == "tokens"
     assert default_learner(load("facility-20"), {"learner": "lookahead"}) == "lookahead"
     args = ["--episodes", "200", "--value-updates", "10", "--eval-episodes", "4", "--no-progress", "--no-tensorboard"]
     assert main(["train", "--out", str(tmp_path / "run"), *args]) == 0

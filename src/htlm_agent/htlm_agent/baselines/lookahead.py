@@ -282,15 +282,35 @@ LOOKAHEAD_FIELDS = frozenset(
 """The settings the lookahead learner uses (`ValueSettings.of`, the run's seed and evaluation)."""
 
 
+EXPERT_FIELDS = LOOKAHEAD_FIELDS - {"load_price"} | {
+    "rounds",
+    "policy_updates",
+    "load_weight",
+    "envs",
+    "eps_end",
+    "validate_episodes",
+}
+"""The settings the expert-iteration learner uses (`experiments.expert`)."""
+
+
+def own_rewards(sc: Scenario) -> list[str]:
+    """The agents of `sc` that carry their own reward fields (`agents[i].reward`)."""
+    return [a.name for a in sc.agents if a.reward is not None and a.reward != sc.reward]
+
+
 def default_learner(sc: Scenario, changes: dict[str, object]) -> str:
-    """The learner `htlm train` trains on `sc` unless `changes` name one: the lookahead learner, measured better than
-    greedy, the auction and the token learner on every operation it was measured on (docs/results/market.md),
-    where it is affordable (`LOOKAHEAD_DEFAULT_COST`) and no setting of a Q-learner is given; else
-    `DEFAULT_LEARNER` (what `htlm launch train` trains over ROS)."""
+    """The learner `htlm train` trains on `sc` unless `changes` name one (docs/model.md, The expert-iteration
+    learner): the lookahead learner where acting with it is affordable (`LOOKAHEAD_DEFAULT_COST`) and no agent
+    carries its own reward (the lookahead reads none: it was measured sooner than every other team there,
+    docs/results/market.md); else the expert-iteration learner, which reads every agent's reward and acts in one
+    forward pass; the token learner (`DEFAULT_LEARNER`, what `htlm launch train` trains over ROS) when a setting only
+    a Q-learner reads is given."""
     if "learner" in changes:
         return str(changes["learner"])
-    if set(changes) <= LOOKAHEAD_FIELDS and lookahead_cost(sc) <= LOOKAHEAD_DEFAULT_COST:
+    if set(changes) <= LOOKAHEAD_FIELDS and lookahead_cost(sc) <= LOOKAHEAD_DEFAULT_COST and not own_rewards(sc):
         return "lookahead"
+    if set(changes) <= EXPERT_FIELDS:
+        return "expert"
     return DEFAULT_LEARNER
 
 

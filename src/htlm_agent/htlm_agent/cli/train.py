@@ -31,13 +31,14 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
 
     docs = field_docs(Settings)
     g = p.add_argument_group(
-        "learner settings (defaults: the lookahead learner where it is affordable and no Q-learner setting is given, "
-        "else the token learner; the learner's preset over htlm_agent.learning.settings.Settings)"
+        "learner settings (defaults: the lookahead learner where it is affordable and no agent has its own reward, "
+        "else the expert-iteration learner, the token learner when a Q-learner setting is given; the learner's "
+        "preset over htlm_agent.learning.settings.Settings)"
     )
     for f in dataclasses.fields(Settings):
         if f.name in EXPLICIT:
             continue
-        default = f"lookahead or {DEFAULT_LEARNER}" if f.name == "learner" else f.default
+        default = f"lookahead, expert or {DEFAULT_LEARNER}" if f.name == "learner" else f.default
         help_text = f"{docs.get(f.name, '')} (default: {default})".replace("%", "%%")
         if f.name == "hidden":
             g.add_argument(_flag(f.name), type=_int_list, default=None, metavar="H1,H2", help=help_text)

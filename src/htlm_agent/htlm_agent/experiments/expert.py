@@ -37,7 +37,7 @@ import torch
 from htlm_agent.baselines.heuristics import AuctionPolicy
 from htlm_agent.baselines.lookahead import BaseValue, Teacher, ValueSettings
 from htlm_agent.experiments.evaluate import evaluate
-from htlm_agent.learning.qnet import init_params, masked_argmax
+from htlm_agent.learning.qnet import init_params
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.tokens import TokenQ
@@ -50,6 +50,12 @@ from htlm_world import seeds
 from htlm_world.metrics import completion_step
 from htlm_world.scenario import Scenario
 from htlm_world.types import BoolArray, FloatArray, IntArray
+
+LABELED_AGENTS = 8
+"""The agents whose choices the teacher works out at every kept team step (all of a team this size or smaller; a
+random set of this many in a larger one, new for every chunk of team steps): agent k's choice costs the lookahead's
+sequence of the k agents before it."""
+
 
 LABEL_WORK = 131_072
 """The teacher's work a round, in agent-heads: agent k's choice is worked out by the lookahead's sequence of the k + 1
@@ -111,9 +117,9 @@ def unread_settings(sc: Scenario, settings: Settings) -> list[str]:
             worth = abs(r.reassign_cost) * rates[i]
             if worth > LOAD_CAP:
                 out.append(
-                    f"agents[{i}] ({sc.agents[i].name}): reassign_cost {r.reassign_cost!r} is worth {worth:.2f} steps a "
-                    f"move, more than the {LOAD_CAP} a choice's load terms may count for (mission first): it acts as "
-                    f"{-LOAD_CAP / rates[i]:.2f}"
+                    f"agents[{i}] ({sc.agents[i].name}): reassign_cost {r.reassign_cost!r} is worth {worth:.2f} "
+                    f"steps a move, more than the {LOAD_CAP} a choice's load terms may count for (mission first): it "
+                    f"acts as {-LOAD_CAP / rates[i]:.2f}"
                 )
             bonus = r.idle_bonus * r.idle_incentive * rates[i]
             if bonus > LOAD_CAP:
@@ -149,7 +155,7 @@ class PolicyNet:
         judged, from knowledge states (S, N, K), masks (S, N, |Ḡ|) and worth (S, N, |Ḡ|): the tokens depend on the
         knowledge state alone, so they are made once for all of a round's updates."""
         toks, ms, ws = [], [], []
-        judged = np.isfinite(worth).any(axis=-1)  # (S, N)
+        judged = np.asarray(np.isfinite(worth).any(axis=-1), dtype=bool)  # (S, N)
         with torch.no_grad():
             for i in range(0, k.shape[0], chunk):
                 x = torch.from_numpy(np.ascontiguousarray(k[i : i + chunk].transpose(1, 0, 2), dtype=np.float32))
@@ -183,7 +189,9 @@ class PolicyNet:
             agree = sum(
                 int(
                     (
-                        self.net.score(tok[i : i + 4096][None])[0].masked_fill(~allowed[i : i + 4096], -torch.inf).argmax(-1)
+                        self.net.score(tok[i : i + 4096][None])[0]
+                        .masked_fill(~allowed[i : i + 4096], -torch.inf)
+                        .argmax(-1)
                         == worth[i : i + 4096].argmin(-1)
                     ).sum()
                 )
@@ -206,9 +214,7 @@ class Played:
     failure_rate: float
 
 
-def play(
-    sc: Scenario, policy: Policy, settings: Settings, first_batch: int, batches: int, value: BaseValue
-) -> Played:
+def play(sc: Scenario, policy: Policy, settings: Settings, first_batch: int, batches: int, value: BaseValue) -> Played:
     """`batches` batches of `envs` training episodes from training batch `first_batch` on (the training streams of
     `seeds`), every agent ε-greedily (`eps_end`) around `policy`'s choice from its own knowledge state."""
     s, n, h = settings, sc.n_agents, sc.horizon
@@ -253,13 +259,9 @@ def play(
     )
 
 
-LABELED_AGENTS = 8
-"""The agents whose choices the teacher works out at every kept team step (all of a team this size or smaller; a
-random set of this many in a larger one, new for every chunk of team steps): agent k's choice costs the lookahead's
-sequence of the k agents before it."""
-
-
-def improve(teacher: Teacher, sc: Scenario, played: Played, seed: int, chunk: int = 1024) -> tuple[IntArray, FloatArray]:
+def improve(
+    teacher: Teacher, sc: Scenario, played: Played, seed: int, chunk: int = 1024
+) -> tuple[IntArray, FloatArray]:
     """The teacher's choices (S, N) at every kept team step of `played`, -1 for the agents not labeled there, and
     what every action is worth to them (S, N, |Ḡ|, float32 steps; inf where not judged)."""
     n = sc.n_agents
@@ -404,4 +406,3 @@ def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> Exp
         bar.close()
         torch.set_num_threads(threads)
     return ExpertRun(student, best[2], best[1], rows, done, value)
-

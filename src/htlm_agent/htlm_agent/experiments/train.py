@@ -29,7 +29,7 @@ import torch
 import yaml
 
 from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
-from htlm_agent.baselines.lookahead import BaseValue, ValueSettings, team_policy
+from htlm_agent.baselines.lookahead import BaseValue, ValueSettings, own_rewards, team_policy
 from htlm_agent.baselines.optimal import ProblemTooLarge, QmdpPolicy
 from htlm_agent.experiments.evaluate import evaluate, evaluate_run, write_reports
 from htlm_agent.experiments.expert import train_expert, write_rounds
@@ -514,6 +514,14 @@ def train_lookahead(
     evaluation acts as the agents do, each improving on the auction from its own belief with it."""
     t_start = time.perf_counter()
     ckpt_dir = fresh_run_dir(out, resume, "lookahead", "it learns in one go, in seconds")
+    mine = own_rewards(scenario)
+    if mine:  # it weighs load by load_price alone: say so rather than ignore them silently
+        print(
+            f"warning: the lookahead learner does not read the scenario's reward: the own rewards of {mine} change "
+            "nothing it does; `--learner expert` weighs every agent's own R_II and T_RP",
+            file=sys.stderr,
+            flush=True,
+        )
     write_run_files(out, scenario, settings)
     value = BaseValue(scenario, ValueSettings.of(settings), settings.seed)
     bars: list[Progress] = []  # the regression's, from its first update on (after the simulation)
@@ -566,8 +574,10 @@ def fresh_run_dir(out: Path, resume: bool, learner: str, why: str) -> Path:
     raises when asked to resume or when `out` already holds a run."""
     ckpt_dir = out / "checkpoint"
     if resume:
-        raise CheckpointError(f"{out}: a run of the {learner} learner has nothing to resume ({why}); train again "
-                              "into another output directory")
+        raise CheckpointError(
+            f"{out}: a run of the {learner} learner has nothing to resume ({why}); train again "
+            "into another output directory"
+        )
     if (ckpt_dir / "meta.json").exists():
         raise FileExistsError(f"{out}: already holds a run; choose another output directory")
     return ckpt_dir

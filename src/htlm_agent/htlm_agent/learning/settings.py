@@ -70,8 +70,9 @@ EXPERT_PRESET: dict[str, Any] = {
     "value_updates": 1500,
 }
 """The settings the expert-iteration learner starts from (`with_preset`; docs/model.md, The expert-iteration
-learner): the token network's layers for its policy, up to 8,192 episodes of its own play (4 rounds of 2,048), 1,500 updates of the value network a round on what the team played, minibatches of 1,024 agent-steps
-for the policy."""
+learner): the token network's layers for its policy, up to 8,192 episodes of its own play (4 rounds of 2,048),
+1,500 updates of the value network a round on what the team played, minibatches of 1,024 agent-steps for the
+policy."""
 
 PRESETS: dict[str, dict[str, Any]] = {"tokens": TOKENS_PRESET, "lookahead": LOOKAHEAD_PRESET, "expert": EXPERT_PRESET}
 """The preset of every learner that has one: what `htlm train --learner NAME` starts from."""
