@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from htlm_agent.baselines.heuristics import AuctionPolicy
-from htlm_agent.baselines.lookahead import BaseValue, Teacher, ValueSettings
+from htlm_agent.baselines.lookahead import LOAD_CAP, BaseValue, Teacher, ValueSettings, load_rates
 from htlm_agent.experiments.evaluate import evaluate
 from htlm_agent.learning.qnet import init_params
 from htlm_agent.learning.qpolicy import QPolicy
@@ -109,8 +109,6 @@ def unread_settings(sc: Scenario, settings: Settings) -> list[str]:
     if not math.isclose(sc.gamma, 0.95):
         out.append(f"gamma {sc.gamma!r} is not read: the teacher counts undiscounted steps to finish")
     if settings.load_weight > 0 and tables.load_management:
-        from htlm_agent.baselines.lookahead import LOAD_CAP, load_rates
-
         rates = load_rates(sc, settings.load_weight)
         for i in range(sc.n_agents):
             r = sc.agent_reward(i)
@@ -296,8 +294,10 @@ def reassignments(sc: Scenario, metrics: dict[str, Any]) -> float:
     return float(metrics["reassign_before_completion"]["mean"])
 
 
-def write_rounds(out: Path, rows: list[RoundRow]) -> None:
-    """rounds.csv and rounds.png: every round's validation completion (± se), failures and the teacher's changes."""
+def write_rounds(out: Path, rows: list[RoundRow], name: str, best: int) -> None:
+    """rounds.csv and rounds.png of a run on operation `name`: every round's validation completion (± se), the
+    chosen round `best` ringed; its failures, how much of the play the teacher changed and how much the network
+    learned."""
     with (out / "rounds.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(asdict(rows[0])))
         w.writeheader()
@@ -311,17 +311,21 @@ def write_rounds(out: Path, rows: list[RoundRow]) -> None:
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.4))
     x = [r.round for r in rows]
     ax1.errorbar(x, [r.val_completion for r in rows], yerr=[r.val_se for r in rows], marker="o", capsize=3)
-    ax1.set_xlabel("round (0: the auction's play)")
+    ax1.plot([best], [rows[best].val_completion], "o", ms=14, mfc="none", mec="C3", label="the run's policy")
+    ax1.set_xlabel("round (0: the auction)")
     ax1.set_ylabel("validation completion step")
     ax1.set_xticks(x)
+    ax1.legend(fontsize=8)
     ax1.grid(alpha=0.3)
-    ax2.plot(x, [100 * r.val_failure_rate for r in rows], marker="o", label="failures (%)")
-    ax2.plot(x, [100 * r.changed for r in rows], marker="s", label="choices the teacher changed (%)")
+    ax2.plot(x, [100 * r.val_failure_rate for r in rows], marker="o", label="failed episodes")
+    ax2.plot(x, [100 * r.changed for r in rows], marker="s", label="played choices the teacher changed")
+    ax2.plot(x, [100 * r.agreement for r in rows], marker="^", label="teacher's best choices the policy makes")
     ax2.set_xlabel("round")
+    ax2.set_ylabel("%")
     ax2.set_xticks(x)
     ax2.legend(fontsize=8)
     ax2.grid(alpha=0.3)
-    fig.suptitle(f"expert iteration on {rows and 'its operation'}: one point per round", fontsize=10)
+    fig.suptitle(f"expert iteration on {name}: one point per round", fontsize=10)
     fig.tight_layout()
     fig.savefig(out / "rounds.png", dpi=110)
     plt.close(fig)

@@ -600,7 +600,7 @@ def train_expert_run(
     write_run_files(out, scenario, settings)
     run = train_expert(scenario, settings, progress)
     train_time = time.perf_counter() - t_start
-    write_rounds(out, run.rows)
+    write_rounds(out, run.rows, scenario.name, run.best_round)
     info = {"best_round": run.best_round, "rounds": [asdict(r) for r in run.rows]}
     save_checkpoint(ckpt_dir, scenario, settings, settings.seed, run.episodes, run.best_weights, info=info)
     log = RunLog(out, 0, False, tensorboard)
