@@ -87,7 +87,8 @@ class Settings:
     `tokens`, one network scoring every action from its own features, shared across tasks (docs/model.md, The
     token learner); `lookahead`, a value network of the auction learned from simulated episodes, with which every
     agent improves on the auction from its own belief (docs/model.md, The lookahead learner; it learns in process
-    only, `htlm train`)."""
+    only, `htlm train`); `expert`, rounds of the team's own play improved by that lookahead with every agent's own
+    reward and learned into a token policy network (docs/model.md, The expert-iteration learner; in process only)."""
     shared: bool = True
     """tokens: the agents share one network (their capabilities and preferences are inputs); False: each agent
     trains its own."""
