@@ -62,6 +62,11 @@ class Stream(IntEnum):
     keys (0, 0) and (1, 0)."""
     LOOKAHEAD = 19
     """The lookahead baseline's draws of states from the agents' beliefs: keys (0, 0)."""
+    EXPERT_KEEP = 20
+    """Which team steps of one batch of the expert-iteration learner's play its teacher judges: keys (batch, 0)."""
+    EXPERT_ROUND = 21
+    """One round of the expert-iteration learner: the agents its teacher judges (keys (round, 0)), the value's
+    minibatches (round, 1) and the policy's (round, 2)."""
 
 
 def sequence(seed: int, stream: Stream, first: int = 0, second: int = 0) -> np.random.SeedSequence:
@@ -194,3 +199,14 @@ def lookahead(seed: int) -> int:
 def validation(seed: int) -> int:
     """The master seed of a training run's validation episodes (their world and channels derive from it)."""
     return derived_seed(seed, Stream.VALIDATION)
+
+
+def expert_keep(seed: int, batch: int) -> np.random.Generator:
+    """Which team steps of training batch `batch` the expert-iteration learner's teacher judges."""
+    return generator(seed, Stream.EXPERT_KEEP, batch)
+
+
+def expert_round(seed: int, round_: int, part: int) -> int:
+    """The integer seed of part `part` of round `round_` of the expert-iteration learner: 0 the agents its teacher
+    judges, 1 the value's minibatches, 2 the policy's."""
+    return derived_seed(seed, Stream.EXPERT_ROUND, round_, part)

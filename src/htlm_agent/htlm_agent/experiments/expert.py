@@ -224,7 +224,7 @@ def play(sc: Scenario, policy: Policy, settings: Settings, first_batch: int, bat
         team.sim.channel_rngs = [seeds.train_channel(s.seed, i, bi) for i in range(n)]
         team.event_rng = seeds.train_events(s.seed, bi)
         rngs = [seeds.train_explore(s.seed, i, bi) for i in range(n)]
-        keep_rng = seeds.train_dropout(s.seed, bi)
+        keep_rng = seeds.expert_keep(s.seed, bi)
         k = team.reset()
         levels = [team.sim.levels.copy()]
         for _ in range(h):
@@ -377,14 +377,14 @@ def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> Exp
             bar.update(done, round=r)
             rmse = float("nan")  # the first round's value: the auction's on simulated true levels (the lookahead's)
             if r > 1:
-                rmse = value.regress(played.levels, played.to_go, s.value_updates, seeds.base_value_init(s.seed) + r)
+                rmse = value.regress(played.levels, played.to_go, s.value_updates, seeds.expert_round(s.seed, r, 1))
             teacher = Teacher(sc, value, s.seed, s.load_weight)
-            better, worth = improve(teacher, sc, played, seeds.derived_seed(s.seed, seeds.Stream.IMITATION, r))
+            better, worth = improve(teacher, sc, played, seeds.expert_round(s.seed, r, 0))
             labeled = better >= 0
             changed = float((better != played.actions)[labeled].mean())
             data = [*data[-1:], student.tokens(played.knowledge, played.mask, worth)]
             tok, allowed, w = (torch.cat([d[j] for d in data]) for j in range(3))
-            loss, agree = student.learn(tok, allowed, w, s.policy_updates, seeds.network_init(s.seed, r))
+            loss, agree = student.learn(tok, allowed, w, s.policy_updates, seeds.expert_round(s.seed, r, 2))
             val = evaluate(student.policy(), sc, s.validate_episodes, seed=seeds.validation(s.seed))
             c = val["completion"]
             rows.append(
