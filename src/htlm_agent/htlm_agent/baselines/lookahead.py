@@ -414,8 +414,8 @@ class LookaheadPolicy:
             q = np.full((bi.size, p + 1), np.inf)
             q[:, np.concatenate([[0], 1 + tasks])] = np.where(complete[bi, ri][..., None], 0.0, 1.0 + v).mean(axis=1)
             q += self.load[k]
-            if own_load is not None:  # the heads' own agents: their own load terms instead of the price
-                mine = who[ri] == k
+            mine = who[ri] == k  # the pairs whose head is agent k's own
+            if own_load is not None:  # the heads' own agents: their own load terms besides the price
                 rows = own_load[bi[mine], ri[mine]]  # (P', |Ḡ|)
                 resting = rows[np.arange(rows.shape[0]), rest_of[bi[mine], ri[mine]]]
                 q[mine] += np.concatenate([resting[:, None], rows[:, :p]], axis=1)  # the price still breaks ties
@@ -426,13 +426,12 @@ class LookaheadPolicy:
             q[:, 0] = np.where(here, q[:, 0], -np.inf)
             plan[bi, ri, k] = q.argmin(axis=-1) - 1
             if q_out is not None:
-                mine = who[ri] == k
                 bm, rm = bi[mine], ri[mine]
                 q_out[bm, rm, :p] = q[mine, 1:]
                 if sc.n_idle:
                     q_out[bm, rm, rest_of[bm, rm]] = q[mine, 0]
         own = plan[:, np.arange(r), who]
-        return np.where(own >= 0, own, model.rest_action(ctx.prev[:, who])).astype(np.int64)
+        return np.where(own >= 0, own, rest_of).astype(np.int64)
 
 
 class AgentLookahead(RowPolicy):
@@ -493,7 +492,7 @@ class Teacher:
     def __init__(self, sc: Scenario, value: BaseValue, seed: int = 0, load_weight: float = 1.0) -> None:
         """`value`: the steps to go of the policy the team plays; `load_weight`: `Settings.load_weight`."""
         self.look = LookaheadPolicy(sc, value, seed=seed, floor=1.0)
-        self.sc, self.model, self.value = sc, self.look.model, value
+        self.sc, self.model = sc, self.look.model
         self.tables = RewardTables.build(sc)
         self.rates = load_rates(sc, load_weight)
 

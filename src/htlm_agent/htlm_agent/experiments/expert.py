@@ -208,8 +208,6 @@ class Played:
     actions: IntArray  # (S, N) what the team played
     levels: IntArray  # (X, p) every open true state visited
     to_go: FloatArray  # (X,) the steps the played policy took from it (bootstrapped past the horizon)
-    completion: float
-    failure_rate: float
 
 
 def play(sc: Scenario, policy: Policy, settings: Settings, first_batch: int, batches: int, value: BaseValue) -> Played:
@@ -218,7 +216,7 @@ def play(sc: Scenario, policy: Policy, settings: Settings, first_batch: int, bat
     s, n, h = settings, sc.n_agents, sc.horizon
     keep_share = min(1.0, LABEL_WORK / labeled_heads(n) / max(1, batches * s.envs * h))
     team = Team(sc, s.envs, s.seed)
-    ks, ms, acts, xs, ys, comps, fails = [], [], [], [], [], [], []
+    ks, ms, acts, xs, ys = [], [], [], [], []
     for bi in range(first_batch, first_batch + batches):
         team.sim.rng = seeds.train_world(s.seed, bi)
         team.sim.channel_rngs = [seeds.train_channel(s.seed, i, bi) for i in range(n)]
@@ -239,8 +237,6 @@ def play(sc: Scenario, policy: Policy, settings: Settings, first_batch: int, bat
             levels.append(info.levels)
         lv = np.stack(levels)  # (h + 1, B, p)
         comp, failed = completion_step(lv)
-        comps.append(comp)
-        fails.append(failed)
         open_ = lv[:h].any(axis=-1)  # (h, B)
         t = np.arange(h)[:, None]
         finished = np.where(failed, h + value(lv[h]), comp)[None, :]  # the step the episode finished (or would)
@@ -252,8 +248,6 @@ def play(sc: Scenario, policy: Policy, settings: Settings, first_batch: int, bat
         np.concatenate(acts),
         np.concatenate(xs),
         np.concatenate(ys).astype(np.float64),
-        float(np.concatenate(comps).mean()),
-        float(np.concatenate(fails).mean()),
     )
 
 
@@ -289,7 +283,7 @@ TEMPERATURE = 0.02
 weight: soft enough to share near-ties, sharp enough that the network ranks as the teacher does)."""
 
 
-def reassignments(sc: Scenario, metrics: dict[str, Any]) -> float:
+def reassignments(metrics: dict[str, Any]) -> float:
     """Moves to another site per episode before completion, the team's (`reassign_before_completion`)."""
     return float(metrics["reassign_before_completion"]["mean"])
 
@@ -335,12 +329,10 @@ def write_rounds(out: Path, rows: list[RoundRow], name: str, best: int) -> None:
 class ExpertRun:
     """What `train_expert` learned: the best round's network and every round's row."""
 
-    student: PolicyNet
     best_weights: list[list[Any]]
     best_round: int
     rows: list[RoundRow]
     episodes: int
-    value: BaseValue
 
 
 def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> ExpertRun:
@@ -365,7 +357,7 @@ def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> Exp
             RoundRow(
                 0, 0, round(time.perf_counter() - t0, 2), float("nan"), float("nan"), float("nan"), float("nan"),
                 base["completion"]["mean"], base["completion"]["se"], base["completion"]["failure_rate"],
-                base["unused_fraction"]["mean"], reassignments(sc, base),
+                base["unused_fraction"]["mean"], reassignments(base),
             )
         ]  # fmt: skip
         best = (math.inf, 0, student.weights())
@@ -390,7 +382,7 @@ def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> Exp
             rows.append(
                 RoundRow(
                     r, done, round(time.perf_counter() - t0, 2), rmse, changed, loss, agree, c["mean"], c["se"],
-                    c["failure_rate"], val["unused_fraction"]["mean"], reassignments(sc, val),
+                    c["failure_rate"], val["unused_fraction"]["mean"], reassignments(val),
                 )
             )  # fmt: skip
             if progress:
@@ -409,4 +401,4 @@ def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> Exp
     finally:
         bar.close()
         torch.set_num_threads(threads)
-    return ExpertRun(student, best[2], best[1], rows, done, value)
+    return ExpertRun(best[2], best[1], rows, done)
