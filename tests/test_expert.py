@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -92,11 +90,3 @@ def test_a_short_run_learns_the_teachers_choices_and_beats_the_auction(tmp_path:
     assert learned["mean"] < auction["mean"] and learned["failure_rate"] <= auction["failure_rate"]
     with pytest.raises(CheckpointError, match="nothing to resume"):
         train(builtin(), s, tmp_path / "run", progress=False, tensorboard=False, resume=True)
-
-
-def test_training_over_ros_refuses_the_expert_learner(tmp_path: Path) -> None:
-    """Its value learns from the true levels of the team's play, which the trainer node does not receive."""
-    cmd = [sys.executable, "-m", "htlm_agent.cli", "launch", "train", "--set", "learner=expert"]
-    r = subprocess.run([*cmd, "--run-dir", str(tmp_path / "ros")], capture_output=True, text=True, check=False)
-    assert r.returncode != 0 and "learner=expert learns in process only" in r.stderr
-    assert not (tmp_path / "ros").exists()

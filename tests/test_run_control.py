@@ -58,7 +58,9 @@ def _play(proto: Any, trained_upto: int) -> list[tuple[str, dict[str, Any]]]:
     now = 0.0
     for t in (1, 2):
         now += 0.01
-        out += proto.on_trainer({"run": "r", "trained": min(t - 1, trained_upto), "updates": 0}, now).publish
+        out += proto.on_trainer(
+            {"run": "r", "trained": min(t - 1, trained_upto), "updates": 0, "finished": False}, now
+        ).publish
         for k in range(n):
             out += proto.on_action({"agent": k, "episode": 0, "step": t, "actions": [4]}, now).publish
     for k in range(n):
@@ -72,7 +74,7 @@ def test_the_world_holds_the_end_of_a_training_run_until_the_trainer_has_every_s
     assert not any(k == "scenario" and f["state"] == "stopped" for k, f in out), "stopped before the last updates"
     assert proto.phase == "holding" and "waiting for the trainer" in proto.status()[1]
     assert proto.tick(10.0).publish == []
-    eff = proto.on_trainer({"run": "r", "trained": 2, "updates": 4}, 11.0)
+    eff = proto.on_trainer({"run": "r", "trained": 2, "updates": 4, "finished": False}, 11.0)
     assert [f["state"] for k, f in eff.publish if k == "scenario"] == ["stopped"]
 
 

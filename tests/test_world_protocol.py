@@ -293,7 +293,7 @@ def test_actions_of_another_length_are_rejected_and_the_agent_is_still_waited_fo
 
 
 def _progress(p: WorldProtocol, trained: int, now: float, run: str = "test") -> WorldEffects:
-    return p.on_trainer({"run": run, "trained": trained, "updates": 10 * trained}, now)
+    return p.on_trainer({"run": run, "trained": trained, "updates": 10 * trained, "finished": False}, now)
 
 
 def test_the_pace_gate_waits_for_the_trainer_and_gives_up_on_a_silent_one() -> None:

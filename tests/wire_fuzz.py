@@ -91,7 +91,7 @@ VALID: dict[str, dict[str, Any]] = {
         "sha256": "0" * 64,
         "settings": {},
     },
-    "htlm/trainer_progress": {"run": "r1", "trained": 90, "updates": 12},
+    "htlm/trainer_progress": {"run": "r1", "trained": 90, "updates": 12, "finished": False},
     "htlm/belief": {
         "agent": 1,
         "episode": 1,

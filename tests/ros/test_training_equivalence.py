@@ -3,7 +3,7 @@ launched team (world, five agents, trainer over real DDS; the world paces steps 
 agents act with the trainer's weights on the cadence) ends with exactly the Q-networks of the in-process
 htlm_agent.experiments.train.train(), 96 episodes in batches of 32, at trainer lag 0 (Algorithm 1 as written) and at the
 learner's default lag (the agents act with networks k steps older while the trainer's updates overlap their work),
-and for the token networks with a warm start on the auction."""
+for the token networks with a warm start on the auction; and the expert-iteration learner's rounds."""
 
 from __future__ import annotations
 
@@ -63,5 +63,39 @@ def test_training_over_ros_equals_htlm_train(ros_team: Any, tmp_path: Path, lag:
     assert len(got.weights) == len(ref.weights) == sc.n_agents
     for i, (a, b) in enumerate(zip(ref.weights, got.weights, strict=True)):
         assert len(a) == len(b)
+        for j, (x, y) in enumerate(zip(a, b, strict=True)):
+            assert np.array_equal(np.asarray(x), np.asarray(y)), f"agent {i} tensor {j} differs"
+
+
+EXPERT = {"learner": "expert", "episodes": 64, "envs": 16, "rounds": 2, "policy_updates": 100, "value_updates": 100}
+"""Two rounds of two batches of 16 episodes: the auction plays the first, the first round's policy the second."""
+
+
+def test_expert_iteration_over_ros_equals_htlm_train(tmp_path: Path) -> None:
+    """`htlm launch train --set learner=expert` (the world shares the true levels with the trainer, the trainer learns
+    each round while the world waits, the agents play each round's policy) ends with exactly the policy network and
+    the rounds of `htlm train --learner expert`."""
+    import subprocess
+    import sys
+
+    from htlm_agent.experiments.train import train
+
+    settings = Settings.for_learner(**EXPERT, validate_episodes=40, eval_episodes=0, seed=SEED)
+    train(builtin(), settings, tmp_path / "inproc", progress=False, tensorboard=False, evaluate_at_end=False)
+    ref = load_checkpoint(tmp_path / "inproc" / "checkpoint")
+
+    sets = [x for k, v in {**EXPERT, "validate_episodes": 40}.items() for x in ("--set", f"{k}={v}")]
+    cmd = [sys.executable, "-m", "htlm_agent.cli", "launch", "train", *sets, "--eval-episodes", "0", "--quiet"]
+    r = subprocess.run([*cmd, "--run-dir", str(tmp_path / "ros")], capture_output=True, text=True, timeout=200)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = load_checkpoint(tmp_path / "ros" / "trainer" / "checkpoint")
+    assert got.episodes_done == ref.episodes_done == EXPERT["episodes"]
+
+    def rounds(info: dict[str, Any]) -> list[dict[str, Any]]:
+        return [{k: v for k, v in row.items() if k != "wall_s"} for row in info["rounds"]]
+
+    assert len(rounds(got.info)) == 3 and str(rounds(got.info)) == str(rounds(ref.info))  # nan == nan as text
+    assert (tmp_path / "ros" / "trainer" / "rounds.png").exists()
+    for i, (a, b) in enumerate(zip(ref.weights, got.weights, strict=True)):
         for j, (x, y) in enumerate(zip(a, b, strict=True)):
             assert np.array_equal(np.asarray(x), np.asarray(y)), f"agent {i} tensor {j} differs"

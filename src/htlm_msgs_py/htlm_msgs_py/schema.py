@@ -584,10 +584,12 @@ WEIGHTS = Schema(
 )
 TRAINER_PROGRESS = Schema(
     "htlm/trainer_progress",
-    1,
-    {"run": _RUN, "trained": Int(0, SEQ_MAX), "updates": Int(0, SEQ_MAX)},
+    2,
+    {"run": _RUN, "trained": Int(0, SEQ_MAX), "updates": Int(0, SEQ_MAX), "finished": Bool()},
     doc="The trainer has done the gradient updates of every step whose global index (batch index x h + t - 1) is "
-    "below `trained`; the world paces its steps by it.",
+    "below `trained`; the world paces its steps by it. `finished`: the learner needs no more of the run (the "
+    "expert-iteration learner's rounds are over): the world ends it after the batch in progress, or before the one "
+    "it is beginning. Sent again (a heartbeat) while the trainer works on a round of its own.",
 )
 
 

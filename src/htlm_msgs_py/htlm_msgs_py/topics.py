@@ -108,7 +108,7 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(belief("<agent>"), "std_msgs/msg/String", "STATE", "htlm/belief", "<agent>", "monitoring"),
     TopicSpec(goal_pose("<agent>"), "geometry_msgs/msg/PoseStamped", "STATE", None, "<agent>", "navigation"),
     TopicSpec(goal("<agent>"), "std_msgs/msg/String", "STATE", "htlm/goal", "<agent>", "robot"),
-    TopicSpec(GROUND_TRUTH, "std_msgs/msg/String", "EVENTS", "htlm/ground_truth", "world", "monitoring"),
+    TopicSpec(GROUND_TRUTH, "std_msgs/msg/String", "EVENTS", "htlm/ground_truth", "world", "trainer, monitoring"),
     TopicSpec(EPISODE_METRICS, "std_msgs/msg/String", "EVENTS", "htlm/episode_metrics", "world", "trainer"),
     TopicSpec(MARKERS, "visualization_msgs/msg/MarkerArray", "STATE", None, "world", "RViz2, Foxglove"),
     TopicSpec(DIAGNOSTICS, "diagnostic_msgs/msg/DiagnosticArray", "DIAGNOSTICS", None, "every node", "monitoring"),

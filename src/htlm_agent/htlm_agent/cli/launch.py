@@ -212,6 +212,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     if args.mode == "train" and learner.dropout > 0:
         bad.append(f"train: --set dropout={learner.dropout!r}: training for resilience runs in process only")
     default_episodes = {"train": learner.episodes, "evaluate": 500, "deploy": 0}[args.mode]
+    if args.mode == "train" and learner.learner == "expert":  # every round whole, as `htlm train` plays them
+        default_episodes = learner.rounds * learner.round_batches * learner.envs
     episodes = args.episodes if args.episodes is not None else default_episodes
     batch = args.batch if args.batch is not None else {"train": learner.envs, "evaluate": 128, "deploy": 1}[args.mode]
     deployed = args.operation == "external" or args.robots == "sim"

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from htlm_agent.baselines.heuristics import AuctionPolicy
+from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
 from htlm_agent.baselines.lookahead import LOAD_CAP, BaseValue, Teacher, ValueSettings, load_rates
 from htlm_agent.experiments.evaluate import evaluate
 from htlm_agent.learning.qnet import init_params
@@ -210,45 +210,184 @@ class Played:
     to_go: FloatArray  # (X,) the steps the played policy took from it (bootstrapped past the horizon)
 
 
-def play(sc: Scenario, policy: Policy, settings: Settings, first_batch: int, batches: int, value: BaseValue) -> Played:
+class ExpertRounds:
+    """The learner between its rounds, fed the team's play a step at a time: in process by `play`, over ROS by the
+    trainer node (`htlm_agent.trainer.core`) from the agents' transitions and the world's true levels (centralized
+    training: the levels reach the trainer only). Both feed it the same steps in the same order, so both learn the
+    same networks.
+
+    `prepare` is round 0 (the value of the baseline on simulated episodes, the baseline's validation row); then, a
+    round at a time, `begin_batch` / `add_step` for every step of every batch the team plays with `acting()`,
+    `add_batch` with the batch's true levels, and `learn` at the end of the round's `Settings.round_batches` batches.
+    `finished` says when the rounds are over; `best` holds the best round's weights."""
+
+    def __init__(self, sc: Scenario, settings: Settings, progress: bool = True) -> None:
+        """The learner of `sc` with fresh networks; prints its warnings (`unread_settings`)."""
+        self.sc, self.s, self.progress = sc, settings, progress
+        self.t0 = time.perf_counter()
+        for warning in unread_settings(sc, settings):
+            print(f"warning: expert learner: {warning}", file=sys.stderr, flush=True)
+        self.per_round = settings.round_batches
+        h = sc.horizon
+        self.keep_share = min(1.0, LABEL_WORK / labeled_heads(sc.n_agents) / max(1, self.per_round * settings.envs * h))
+        """The share of played team steps the teacher judges (`LABEL_WORK`)."""
+        self.value = BaseValue(sc, ValueSettings(), settings.seed)
+        self.student = PolicyNet(sc, settings)
+        self.round = 1
+        """The round being played (1-based)."""
+        self.rows: list[RoundRow] = []
+        self.best: tuple[float, int, list[list[Any]]] = (math.inf, 0, self.student.weights())
+        """(validation completion, round, weights) of the best round so far (round 0: the fresh network)."""
+        self.done = 0
+        """Training episodes played."""
+        self.finished = False
+        self.data: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        self._clear()
+
+    def _clear(self) -> None:
+        self.ks: list[FloatArray] = []
+        self.ms: list[BoolArray] = []
+        self.acts: list[IntArray] = []
+        self.lvs: list[IntArray] = []
+        self.keep_rng: np.random.Generator | None = None
+
+    def baseline(self) -> Policy:
+        """The team policy of round 1 (`Settings.warm_baseline`)."""
+        return AuctionPolicy(self.sc) if self.s.warm_baseline == "auction" else GreedyPolicy(self.sc)
+
+    def acting(self) -> Policy:
+        """The policy the team plays in the current round: the baseline in round 1, then the last round's network."""
+        return self.baseline() if self.round == 1 else self.student.policy()
+
+    def prepare(self) -> None:
+        """Round 0: the lookahead's value of the auction on simulated episodes (round 1's teacher) and the
+        baseline's validation row."""
+        if self.progress:
+            print("expert: the value of the auction on simulated episodes (round 0's teacher)", file=sys.stderr)
+        self.value.fit()
+        base = evaluate(self.baseline(), self.sc, self.s.validate_episodes, seed=seeds.validation(self.s.seed))
+        self.rows = [
+            RoundRow(
+                0, 0, round(time.perf_counter() - self.t0, 2), float("nan"), float("nan"), float("nan"),
+                float("nan"), base["completion"]["mean"], base["completion"]["se"],
+                base["completion"]["failure_rate"], base["unused_fraction"]["mean"], reassignments(base),
+            )
+        ]  # fmt: skip
+
+    def begin_batch(self, bi: int) -> None:
+        """Training batch `bi` (its index in the run) begins: its draws of the team steps the teacher keeps."""
+        self.keep_rng = seeds.expert_keep(self.s.seed, bi)
+
+    def add_step(self, k32: FloatArray, m: BoolArray, a: IntArray) -> None:
+        """One team step of the batch: every agent's knowledge state (B, N, K) as sent (float32 values), Â (B, N,
+        |Ḡ|) and the actions played (B, N); a random share (`keep_share`) of the B rows is kept for the teacher."""
+        assert self.keep_rng is not None, "begin_batch first"
+        keep = self.keep_rng.random(len(a)) < self.keep_share
+        self.ks.append(np.asarray(k32[keep], dtype=np.float32))
+        self.ms.append(np.asarray(m[keep], dtype=bool))
+        self.acts.append(np.asarray(a[keep], dtype=np.int64))
+
+    def skip_step(self, rows: int) -> None:
+        """A team step of the batch left out (over ROS: some agent's transitions did not come): its draw is
+        made, so that the batch's other steps keep theirs."""
+        assert self.keep_rng is not None, "begin_batch first"
+        self.keep_rng.random(rows)
+
+    def add_batch(self, lv: IntArray) -> None:
+        """The batch's true levels, (h + 1, B, p) from the initial ones; counts its episodes."""
+        self.lvs.append(np.asarray(lv, dtype=np.int64))
+        self.done += lv.shape[1]
+
+    def played(self) -> Played:
+        """The round's play: the kept steps, and every open true state with the steps the play took from it to
+        finish (the value's prediction past the horizon where an episode did not finish)."""
+        h = self.sc.horizon
+        xs, ys = [], []
+        for lv in self.lvs:
+            comp, failed = completion_step(lv)
+            open_ = lv[:h].any(axis=-1)  # (h, B)
+            t = np.arange(h)[:, None]
+            finished = np.where(failed, h + self.value(lv[h]), comp)[None, :]  # the step it finished (or would)
+            xs.append(lv[:h][open_])
+            ys.append(np.broadcast_to(finished - t, (h, lv.shape[1]))[open_])
+        n, p, na = self.sc.n_agents, self.sc.n_tasks, self.sc.n_actions
+        ks = self.ks or [np.zeros((0, n, self.sc.knowledge_size), np.float32)]
+        ms = self.ms or [np.zeros((0, n, na), bool)]
+        acts = self.acts or [np.zeros((0, n), np.int64)]
+        return Played(
+            np.concatenate(ks),
+            np.concatenate(ms),
+            np.concatenate(acts),
+            np.concatenate(xs) if xs else np.zeros((0, p), np.int64),
+            np.concatenate(ys).astype(np.float64) if ys else np.zeros(0),
+        )
+
+    def learn(self) -> RoundRow:
+        """The end of a round: evaluate (the value on the play, from round 2), improve (the teacher), learn (the
+        policy network) and validate; decides whether the rounds are over (`finished`)."""
+        s, r = self.s, self.round
+        played = self.played()
+        self._clear()
+        rmse = float("nan")  # the first round's value: the auction's on simulated true levels (the lookahead's)
+        if r > 1 and len(played.to_go):
+            rmse = self.value.regress(played.levels, played.to_go, s.value_updates, seeds.expert_round(s.seed, r, 1))
+        teacher = Teacher(self.sc, self.value, s.seed, s.load_weight)
+        better, worth = improve(teacher, self.sc, played, seeds.expert_round(s.seed, r, 0))
+        labeled = better >= 0
+        changed = float((better != played.actions)[labeled].mean()) if labeled.any() else float("nan")
+        self.data = [*self.data[-1:], self.student.tokens(played.knowledge, played.mask, worth)]
+        tok, allowed, w = (torch.cat([d[j] for d in self.data]) for j in range(3))
+        loss, agree = float("nan"), float("nan")
+        if len(tok):
+            loss, agree = self.student.learn(tok, allowed, w, s.policy_updates, seeds.expert_round(s.seed, r, 2))
+        val = evaluate(self.student.policy(), self.sc, s.validate_episodes, seed=seeds.validation(s.seed))
+        c = val["completion"]
+        row = RoundRow(
+            r, self.done, round(time.perf_counter() - self.t0, 2), rmse, changed, loss, agree, c["mean"], c["se"],
+            c["failure_rate"], val["unused_fraction"]["mean"], reassignments(val),
+        )  # fmt: skip
+        self.rows.append(row)
+        if self.progress:
+            print(
+                f"expert: round {r}: validation {c['mean']:.2f} ± {c['se']:.2f} steps, failures "
+                f"{c['failure_rate']:.1%} (teacher changed {changed:.1%} of the play, policy agrees with "
+                f"{agree:.1%}; value rmse {rmse:.2f})",
+                file=sys.stderr,
+                flush=True,
+            )
+        if c["mean"] < self.best[0]:  # a failed episode counts as the horizon
+            self.best = (c["mean"], r, self.student.weights())
+            self.finished = r >= s.rounds
+        else:
+            self.finished = True
+        self.round += 1
+        return row
+
+
+def play(ex: ExpertRounds, first_batch: int, batches: int) -> None:
     """`batches` batches of `envs` training episodes from training batch `first_batch` on (the training streams of
-    `seeds`), every agent ε-greedily (`eps_end`) around `policy`'s choice from its own knowledge state."""
-    s, n, h = settings, sc.n_agents, sc.horizon
-    keep_share = min(1.0, LABEL_WORK / labeled_heads(n) / max(1, batches * s.envs * h))
+    `seeds`, as the world and the agents draw them over ROS), every agent ε-greedily (`eps_end`) around the round's
+    policy (`ExpertRounds.acting`) from its own knowledge state, fed to `ex` step by step."""
+    sc, s = ex.sc, ex.s
+    n, h = sc.n_agents, sc.horizon
+    policy = ex.acting()
     team = Team(sc, s.envs, s.seed)
-    ks, ms, acts, xs, ys = [], [], [], [], []
     for bi in range(first_batch, first_batch + batches):
         team.sim.rng = seeds.train_world(s.seed, bi)
         team.sim.channel_rngs = [seeds.train_channel(s.seed, i, bi) for i in range(n)]
         team.event_rng = seeds.train_events(s.seed, bi)
         rngs = [seeds.train_explore(s.seed, i, bi) for i in range(n)]
-        keep_rng = seeds.expert_keep(s.seed, bi)
+        ex.begin_batch(bi)
         k = team.reset()
         levels = [team.sim.levels.copy()]
         for _ in range(h):
             m = team.mask()
-            k32 = k.astype(np.float32).astype(np.float64)  # what a policy reads off the wire
-            a = team.force_inactive(team_epsilon_greedy(policy.act(knowledge_context(sc, k32, m)), m, s.eps_end, rngs))
-            keep = keep_rng.random(s.envs) < keep_share
-            ks.append(k32[keep].astype(np.float32))
-            ms.append(m[keep])
-            acts.append(a[keep])
+            # every agent acts on its own knowledge; the learner keeps it as the trainer receives it (float32)
+            a = team.force_inactive(team_epsilon_greedy(policy.act(knowledge_context(sc, k, m)), m, s.eps_end, rngs))
+            ex.add_step(k.astype(np.float32).astype(np.float64), m, a)
             k, _, info = team.step(a)
             levels.append(info.levels)
-        lv = np.stack(levels)  # (h + 1, B, p)
-        comp, failed = completion_step(lv)
-        open_ = lv[:h].any(axis=-1)  # (h, B)
-        t = np.arange(h)[:, None]
-        finished = np.where(failed, h + value(lv[h]), comp)[None, :]  # the step the episode finished (or would)
-        xs.append(lv[:h][open_])
-        ys.append(np.broadcast_to(finished - t, (h, s.envs))[open_])
-    return Played(
-        np.concatenate(ks),
-        np.concatenate(ms),
-        np.concatenate(acts),
-        np.concatenate(xs),
-        np.concatenate(ys).astype(np.float64),
-    )
+        ex.add_batch(np.stack(levels))
 
 
 def improve(
@@ -336,69 +475,19 @@ class ExpertRun:
 
 
 def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> ExpertRun:
-    """The rounds of the module docstring; returns the best round's weights and every round's row."""
+    """The rounds of the module docstring, in process; returns the best round's weights and every round's row."""
     s = settings
-    t0 = time.perf_counter()
-    for warning in unread_settings(sc, s):
-        print(f"warning: expert learner: {warning}", file=sys.stderr, flush=True)
     threads = torch.get_num_threads()
     torch.set_num_threads(s.threads)
-    per_round = max(1, math.ceil(s.episodes / s.rounds / s.envs))  # batches of `envs` episodes a round
-    value = BaseValue(sc, ValueSettings(), s.seed)  # the lookahead learner's value of the auction, first
-    bar = Progress(s.rounds * per_round * s.envs, unit="ep", enabled=progress)
+    ex = ExpertRounds(sc, s, progress)
+    bar = Progress(s.rounds * ex.per_round * s.envs, unit="ep", enabled=progress)
     try:
-        if progress:
-            print("expert: the value of the auction on simulated episodes (round 0's teacher)", file=sys.stderr)
-        value.fit()
-        student = PolicyNet(sc, s)
-        acting: Policy = AuctionPolicy(sc)
-        base = evaluate(acting, sc, s.validate_episodes, seed=seeds.validation(s.seed))
-        rows = [
-            RoundRow(
-                0, 0, round(time.perf_counter() - t0, 2), float("nan"), float("nan"), float("nan"), float("nan"),
-                base["completion"]["mean"], base["completion"]["se"], base["completion"]["failure_rate"],
-                base["unused_fraction"]["mean"], reassignments(base),
-            )
-        ]  # fmt: skip
-        best = (math.inf, 0, student.weights())
-        data: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
-        done = 0
-        for r in range(1, s.rounds + 1):
-            played = play(sc, acting, s, (r - 1) * per_round, per_round, value)
-            done += per_round * s.envs
-            bar.update(done, round=r)
-            rmse = float("nan")  # the first round's value: the auction's on simulated true levels (the lookahead's)
-            if r > 1:
-                rmse = value.regress(played.levels, played.to_go, s.value_updates, seeds.expert_round(s.seed, r, 1))
-            teacher = Teacher(sc, value, s.seed, s.load_weight)
-            better, worth = improve(teacher, sc, played, seeds.expert_round(s.seed, r, 0))
-            labeled = better >= 0
-            changed = float((better != played.actions)[labeled].mean())
-            data = [*data[-1:], student.tokens(played.knowledge, played.mask, worth)]
-            tok, allowed, w = (torch.cat([d[j] for d in data]) for j in range(3))
-            loss, agree = student.learn(tok, allowed, w, s.policy_updates, seeds.expert_round(s.seed, r, 2))
-            val = evaluate(student.policy(), sc, s.validate_episodes, seed=seeds.validation(s.seed))
-            c = val["completion"]
-            rows.append(
-                RoundRow(
-                    r, done, round(time.perf_counter() - t0, 2), rmse, changed, loss, agree, c["mean"], c["se"],
-                    c["failure_rate"], val["unused_fraction"]["mean"], reassignments(val),
-                )
-            )  # fmt: skip
-            if progress:
-                print(
-                    f"expert: round {r}: validation {c['mean']:.2f} ± {c['se']:.2f} steps, failures "
-                    f"{c['failure_rate']:.1%} (teacher changed {changed:.1%} of the play, policy agrees with "
-                    f"{agree:.1%}; value rmse {rmse:.2f})",
-                    file=sys.stderr,
-                    flush=True,
-                )
-            if c["mean"] < best[0]:  # a failed episode counts as the horizon
-                best = (c["mean"], r, student.weights())
-            else:
-                break
-            acting = student.policy()
+        ex.prepare()
+        while not ex.finished:
+            play(ex, (ex.round - 1) * ex.per_round, ex.per_round)
+            bar.update(ex.done, round=ex.round)
+            ex.learn()
     finally:
         bar.close()
         torch.set_num_threads(threads)
-    return ExpertRun(best[2], best[1], rows, done)
+    return ExpertRun(ex.best[2], ex.best[1], ex.rows, ex.done)

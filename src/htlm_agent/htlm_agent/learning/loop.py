@@ -21,8 +21,8 @@ from htlm_world.types import FloatArray
 def episode_epsilons(settings: Settings, episodes_done: int, batch: int) -> tuple[float, float | FloatArray]:
     """ε of the schedule, and the ε of each of the batch's episodes: ε for all, or with `eps_spread` from 0 (greedy
     episodes) to 2ε, mean ε; eps_end for all in the warm start (`Settings.warm_start`), around the baseline's
-    choices."""
-    if settings.warm_start(episodes_done):
+    choices; eps_end for all throughout for the expert-iteration learner, which plays its policy around ε = eps_end."""
+    if settings.warm_start(episodes_done) or settings.learner == "expert":
         return settings.eps_end, settings.eps_end
     eps = settings.epsilon(episodes_done)
     if settings.eps_spread and batch > 1:

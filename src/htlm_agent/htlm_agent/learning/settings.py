@@ -46,10 +46,10 @@ LOOKAHEAD_PRESET: dict[str, Any] = {
 """The settings the lookahead learner starts from (`with_preset`; docs/model.md, The lookahead learner): 10,000
 simulated episodes and minibatches of 2,048 states for its value network."""
 
-IN_PROCESS_ONLY = frozenset({"lookahead", "expert"})
+IN_PROCESS_ONLY = frozenset({"lookahead"})
 """The learners that learn in process only (`IN_PROCESS_WHY`): the lookahead's value network learns from simulated
-episodes, and the expert-iteration learner's value network from the true levels of its own play, which the
-trainer node does not receive."""
+episodes, not from the team's play. (The expert-iteration learner learns from the team's play and, in training, the
+world's true levels, which the trainer node receives on /htlm/ground_truth.)"""
 IN_PROCESS_WHY = (
     "learns in process only (from the true levels of simulated episodes, which a trainer node does not receive): "
     "train it with `htlm train`, then run the team with `htlm launch evaluate --checkpoint RUN`"
@@ -66,11 +66,14 @@ EXPERT_PRESET: dict[str, Any] = {
     "rounds": 4,
     "episodes": 8192,
     "envs": 256,
+    "imitate": "auction",
+    "trainer_lag": 0,
     "batch_size": 1024,
     "value_updates": 1500,
 }
 """The settings the expert-iteration learner starts from (`with_preset`; docs/model.md, The expert-iteration
-learner): the token network's layers for its policy, up to 8,192 episodes of its own play (4 rounds of 2,048),
+learner): the token network's layers for its policy, the auction playing the first round, up to 8,192 episodes of
+its own play (4 rounds of 2,048),
 1,500 updates of the value network a round on what the team played, minibatches of 1,024 agent-steps for the
 policy."""
 
@@ -239,8 +242,20 @@ class Settings:
             )
         if self.imitate_updates < 1:
             raise ValueError(f"settings.imitate_updates: {self.imitate_updates!r} must be >= 1")
-        if self.imitate != "none" and self.learner != "tokens":
-            raise ValueError(f"settings.imitate: {self.imitate!r} needs learner 'tokens', not {self.learner!r}")
+        if self.imitate != "none" and self.learner not in ("tokens", "expert"):
+            raise ValueError(
+                f"settings.imitate: {self.imitate!r} needs learner 'tokens' or 'expert', not {self.learner!r}"
+            )
+        if self.learner == "expert" and self.trainer_lag != 0:
+            raise ValueError(
+                f"settings.trainer_lag: {self.trainer_lag!r}: the expert-iteration learner's rounds play each policy "
+                "whole (0)"
+            )
+        if self.learner == "expert" and self.imitate == "qmdp":
+            raise ValueError(
+                "settings.imitate: 'qmdp': the expert-iteration learner's first round is played by 'auction' or "
+                "'greedy'"
+            )
         if self.envs > self.memory:
             raise ValueError(f"settings.envs: {self.envs!r} must not exceed settings.memory {self.memory!r}")
 
@@ -266,8 +281,24 @@ class Settings:
 
     def warm_start(self, episodes_done: int) -> bool:
         """Whether the batch after `episodes_done` training episodes is one of the warm start: the baseline of
-        `imitate` acts (ε-greedily with eps_end) and the networks learn to rank its choices first."""
+        `imitate` acts (ε-greedily with eps_end) and the networks learn to rank its choices first; the
+        expert-iteration learner's first round (`round_batches`), which the baseline plays."""
+        if self.learner == "expert":
+            return episodes_done < self.round_batches * self.envs
         return self.imitate != "none" and episodes_done < self.imitate_episodes
+
+    @property
+    def warm_baseline(self) -> str:
+        """The baseline that acts in the warm start (`warm_start`): `imitate`; the expert-iteration learner's first
+        round is the auction's unless `imitate` names greedy."""
+        if self.learner == "expert" and self.imitate == "none":
+            return "auction"
+        return self.imitate
+
+    @property
+    def round_batches(self) -> int:
+        """expert: the batches of `envs` episodes a round plays (`episodes` / `rounds`, rounded up)."""
+        return max(1, -(-self.episodes // (self.rounds * self.envs)))
 
     @property
     def selection_from(self) -> float:

@@ -271,6 +271,12 @@ def prepare(cfg: LaunchConfig) -> list[tuple[ProcessSpec, Path]]:
     ]
 
 
+EXPERT_WEIGHTS_TIMEOUT = 3600.0
+"""Seconds an agent of an expert-iteration training run waits for the weights of a step (a round's learning, between
+the last step of a round and the first of the next, takes minutes on a large team; the trainer tells the world it is
+alive meanwhile)."""
+
+
 def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     """(name, module, parameters) of every process this host starts."""
     run = cfg.run_dir.resolve()
@@ -308,6 +314,8 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         params: dict[str, Any] = {"agent": a.name, "policy": cfg.policy, "run_dir": str(run)}
         if cfg.robots == "sim":  # arrival from the simulated robot's odometry
             params.update({"pose_topic": f"/htlm/{a.name}/odom", "pose_type": "odometry"})
+        if learner.get("learner") == "expert":  # the first step of a round waits for the round's learning
+            params["weights_timeout"] = EXPERT_WEIGHTS_TIMEOUT
         params.update(cfg.agent_params)
         if cfg.checkpoint:
             params["checkpoint"] = str(Path(cfg.checkpoint).resolve())

@@ -169,14 +169,14 @@ def _leave_out(data: dict[str, Any], steps: list[str | int], left_out: set[tuple
 def learner_problems(values: dict[str, Any], src: str = "--set") -> list[str]:
     """Problems of the learner settings given on the command line (every bad key; empty when they are valid)."""
     try:
-        Settings.from_dict(values, src)
+        Settings.from_dict(Settings.with_preset(values), src)
         return []
     except ValueError as e:
         whole = str(e)
     each = []
     for k, v in values.items():
         try:
-            Settings.from_dict({k: v}, src)
+            Settings.from_dict(Settings.with_preset({k: v}), src)
         except ValueError as e:
             each.append(str(e))
     return each or [whole]  # no key is bad alone: a problem between keys

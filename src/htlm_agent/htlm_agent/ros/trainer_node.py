@@ -70,6 +70,7 @@ class TrainerNode(Node):
         subscribe_records(self, topics.TRANSITIONS, EVENTS, self._on_transition)
         subscribe_records(self, topics.EPISODE_METRICS, EVENTS, self._on_metrics)
         subscribe_records(self, topics.STEP, EVENTS, self._on_step)
+        subscribe_records(self, topics.GROUND_TRUTH, EVENTS, self._on_ground_truth)
         self.world = WorldWatch(self, self.health, s.world_timeout)
         say_unsigned(self, self.signer)
         self.create_timer(s.diagnostics_period, self._publish_health)
@@ -120,6 +121,13 @@ class TrainerNode(Node):
             return
         self.world.heard()
         self._apply(self.core.on_step(rec, time.monotonic()))
+
+    def _on_ground_truth(self, msg: bytes) -> None:
+        if self.core.rounds_of is None:  # only the expert-iteration learner reads the true levels
+            return
+        rec = self.health.decode("ground_truth", msg, S.GROUND_TRUTH, self.lim)
+        if rec is not None:
+            self._apply(self.core.on_ground_truth(rec))
 
     def _on_metrics(self, msg: bytes) -> None:
         rec = self.health.decode("episode_metrics", msg, S.EPISODE_METRICS, self.lim)

@@ -105,7 +105,7 @@ class WeightsClient:
         assert self.scenario is not None
         ls = self.learner
         if ls is not None and self.training and ls.warm_start(episode):  # episode: as `epsilon` counts
-            return self._expert(ls.imitate)  # the warm start: the baseline acts, no weights needed
+            return self._expert(ls.warm_baseline)  # the warm start: the baseline acts, no weights needed
         from htlm_agent.learning.loop import acting_weights  # gated: a training run on the trainer's weights (torch)
 
         g = global_step(episode, self.batch, t, self.scenario.horizon)

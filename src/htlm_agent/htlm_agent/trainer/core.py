@@ -19,7 +19,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -29,6 +29,14 @@ from htlm_msgs_py.payload import seal
 from htlm_msgs_py.run_control import REFUSED, RunControl, Verdict
 from htlm_world.episode import global_step
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
+
+if TYPE_CHECKING:
+    from htlm_agent.trainer.expert import ExpertTrainer
+
+
+HEARTBEAT = 1.0
+"""Seconds between progress records while the expert's round of learning runs (the world's trainer_deadline and
+end_hold count the trainer's silence)."""
 
 
 @dataclass(frozen=True)
@@ -183,6 +191,14 @@ class TrainerCore:
         self._settings_dict: dict[str, Any] | None = None
         self.world_episode = -1
         """The first episode of the latest batch the world's step records announced (-1: none yet in this run)."""
+        self.rounds_of: ExpertTrainer | None = None
+        """The expert-iteration learner (`trainer.expert`; then also `learner`), None for the Q-learners."""
+        self.held = False
+        """Whether the last step's announcement waits for the expert's round of learning."""
+        self.heard_at = 0.0
+        """When the last progress record went out (the heartbeat while a round learns)."""
+        self.finished = False
+        """Whether the learner has finished (the expert's rounds are over): the world ends the run."""
 
     def _next_epoch(self) -> int:
         """A counter of trainer starts in this run directory, so weight versions grow across restarts."""
@@ -297,6 +313,9 @@ class TrainerCore:
             return
         if settings.learner in IN_PROCESS_ONLY:
             raise ValueError(f"{self.learner_source}: settings.learner: {settings.learner!r} {IN_PROCESS_WHY}")
+        if settings.learner == "expert":
+            self._start_expert(sc, settings, ckpt, out)
+            return
         fed = 0
         info: dict[str, Any] = {}
         if (ckpt / "meta.json").exists():
@@ -359,6 +378,38 @@ class TrainerCore:
                 f"run {self.run}: training {sc.n_agents} agents of {sc.name}/{sc.team} in batches of {self.batch}; "
                 f"store {store_path} holds {self.store.count} transitions ({self.store.truncated} torn records cut, "
                 f"{replayed} fed to the learner); trained up to step {self.trained}",
+            )
+        )
+
+    def _start_expert(self, sc: Scenario, settings: Settings, ckpt: Path, out: TrainerEffects) -> None:
+        """Start the expert-iteration learner (`trainer.expert`): its weights change once a round.
+
+        Raises:
+            StoreError: a run directory that already holds transitions or a checkpoint (the learner's rounds do not
+                resume: they are quick to run again in a new run_dir).
+        """
+        from htlm_agent.trainer.expert import ExpertTrainer
+
+        assert self.store is not None
+        if self.store.count or ckpt.exists():
+            raise StoreError(
+                f"{self.dir}: holds transitions or a checkpoint, and the expert-iteration learner does not resume a "
+                "run (its rounds are quick to run again): use a new run_dir"
+            )
+        self.rounds_of = self.learner = ExpertTrainer(sc, settings, self.run_range[0], self.batch)
+        self.schedule = Schedule(
+            weights_every=settings.round_batches * sc.horizon,
+            round_deadline=self.schedule.round_deadline,
+            checkpoint_every=0,
+        )
+        (self.dir / "settings.json").write_text(json.dumps(settings.to_dict(), indent=1) + "\n")
+        self._announce(out, force_weights=True)
+        out.log.append(
+            (
+                "info",
+                f"run {self.run}: expert iteration for {sc.n_agents} agents of {sc.name}/{sc.team}: up to "
+                f"{settings.rounds} rounds of {settings.round_batches} batches of {self.batch} episodes, the first "
+                f"played by the {settings.warm_baseline}",
             )
         )
 
@@ -459,7 +510,8 @@ class TrainerCore:
             return out
         if g < self.trained:  # its round is over (a late or resent record): it joins the memories now
             out.counters["late_transitions"] += 1
-            self._store_one(rec)
+            if self.rounds_of is None:  # the expert's rounds take a step whole or not at all
+                self._store_one(rec)
             return out
         rnd = self.rounds.setdefault(g, _Round(episode=rec["episode"], step=rec["step"], size=n))
         if rnd.since is None:
@@ -506,11 +558,76 @@ class TrainerCore:
         self._run_rounds(now, out)
         return out
 
-    def tick(self, now: float) -> TrainerEffects:
-        """Run the rounds whose wait for late agents is over."""
+    def on_ground_truth(self, rec: dict[str, Any]) -> TrainerEffects:
+        """A decoded /htlm/ground_truth record: the true levels of a step, which the expert-iteration learner's value
+        learns from (the other learners do not read them)."""
         out = TrainerEffects()
+        if self.rounds_of is None or self.mode != "train":
+            return out
+        if rec["run"] != self.run or not self.in_run(rec["episode"]) or self.batch_rows(rec["episode"]) == 0:
+            out.drops.append(("ground_truth", "outside_run"))
+            return out
+        levels = rec["levels"]
+        if rec["step"] < 1 or len(levels) != self.batch_rows(rec["episode"]):
+            out.rejects.append(("ground_truth", "length", f"{len(levels)} rows at step {rec['step']}"))
+            return out
+        self.rounds_of.on_truth(rec["episode"], rec["step"], levels)
+        return out
+
+    def tick(self, now: float) -> TrainerEffects:
+        """Run the rounds whose wait for late agents is over; the expert's round of learning: start it once the
+        round's true levels are in, announce its end (new weights) when the worker is done, a heartbeat every
+        `HEARTBEAT` seconds meanwhile."""
+        out = TrainerEffects()
+        ex = self.rounds_of
+        if ex is not None and self.held and self.fatal is None:
+            try:
+                self._expert_tick(ex, now, out)
+            except Exception as e:  # the worker's error is the trainer's
+                self._fail(f"the expert-iteration learner failed: {type(e).__name__}: {e}", out)
+                return out
         self._run_rounds(now, out)
         return out
+
+    def _expert_tick(self, ex: ExpertTrainer, now: float, out: TrainerEffects) -> None:
+        if ex.busy:
+            if now - self.heard_at >= HEARTBEAT:
+                self._announce(out, now=now)
+            return
+        if ex.job is not None:  # round 0 done, or a round's learning
+            row = ex.result()
+            if row is None:
+                out.log.append(("info", f"expert: round 0 (the {ex.settings.warm_baseline}): validation "
+                                f"{ex.rounds.rows[0].val_completion:.2f} steps"))  # fmt: skip
+            else:
+                self.updates = ex.updates
+                self._log_round(row, out)
+                self.held = False
+                self.finished = ex.finished
+                if self.finished:
+                    out.log.append(
+                        ("info", f"expert: the rounds are over; the run's policy is round {ex.rounds.best[1]}'s")
+                    )
+                self._announce(out, force_weights=True, now=now)
+                return
+        if ex.ended and ex.rounds.rows and ex.truth_ready(now, self.schedule.round_deadline):  # round 0 is done
+            ex.learn()
+            out.log.append(("info", f"expert: round {ex.rounds.round} played ({ex.episodes_done} episodes): learning"))
+        if now - self.heard_at >= HEARTBEAT:
+            self._announce(out, now=now)
+
+    def _log_round(self, row: Any, out: TrainerEffects) -> None:
+        self._write_log({"episodes": row.episodes, "round": row.round, "val_completion": row.val_completion,
+                         "val_failure_rate": row.val_failure_rate, "val_unused_fraction": row.val_unused_fraction,
+                         "loss": row.policy_loss, "updates": self.updates})  # fmt: skip
+        out.log.append(
+            (
+                "info",
+                f"expert: round {row.round}: validation completion {row.val_completion:.2f} ± {row.val_se:.2f}, "
+                f"failures {row.val_failure_rate:.1%} (teacher changed {row.changed:.1%}, policy agrees with "
+                f"{row.agreement:.1%}; {row.wall_s:.0f} s since the start)",
+            )
+        )
 
     def _ready(self, rnd: _Round, now: float) -> bool:
         assert self.scenario is not None
@@ -522,7 +639,7 @@ class TrainerCore:
 
     def _run_rounds(self, now: float, out: TrainerEffects) -> None:
         """Every round that is due, in order of the global step."""
-        while self.learner is not None and self.fatal is None:
+        while self.learner is not None and self.fatal is None and not self.held and not self.finished:
             rnd = self.rounds.get(self.trained)
             if rnd is None:
                 later = [r for g, r in self.rounds.items() if g > self.trained]
@@ -544,6 +661,12 @@ class TrainerCore:
         """Store the step's transitions in the memories (agent order) and do updates_per_step updates."""
         sc = self.scenario
         assert sc is not None
+        if self.rounds_of is not None:  # the expert's rounds: the step joins the round's play
+            whole = len(rnd.records) == sc.n_agents
+            if not whole:
+                out.counters["partial_rounds"] += 1
+            self.rounds_of.step(rnd.episode, rnd.step, [rnd.records[i] for i in range(sc.n_agents)] if whole else None)
+            return
         if len(rnd.records) == sc.n_agents:  # everyone: exactly `htlm train`'s store_batch of the step
             recs = [rnd.records[i] for i in range(sc.n_agents)]
             k = np.stack([r["k"] for r in recs], axis=1)
@@ -581,10 +704,15 @@ class TrainerCore:
                 bool(rec["done"]),
             )
 
-    def _announce(self, out: TrainerEffects, force_weights: bool = False) -> None:
-        """The progress record, and the weights when the cadence says so."""
+    def _announce(self, out: TrainerEffects, force_weights: bool = False, now: float | None = None) -> None:
+        """The progress record, and the weights when the cadence says so; while an expert round learns (`held`),
+        the progress up to the step before (a heartbeat: the world keeps waiting, and knows the trainer lives)."""
         assert self.run is not None
-        out.progress.append({"run": self.run, "trained": self.trained, "updates": self.updates})
+        self.heard_at = time.monotonic() if now is None else now
+        trained = self.trained - 1 if self.held else self.trained
+        out.progress.append({"run": self.run, "trained": trained, "updates": self.updates, "finished": self.finished})
+        if self.held:
+            return
         if force_weights or (self.trained - self.first_step) % self.schedule.weights_every == 0:
             out.weights.extend(self.publish_weights())
 
@@ -592,6 +720,12 @@ class TrainerCore:
         """The last round of a batch: count its episodes, validate and select as `htlm train`, checkpoint when due."""
         from htlm_agent.experiments.train import validate
 
+        if self.rounds_of is not None:  # the expert: a round's last batch starts its learning
+            self.episodes_seen = self.rounds_of.episodes_done + rnd.size
+            self._write_log({"episodes": self.episodes_seen, "round": self.rounds_of.rounds.round})
+            if self.rounds_of.end_batch(rnd.episode, rnd.size, time.monotonic()):
+                self.held = True  # the step's announcement waits for the round's learning (`tick`)
+            return
         s = self.learner.settings
         self.learner.episodes_done += rnd.size
         self.episodes_seen = int(self.learner.episodes_done)
@@ -710,6 +844,11 @@ class TrainerCore:
             return
         self._flush(out)
         t0 = time.monotonic()
+        if self.rounds_of is not None:
+            path = self.rounds_of.save(self.dir / "checkpoint", {"store_records": self.store.count, "run": self.run})
+            out.counters["checkpoints"] += 1
+            out.log.append(("info", f"checkpoint {path}: round {self.rounds_of.rounds.best[1]}'s policy"))
+            return
         s = self.learner.settings
         policy = self.selection.flat if (s.select_best and self.selection is not None) else None
         pending = [
@@ -732,6 +871,8 @@ class TrainerCore:
             self._flush(out)
             if self.fatal is None:
                 self._run_rounds(clock() + 1e9, out)  # whatever came: no more waiting
+                if self.rounds_of is not None:
+                    self.rounds_of.finish()  # a round whose play is in is learned before the checkpoint
                 self.checkpoint(out)
             self.store.close()
             self.store = None

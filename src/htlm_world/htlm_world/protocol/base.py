@@ -88,7 +88,10 @@ class WorldProtocol(ABC):
         self.trainer_live = True
         """Whether the world waits for the trainer (it is heard, or has not yet been given up on)."""
         self.gate_since: float | None = None
-        """Since when the current step waits for the trainer (None: it does not)."""
+        """Since when the current step waits for the trainer (None: it does not); a progress record starts the wait
+        again (the trainer is silent for trainer_deadline before it is given up)."""
+        self.trainer_finished = False
+        """Whether the trainer said it needs no more of the run (a training run ends after the batch in progress)."""
         self.episodes_done = 0
         self.absent_total = 0
         self._absent_warned = -math.inf
@@ -231,6 +234,19 @@ class WorldProtocol(ABC):
         if not self.trainer_live:
             self.trainer_live = True
             out.log.append(("info", f"the trainer is back (trained up to step {self.trained})"))
+        if self.gate_since is not None:  # heard: the wait for a silent trainer starts again
+            self.gate_since = now
+        if self.holding_for_trainer:
+            self.hold_until = max(self.hold_until, now + self.settings.end_hold)
+        if rec["finished"] and self.settings.mode == "train" and not self.trainer_finished:
+            self.trainer_finished = True
+            out.log.append(
+                ("info", f"the trainer has finished learning (trained up to step {self.trained}): the run ends")
+            )
+            if self.joining and self.phase == Phase.ACT:  # the batch beginning has not started: it is not run
+                self.joining = False
+                self.gate_since = None
+                self.phase, self.hold_until = Phase.HOLDING, now
         self._progress(now, out)
         return out
 
@@ -301,7 +317,7 @@ class WorldProtocol(ABC):
         s = self.settings
         if self.phase != Phase.HOLDING:
             return
-        if s.pace and s.mode == "train" and self.episode >= 0:
+        if s.pace and s.mode == "train" and self.episode >= 0 and not self.trainer_finished:
             last = global_step(self.episode, s.batch, self.scenario.horizon, self.scenario.horizon)
             if self.trained < last + 1:
                 if now < self.hold_until:
@@ -326,7 +342,7 @@ class WorldProtocol(ABC):
 
     def _next_episode(self, e: int, now: float, out: WorldEffects) -> None:
         """The batch from episode e on begins (or the run is over)."""
-        if not self.in_run(e) or self.batch_size(e) < 1:
+        if not self.in_run(e) or self.batch_size(e) < 1 or self.trainer_finished:
             self.phase, self.hold_until = Phase.HOLDING, now + self.settings.end_hold
             self._hold(now, out)
             return
