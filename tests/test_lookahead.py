@@ -197,26 +197,16 @@ def test_the_lookahead_learner_learns_in_process_only(tmp_path: Path) -> None:
         train(builtin(), settings, tmp_path / "run", progress=False, tensorboard=False, resume=True)
 
 
-def test_htlm_train_trains_the_lookahead_where_it_is_affordable(tmp_path: Path) -> None:
-    """The default of `htlm train`: the lookahead learner on the paper's operation, the expert-iteration learner where
-    a team step of the lookahead costs too much (facility-20), the token learner where a Q-learner's setting is
-    given; a named learner always."""
-    import json
-
-    from htlm_agent.baselines.lookahead import LOOKAHEAD_DEFAULT_COST, default_learner, lookahead_cost
-    from htlm_agent.cli import main
+def test_the_default_learner_is_the_expert_learner_unless_a_q_learner_setting_is_given() -> None:
+    """One default for `htlm train` and `htlm launch train`: the expert-iteration learner; the token learner when a
+    setting only the Q-learners read is changed; a named learner always."""
     from htlm_agent.learning.settings import Settings
-    from htlm_world.scenario import load
 
-    # the default run learns what the baseline does (the launch report's row `lookahead (htlm train)` says so)
+    # the lookahead run learns what the baseline does (the launch report's row `lookahead (htlm train)` says so)
     assert ValueSettings.of(Settings.for_learner(learner="lookahead")) == ValueSettings()
-    assert lookahead_cost(builtin()) <= LOOKAHEAD_DEFAULT_COST < lookahead_cost(load("facility-20"))
-    assert default_learner(builtin(), {"episodes": 100}) == "lookahead"
-    assert default_learner(builtin(), {"imitate": "qmdp"}) == "tokens"
-    assert default_learner(load("facility-20"), {}) == "expert"
-    assert default_learner(load("facility-20"), {"memory": 1000}) == "tokens"
-    assert default_learner(load("facility-20"), {"learner": "lookahead"}) == "lookahead"
-    args = ["--episodes", "200", "--value-updates", "10", "--eval-episodes", "4", "--no-progress", "--no-tensorboard"]
-    assert main(["train", "--out", str(tmp_path / "run"), *args]) == 0
-    assert json.loads((tmp_path / "run" / "settings.json").read_text())["learner"] == "lookahead"
-    assert (tmp_path / "run" / "eval" / "metrics.json").exists()
+    assert Settings.for_users({"episodes": 100})["learner"] == "expert"
+    assert Settings.for_users({"load_weight": 0.5, "rounds": 2})["learner"] == "expert"
+    assert Settings.for_users({"learning_starts": 100})["learner"] == "tokens"
+    assert Settings.for_users({"imitate_episodes": 10})["learner"] == "tokens"
+    assert Settings.for_users({"learner": "lookahead", "memory": 10})["learner"] == "lookahead"
+    assert Settings(**Settings.for_users({})).trainer_lag == 0  # the expert's rounds play each policy whole

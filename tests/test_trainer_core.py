@@ -493,3 +493,64 @@ def test_future_episode_metrics_are_rejected_and_the_genuine_logged(tmp_path: Pa
     assert [r[:2] for r in core.on_metrics({**m, "episode": 8}).rejects] == [("episode_metrics", "future")]
     eff = core.on_step({"episode": 1000, "size": 2, "step": 0, "phase": "begin", "acted": []}, 1.0)
     assert [r[:2] for r in eff.rejects] == [("step", "future")]
+
+
+EXPERT = {
+    "learner": "expert",
+    "episodes": 4,
+    "rounds": 2,
+    "envs": 2,
+    "policy_updates": 2,
+    "value_updates": 2,
+    "validate_episodes": 8,
+}
+"""Two rounds of one batch of 2 episodes: the auction plays the first."""
+
+
+def _truth(core: TrainerCore, b: int, batch: int = 2) -> None:
+    """The world's true levels of every step of batch b (nothing finishes: every task stays at its start level)."""
+    for t in range(1, H + 1):
+        levels = [list(SC.initial_levels)] * batch
+        core.on_ground_truth(
+            {"run": "r1", "episode": b * batch, "step": t, "levels": levels, "actions": [], "events": []}
+        )
+
+
+def test_the_expert_learner_learns_a_round_in_the_worker_while_the_world_waits(tmp_path: Path) -> None:
+    """A round's last step is announced only once its learning is done (a heartbeat meanwhile says the trainer
+    lives); then new weights on the round's cadence; after the last round the trainer says it finished."""
+    import time
+
+    core = TrainerCore(tmp_path / "t", SCHED, EXPERT, "test")
+    eff = core.on_scenario(_scenario(batch=2), 0.0)
+    assert eff.fatal is None and [w["every"] for w in eff.weights] == [H] * N  # a round: 1 batch of H steps
+    assert eff.progress == [{"run": "r1", "trained": 0, "updates": 0, "finished": False}]
+    eff = _feed(core, _steps(0, H - 1))
+    assert [p["trained"] for p in eff.progress] == list(range(1, H))  # every step announced as it comes
+    eff = _feed(core, _steps(H - 1, H))  # the round's last step: held
+    assert [p["trained"] for p in eff.progress] == [H - 1] and core.held and not eff.weights
+    _truth(core, 0)
+    deadline = time.monotonic() + 120
+    got = TrainerEffects()
+    while not got.weights:
+        assert time.monotonic() < deadline, "the first round's learning did not end within 120 s"
+        _merge(got, core.tick(time.monotonic()))
+        time.sleep(0.05)
+    assert got.fatal is None and [w["trained"] for w in got.weights] == [H] * N
+    assert got.progress[-1] == {"run": "r1", "trained": H, "updates": 2, "finished": False}
+    assert all(p["trained"] == H - 1 for p in got.progress[:-1])  # the heartbeats
+    assert any("expert: round 1: validation completion" in text for _, text in got.log)
+    _feed(core, _steps(H, 2 * H))
+    _truth(core, 1)
+    got = TrainerEffects()
+    while not got.progress or not got.progress[-1]["finished"]:
+        assert time.monotonic() < deadline, "the second round's learning did not end"
+        _merge(got, core.tick(time.monotonic()))
+        time.sleep(0.05)
+    assert got.progress[-1]["trained"] == 2 * H and core.finished
+    core.shutdown()
+    rounds = json.loads((tmp_path / "t" / "checkpoint" / "meta.json").read_text())["info"]["rounds"]
+    assert [r["round"] for r in rounds] == [0, 1, 2] and (tmp_path / "t" / "rounds.csv").exists()
+    again = TrainerCore(tmp_path / "t", SCHED, EXPERT, "test")  # a restarted trainer does not resume the rounds
+    eff = again.on_scenario(_scenario(batch=2), 0.0)
+    assert eff.fatal is not None and "does not resume" in eff.fatal

@@ -353,6 +353,26 @@ def test_the_pace_gate_waits_for_the_trainer_and_gives_up_on_a_silent_one() -> N
     assert _records(eff, "step")[-1] == _step(3, 0, "begin")
 
 
+def test_a_trainer_that_sends_progress_is_not_silent_and_one_that_finished_ends_the_run() -> None:
+    """A trainer working on a round of its own (the expert-iteration learner) sends its progress again meanwhile: the
+    world keeps waiting past trainer_deadline; once it says it finished, the run ends before the batch it begins."""
+    p = _protocol(pace=True, trainer_lag=0, trainer_deadline=10.0, episodes=6, batch=2, mode="train")
+    p.start(0.0)
+    _progress(p, 0, 0.1)
+    _everyone_acts(p, 0.2)
+    _progress(p, H - 1, 0.3)  # the first batch's steps trained as they go, but for its last: the round learns
+    eff = _finish_batch(p, 1.0)
+    assert _records(eff, "step")[-1] == _step(2, 0, "begin", size=2)
+    _everyone_acts(p, 1.1)  # the begin is answered, but step g = H waits for the trainer's round
+    for now in (5.0, 10.0, 15.0, 20.0, 25.0):  # a heartbeat every 5 s: never given up
+        assert _records(_progress(p, H - 1, now), "observation") == []  # (the begin is announced again)
+        assert p.trainer_live and p.joining and p.gate_since == now
+    eff = p.on_trainer({"run": "test", "trained": H, "updates": 0, "finished": True}, 26.0)
+    assert ("info", f"the trainer has finished learning (trained up to step {H}): the run ends") in eff.log
+    assert p.phase == "stopped" and _records(eff, "scenario")[0]["state"] == "stopped"
+    assert _records(eff, "observation") == [] and p.episodes_done == 2  # the batch that was beginning never ran
+
+
 def test_a_gated_world_sleeps_until_the_trainer_or_its_deadline() -> None:
     p = _protocol(pace=True, trainer_lag=1, trainer_deadline=10.0, first_episode=2, episodes=2, join_timeout=5.0)
     p.start(0.0)

@@ -9,8 +9,8 @@ with the teammates before it on their improved choices and those after it on the
 sequence in its head and keeps its own choice, as it does the auction (one-agent-at-a-time rollout, Bertsekas 2020).
 
 Trained as a run of `htlm train` it is the lookahead learner (docs/model.md, The lookahead learner): its value network
-is the checkpoint, and `team_policy` / `agent_policy` make the policy of a checkpoint of any learner; `default_learner`
-says which learner `htlm train` trains unless told.
+is the checkpoint, and `team_policy` / `agent_policy` make the policy of a checkpoint of any learner. With the
+learned value of the team's own play it is the expert-iteration learner's teacher (`Teacher`).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from htlm_agent.baselines.optimal import QMDP_LOAD_COST
 from htlm_agent.learning.checkpoint import Checkpoint
 from htlm_agent.learning.qnet import AgentQ
 from htlm_agent.learning.qpolicy import QPolicy
-from htlm_agent.learning.settings import DEFAULT_LEARNER, Settings
+from htlm_agent.learning.settings import Settings
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate
 from htlm_agent.mind.context import Context, Policy
@@ -254,64 +254,9 @@ def candidate_tasks(model: Model) -> list[IntArray]:
     return [np.flatnonzero(c) if c.any() else np.arange(model.scenario.n_tasks) for c in caps]
 
 
-def lookahead_cost(sc: Scenario) -> int:
-    """The candidates a team step of the lookahead judges in process (each on `LOOKAHEAD_SAMPLES` draws): agent k
-    is worked out in the heads of the agents k.. (N - k of them), with none and each of its candidate tasks."""
-    n = sc.n_agents
-    return sum((n - k) * (1 + t.size) for k, t in enumerate(candidate_tasks(Model.build(sc))))
-
-
-LOOKAHEAD_DEFAULT_COST = 500
-"""The largest `lookahead_cost` at which `htlm train` trains the lookahead learner unless told otherwise
-(`default_learner`): a 500-episode evaluation of it then takes minutes on a 2-core machine."""
-
-LOOKAHEAD_FIELDS = frozenset(
-    {
-        "learner",
-        "episodes",
-        "value_updates",
-        "load_price",
-        "hidden",
-        "lr",
-        "batch_size",
-        "seed",
-        "threads",
-        "eval_episodes",
-    }
-)
-"""The settings the lookahead learner uses (`ValueSettings.of`, the run's seed and evaluation)."""
-
-
-EXPERT_FIELDS = LOOKAHEAD_FIELDS - {"load_price"} | {
-    "rounds",
-    "policy_updates",
-    "load_weight",
-    "envs",
-    "eps_end",
-    "validate_episodes",
-}
-"""The settings the expert-iteration learner uses (`experiments.expert`)."""
-
-
 def own_rewards(sc: Scenario) -> list[str]:
     """The agents of `sc` that carry their own reward fields (`agents[i].reward`)."""
     return [a.name for a in sc.agents if a.reward is not None and a.reward != sc.reward]
-
-
-def default_learner(sc: Scenario, changes: dict[str, object]) -> str:
-    """The learner `htlm train` trains on `sc` unless `changes` name one (docs/model.md, The expert-iteration
-    learner): the lookahead learner where acting with it is affordable (`LOOKAHEAD_DEFAULT_COST`) and no agent
-    carries its own reward (the lookahead reads none: it was measured sooner than every other team there,
-    docs/results/market.md); else the expert-iteration learner, which reads every agent's reward and acts in one
-    forward pass; the token learner (`DEFAULT_LEARNER`, what `htlm launch train` trains over ROS) when a setting only
-    a Q-learner reads is given."""
-    if "learner" in changes:
-        return str(changes["learner"])
-    if set(changes) <= LOOKAHEAD_FIELDS and lookahead_cost(sc) <= LOOKAHEAD_DEFAULT_COST and not own_rewards(sc):
-        return "lookahead"
-    if set(changes) <= EXPERT_FIELDS:
-        return "expert"
-    return DEFAULT_LEARNER
 
 
 class LookaheadPolicy:

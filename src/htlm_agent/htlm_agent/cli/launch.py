@@ -190,7 +190,7 @@ def config(argv: list[str]) -> LaunchConfig:
 
 def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     """The launch of parsed `htlm launch` options and every problem of its input (empty: it can start)."""
-    from htlm_agent.learning.settings import DEFAULT_LEARNER, IN_PROCESS_ONLY, IN_PROCESS_WHY, Settings
+    from htlm_agent.learning.settings import IN_PROCESS_ONLY, IN_PROCESS_WHY, Settings
     from htlm_agent.ros.launch import LaunchConfig
     from htlm_agent.ros.launch_check import check_launch
 
@@ -253,7 +253,7 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         discovery=args.discovery,
         peers=args.peers,
         key_file=args.key_file,
-        learner={"learner": DEFAULT_LEARNER, **dict(args.learner)} if args.mode == "train" else dict(args.learner),
+        learner={"learner": learner.learner, **dict(args.learner)} if args.mode == "train" else dict(args.learner),
         world_params=dict(args.world_param),
         agent_params=dict(args.agent_param),
         trainer_params=dict(args.trainer_param),

@@ -38,7 +38,7 @@ def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     for f in dataclasses.fields(Settings):
         if f.name in EXPLICIT:
             continue
-        default = f"lookahead, expert or {DEFAULT_LEARNER}" if f.name == "learner" else f.default
+        default = f"{DEFAULT_LEARNER}, or tokens given a Q-learner's setting" if f.name == "learner" else f.default
         help_text = f"{docs.get(f.name, '')} (default: {default})".replace("%", "%%")
         if f.name == "hidden":
             g.add_argument(_flag(f.name), type=_int_list, default=None, metavar="H1,H2", help=help_text)
@@ -86,7 +86,6 @@ def run(args: argparse.Namespace) -> int:
     """Train and print where the run went and its final evaluation."""
     import json
 
-    from htlm_agent.baselines.lookahead import default_learner
     from htlm_agent.experiments.train import RESUMABLE_CHANGES, train
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
     from htlm_agent.learning.settings import Settings
@@ -111,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
             sc = ck.scenario
         else:
             sc = scenario_from_args(args)
-            settings = Settings(**Settings.for_users({**changes, "learner": default_learner(sc, changes)}))
+            settings = Settings(**Settings.for_users(changes))
             out = Path(args.out) if args.out else Path("runs") / run_name(experiment_name(sc), settings.seed)
         if not args.no_progress:
             print(

@@ -21,11 +21,36 @@ IMITATE = ("none", "auction", "greedy", "qmdp")
 """The baselines a warm start can imitate (`Settings.imitate`)."""
 
 
-DEFAULT_LEARNER = "tokens"
+DEFAULT_LEARNER = "expert"
 """The learner `htlm train` and `htlm launch train` (and so `make run` and `ros2 launch`) train unless told otherwise
-(`--learner`, `--set learner=...`; `Settings.for_users`): the token learner, measured better than the paper's on every
-shipped scenario (docs/results/market.md). `Settings()` itself is the paper's learner, which `htlm reproduce`, the
-benchmarks and the pinned digests use."""
+(`--learner`, `--set learner=...`; `Settings.for_users`): the expert-iteration learner, which learns from the team's
+own play in process and over ROS alike, reads every agent's own reward, and acts in one forward pass
+(docs/results/market.md). `Settings()` itself is the paper's learner, which `htlm reproduce`, the benchmarks and the
+pinned digests use."""
+
+EXPERT_FIELDS = frozenset(
+    {
+        "learner",
+        "episodes",
+        "rounds",
+        "envs",
+        "imitate",
+        "eps_end",
+        "value_updates",
+        "policy_updates",
+        "load_weight",
+        "hidden",
+        "lr",
+        "batch_size",
+        "trainer_lag",
+        "seed",
+        "threads",
+        "validate_episodes",
+        "eval_episodes",
+    }
+)
+"""The settings the expert-iteration learner reads (`experiments.expert`); a user's change of any other makes the
+default learner the token learner, which reads the Q-learners' settings (`Settings.for_users`)."""
 
 TOKENS_PRESET: dict[str, Any] = {
     "learner": "tokens",
@@ -324,9 +349,11 @@ class Settings:
 
     @staticmethod
     def for_users(changes: dict[str, Any]) -> dict[str, Any]:
-        """The changes of a user's command (`htlm train`, `htlm launch train`): `DEFAULT_LEARNER` unless they choose
-        a learner, then `with_preset`."""
-        return Settings.with_preset({"learner": DEFAULT_LEARNER, **changes})
+        """The changes of a user's command (`htlm train`, `htlm launch train`), after the preset of their learner
+        (`with_preset`): the one they choose, else `DEFAULT_LEARNER`, or the token learner when they change a setting
+        the expert-iteration learner does not read (`EXPERT_FIELDS`: a Q-learner's, such as learning_starts)."""
+        default = DEFAULT_LEARNER if set(changes) <= EXPERT_FIELDS else "tokens"
+        return Settings.with_preset({"learner": default, **changes})
 
     @staticmethod
     def for_learner(**changes: Any) -> Settings:

@@ -607,7 +607,9 @@ def run_team(cfg: LaunchConfig) -> int:
                     tails.append(_Tail(s.proc.log, ("episode", "ERROR"), "[world] ", cfg.echo_to_stderr))
                 elif s.name == "trainer":
                     tails.append(
-                        _Tail(s.proc.log, ("ERROR", "resumed", "validation"), "[trainer] ", cfg.echo_to_stderr)
+                        _Tail(
+                            s.proc.log, ("ERROR", "resumed", "validation", "expert:"), "[trainer] ", cfg.echo_to_stderr
+                        )
                     )
         world = next((s for s in slots if s.name == "world"), None)
         start_t = time.monotonic()

@@ -275,12 +275,13 @@ class TrainerCore:
         out.log.append(("error", why))
 
     def learner_settings(self, seed: int) -> Settings:
-        """The learner Settings of the run with master seed `seed` (the seed of `learner_data` if it gives one).
+        """The learner Settings of the run with master seed `seed` (the seed of `learner_data` if it gives one), after
+        the preset of the learner they name (`Settings.with_preset`, as `htlm train --learner NAME`).
 
         Raises:
             ValueError: a bad field, naming the source and the field.
         """
-        return Settings.from_dict({"seed": seed, **self.learner_data}, self.learner_source)
+        return Settings.from_dict(Settings.with_preset({"seed": seed, **self.learner_data}), self.learner_source)
 
     def start(self, sc: Scenario, seed: int, out: TrainerEffects) -> None:
         """Open the store and, in train mode, the learner: resumed from the checkpoint when there is one, fed the

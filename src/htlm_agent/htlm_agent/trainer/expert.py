@@ -48,7 +48,7 @@ class ExpertTrainer:
         self.scenario, self.settings = sc, settings
         self.n_agents = sc.n_agents
         self.first, self.batch = first_episode, batch
-        self.rounds = ExpertRounds(sc, settings)
+        self.rounds = ExpertRounds(sc, settings, progress=False)  # the trainer logs each round itself
         self.start_mask = Model.build(sc).action_mask(np.full((batch, sc.n_agents), sc.start_assignment))
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="expert")
         self.job: Future[Any] | None = self.pool.submit(self.rounds.prepare)
