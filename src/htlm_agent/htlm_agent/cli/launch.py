@@ -320,7 +320,11 @@ def _report(sc: Any, seed: int, train_episodes: int, episodes: int, run_dir: Pat
 
     print(f"htlm launch: evaluating the baselines in process on {episodes} episodes (seed {seed})", file=sys.stderr)
     skipped: dict[str, str] = {}
-    rows = [learned_row(eval_dir / "world.jsonl"), *baseline_rows(sc, episodes, seed, skipped)]
+    try:  # the learner the trainer trained, for the row's name
+        learner = json.loads((run_dir / "trainer" / "settings.json").read_text())["learner"]
+    except (OSError, ValueError, KeyError):
+        learner = "?"
+    rows = [learned_row(eval_dir / "world.jsonl", f"learned ({learner})"), *baseline_rows(sc, episodes, seed, skipped)]
     info = {
         "team": sc.team or sc.name,
         "seed": seed,

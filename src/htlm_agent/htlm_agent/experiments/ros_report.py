@@ -64,7 +64,7 @@ def _row(policy: str, runtime: str, completion: Any, failed: Any, unused: Any) -
     }
 
 
-def learned_row(world_log: Path, name: str = "learned (HTLM DQN)") -> dict[str, Any]:
+def learned_row(world_log: Path, name: str = "learned") -> dict[str, Any]:
     """The row of the team evaluated over ROS, from its world.jsonl."""
     eps = world_rows(world_log)
     return _row(
@@ -119,7 +119,7 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
 
     names = [
         r["policy"].replace(" (", "\n(") for r in rows
-    ]  # "learned (HTLM DQN)" on two lines, clear of its neighbour
+    ]  # "learned (expert)" on two lines, clear of its neighbour
     x = np.arange(len(rows))
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(max(10.0, 1.8 * len(rows)), 4))  # room for every label
     colors = ["tab:green" if r["runtime"] == "ROS 2" else "tab:gray" for r in rows]
