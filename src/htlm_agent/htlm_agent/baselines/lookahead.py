@@ -212,19 +212,21 @@ class BaseValue:
         state's with one task's term replaced."""
         first = self.net[0]
         assert isinstance(first, torch.nn.Linear)
-        lv, hid = self.sc.levels, first.out_features
+        lv = self.sc.levels
         shape, p = none.shape[:-1], none.shape[-1]
         none2, work2 = none.reshape(-1, p), work[..., tasks].reshape(-1, tasks.size)
         out = np.zeros((none2.shape[0], 1 + tasks.size))
         with torch.no_grad():
-            emb = first.weight.T.reshape(p, lv, hid)  # (p, L, H): task j's term for each of its levels
-            task_ix, cand_ix = torch.arange(p), torch.from_numpy(tasks)
+            emb = first.weight.T.contiguous()  # (p·L, H): row j·L + l is task j's term at level l
+            none_ix = torch.from_numpy(none2 + np.arange(p) * lv)  # rows of emb, one gather (not a 2-index one)
+            work_ix = torch.from_numpy(work2 + tasks * lv)
+            cand_ix = torch.from_numpy(tasks)
             rest = self.net[1:]
             for i in range(0, none2.shape[0], 4096):
-                n_t = torch.from_numpy(none2[i : i + 4096])
-                e_none = emb[task_ix, n_t]  # (S, p, H)
+                e_none = torch.nn.functional.embedding(none_ix[i : i + 4096], emb)  # (S, p, H)
                 h_none = first.bias + e_none.sum(dim=1)  # (S, H)
-                h_c = h_none[:, None] - e_none[:, cand_ix] + emb[cand_ix, torch.from_numpy(work2[i : i + 4096])]
+                e_work = torch.nn.functional.embedding(work_ix[i : i + 4096], emb)  # (S, T, H)
+                h_c = h_none[:, None] - e_none[:, cand_ix] + e_work
                 out[i : i + 4096] = rest(torch.cat([h_none[:, None], h_c], dim=1))[..., 0].numpy()
         open_none = (none2 > 0).sum(axis=-1)
         open_c = open_none[:, None] - (none2[:, tasks] > 0) + (work2 > 0)

@@ -117,9 +117,7 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = [
-        r["policy"].replace(" (", "\n(") for r in rows
-    ]  # "learned (expert)" on two lines, clear of its neighbour
+    names = [r["policy"].replace(" (", "\n(") for r in rows]  # "learned (expert)" on two lines, clear of its neighbour
     x = np.arange(len(rows))
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(max(10.0, 1.8 * len(rows)), 4))  # room for every label
     colors = ["tab:green" if r["runtime"] == "ROS 2" else "tab:gray" for r in rows]

@@ -511,10 +511,13 @@ class _ProgressTail(_Tail):
     PATTERN = re.compile(r"episodes? (\d+)(?:\.\.(\d+))?: completion ([0-9.]+)(?: \(mean\))?(?:, (\d+) failed)?")
     SECONDS = re.compile(r", ([0-9.]+) s$")
 
-    def __init__(self, path: Path, total: int, first: int) -> None:
+    def __init__(self, path: Path, total: int, first: int, rounds: bool = False) -> None:
+        """`rounds`: the learner stops the play after each round to learn (the expert-iteration learner): the
+        estimate counts the play only, and says so."""
         from htlm_agent.progress import Progress
 
         super().__init__(path, ("episode",), "")
+        self.rounds = rounds
         self.first = first
         self.bar = Progress(total, unit="ep")
         self.done = 0
@@ -539,7 +542,12 @@ class _ProgressTail(_Tail):
         left = (total - self.done) / n * batch_s
         print(
             f"htlm launch train: {total:,} episodes in batches of {n}, {format_duration(self.bar.elapsed)} so far; "
-            f"a batch takes {batch_s:.1f} s: about {format_duration(left)} more of training",
+            f"a batch takes {batch_s:.1f} s: about {format_duration(left)} more of "
+            + (
+                "play, besides each round's learning (the trainer says when a round is learned)"
+                if self.rounds
+                else "training"
+            ),
             file=sys.stderr,
             flush=True,
         )
@@ -602,7 +610,8 @@ def run_team(cfg: LaunchConfig) -> int:
         if cfg.echo:
             for s in slots:
                 if s.name == "world" and cfg.mode == "train" and cfg.episodes:
-                    tails.append(_ProgressTail(s.proc.log, cfg.episodes, cfg.first_episode))
+                    expert = cfg.learner.get("learner") == "expert"
+                    tails.append(_ProgressTail(s.proc.log, cfg.episodes, cfg.first_episode, rounds=expert))
                 elif s.name == "world":
                     tails.append(_Tail(s.proc.log, ("episode", "ERROR"), "[world] ", cfg.echo_to_stderr))
                 elif s.name == "trainer":
