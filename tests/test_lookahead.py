@@ -202,7 +202,7 @@ def test_the_default_learner_is_the_expert_learner_unless_a_q_learner_setting_is
     setting only the Q-learners read is changed; a named learner always."""
     from htlm_agent.learning.settings import Settings
 
-    # the lookahead run learns what the baseline does (the launch report's row `lookahead (htlm train)` says so)
+    # the lookahead run learns what the baseline does (the launch report's row `lookahead (learner)` says so)
     assert ValueSettings.of(Settings.for_learner(learner="lookahead")) == ValueSettings()
     assert Settings.for_users({"episodes": 100})["learner"] == "expert"
     assert Settings.for_users({"load_weight": 0.5, "rounds": 2})["learner"] == "expert"

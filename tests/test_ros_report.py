@@ -32,7 +32,7 @@ def test_report_rows_come_from_the_logged_episodes_and_the_evaluated_baselines(t
     assert row["episodes"] == 4 and row["completion_mean"] == 15.0 and row["failure_rate"] == 0.25
     assert row["unused_fraction"] == pytest.approx(0.515) and row["completion_se"] > 0
     base = baseline_rows(builtin(), 20, seed=3)
-    assert [r["policy"] for r in base] == ["random", "greedy", "auction", "qmdp", "lookahead (htlm train)", "optimal"]
+    assert [r["policy"] for r in base] == ["random", "greedy", "auction", "qmdp", "lookahead (learner)", "optimal"]
     assert base[5]["completion_mean"] < base[1]["completion_mean"] < base[0]["completion_mean"]
     assert base[2]["completion_mean"] < base[0]["completion_mean"]
     doc = write_report(tmp_path, [row, *base], {"team": "heterogeneous", "seed": 3, "train_episodes": 4})
@@ -48,7 +48,7 @@ def test_report_rows_come_from_the_logged_episodes_and_the_evaluated_baselines(t
 def test_a_baseline_too_large_here_is_left_out_with_its_reason() -> None:
     skipped: dict[str, str] = {}
     base = baseline_rows(load("warehouse"), 10, seed=0, skipped=skipped)
-    assert [r["policy"] for r in base] == ["random", "greedy", "auction", "lookahead (htlm train)"]  # no optimum
+    assert [r["policy"] for r in base] == ["random", "greedy", "auction", "lookahead (learner)"]  # no optimum
     assert list(skipped) == ["qmdp", "optimal"] and "too large to compute here" in skipped["optimal"]
 
 

@@ -305,7 +305,8 @@ def run(args: argparse.Namespace) -> int:
             code = run_team(ecfg)
             out["evaluation"] = {"exit_code": code, **summarize(ecfg.run_dir)}
             if code == 0:
-                out["result"] = _report(sc, args.seed, episodes, eval_episodes, run_dir, ecfg.run_dir)
+                trained = int(json.loads((ckpt / "meta.json").read_text()).get("episodes_done", episodes))
+                out["result"] = _report(sc, args.seed, trained, eval_episodes, run_dir, ecfg.run_dir)
     if args.json:
         print(json.dumps(out))
     else:

@@ -28,9 +28,9 @@ FIELDS = ("policy", "runtime", "episodes", "completion_mean", "completion_se", "
 BASELINES = ("random", "greedy", "auction", "qmdp", "lookahead", "optimal")
 """Baselines shown beside the learned team."""
 
-LABELS = {"lookahead": "lookahead (htlm train)"}
-"""Row names other than the baseline's own: the lookahead with the run's seed is the lookahead learner `htlm train`
-trains by default on this operation (same settings and seed), in process; over ROS it acts the same, bit for bit."""
+LABELS = {"lookahead": "lookahead (learner)"}
+"""Row names other than the baseline's own: the lookahead with the run's seed is what `htlm train --learner
+lookahead` trains (same settings and seed), in process; over ROS it acts the same, bit for bit."""
 
 
 class ReportError(ValueError):
