@@ -234,7 +234,7 @@ def test_the_launch_file_composes_agents_as_the_launcher_does(tmp_path: Path, mo
     run = tmp_path / "run"
     argv = ["deploy", "--policy", "greedy", "--run-dir", str(run), "--agents-per-process", "3"]
     want = {spec.name: spec for spec, _ in prepare(config(argv))}
-    module, actions = _launch(monkeypatch, mode="deploy", policy="greedy", run_dir=str(run), agents_per_process="3")
+    _, actions = _launch(monkeypatch, mode="deploy", policy="greedy", run_dir=str(run), agents_per_process="3")
     nodes = [a for a in actions if type(a).__name__ == "Node"]
     assert len(nodes) == 4
     composed = [n.kwargs for n in nodes if n.kwargs["executable"] == "agents_node"]

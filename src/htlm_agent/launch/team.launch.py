@@ -51,7 +51,8 @@ ARGUMENTS = {
     "max_restarts": ("--max-restarts", "deploy: restarts of one process before it is left down (default 5)"),
     "agents_per_process": (
         "--agents-per-process",
-        "most agents one process hosts (1: a process per agent; default: 1 up to 8 agents, else as many processes as cores)",
+        "most agents one process hosts (1: a process per agent; default: 1 up to 8 agents, else as many processes "
+        "as cores)",
     ),
 }
 
