@@ -17,7 +17,10 @@ from typing import Any
 
 import pytest
 
+from htlm_agent.learning.checkpoint import load_checkpoint
+from htlm_agent.learning.settings import Settings
 from htlm_world.clock import StepClock
+from htlm_world.scenario import builtin
 from support.ros import HTLM, Launcher, alive_with, next_domain, read_json
 
 pytestmark = [pytest.mark.ros]
@@ -83,6 +86,41 @@ def test_a_composed_team_evaluates_exactly_as_a_process_per_agent(tmp_path: Path
         assert composed[k] == alone[k], k
     for a in AGENTS:  # and every agent's own log: its assignments, broadcast levels and rewards
         assert _lines(tmp_path / "composed" / f"{a}.jsonl") == _lines(tmp_path / "alone" / f"{a}.jsonl"), a
+
+
+@pytest.mark.timeout(300)
+def test_a_composed_team_trains_exactly_the_networks_of_htlm_train(ros_team: Any, tmp_path: Path) -> None:
+    """Training with agents 1-3 and 4-5 in two processes (the agents act with the trainer's weights, the world paces
+    the steps by the trainer's progress) ends with the Q-networks of the in-process `htlm train`, bit for bit, as a
+    process per agent does (tests/ros/test_training_equivalence.py)."""
+    import numpy as np
+
+    from htlm_agent.experiments.train import train
+
+    sc, episodes, learner = builtin(), 64, {"envs": 32, "learning_starts": 300, "batch_size": 32}
+    learner |= {"validate_every": 0, "select_best": False}
+    settings = Settings.from_dict(
+        Settings.with_preset({**learner, "episodes": episodes, "seed": 0, "eval_episodes": 0})
+    )
+    train(sc, settings, tmp_path / "inproc", progress=False, tensorboard=False, evaluate_at_end=False)
+    ref = load_checkpoint(tmp_path / "inproc" / "checkpoint")
+    team = ros_team(
+        scenario=sc, mode="train", policy="auto", episodes=episodes, batch=32, seed=0, learner=learner,
+        agents_per_process=3,
+    )  # fmt: skip
+    team.start()
+    assert sorted(team.procs) == ["agent1+agent2+agent3", "agent4+agent5", "trainer", "world"]
+    assert team.wait("world", 150) == 0
+    codes = team.wait_all(60)
+    assert codes == dict.fromkeys(codes, 0), codes
+    eps = team.world_episodes()
+    assert sorted(w["metrics"]["episode"] for w in eps) == list(range(episodes))
+    assert all(sum(w["metrics"]["absent"]) == 0 for w in eps), "every agent acted in every step"
+    got = load_checkpoint(team.run_dir / "trainer" / "checkpoint")
+    assert got.episodes_done == ref.episodes_done == episodes
+    for i, (a, b) in enumerate(zip(ref.weights, got.weights, strict=True)):
+        for j, (x, y) in enumerate(zip(a, b, strict=True)):
+            assert np.array_equal(np.asarray(x), np.asarray(y)), f"agent {i} tensor {j} differs"
 
 
 def _graph(launcher: Any, where: Path, per: int) -> dict[str, Any]:
@@ -187,3 +225,43 @@ def test_a_killed_composed_process_is_restarted_and_its_agents_rejoin(launcher: 
         f"killed at step index {killed_at}; rejoined at {json.dumps(rejoined)}; {seconds} s from the kill to the "
         f"last rejoin line; agents 4 and 5 missed 0 steps in {last + 2} episodes"
     )
+
+
+@pytest.mark.timeout(60)
+def test_a_bad_parameter_of_one_hosted_agent_stops_the_process_with_2_naming_it(tmp_path: Path) -> None:
+    """As an agent process of its own would: exit 2, nothing started, the reason on stderr, naming the node."""
+    import sys
+
+    from htlm_agent.ros.launch import LaunchConfig, ros_env, write_params
+
+    good = write_params(tmp_path / "agent1.yaml", {"agent": "agent1", "policy": "greedy"})
+    bad = write_params(tmp_path / "agent2.yaml", {"agent": "agent2", "policy": "cleverest"})
+    env = ros_env(LaunchConfig(mode="evaluate", scenario=builtin(), domain_id=next_domain()))
+    cmd = [sys.executable, "-m", "htlm_agent.ros.agents_node", f"htlm_agent1={good}", f"htlm_agent2={bad}"]
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=50, check=False)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "agents_node: htlm_agent2: policy" in r.stderr and "cleverest" in r.stderr, r.stderr
+    r = subprocess.run(cmd[:3] + ["agent1.yaml"], env=env, capture_output=True, text=True, timeout=50, check=False)
+    assert r.returncode == 2 and "expected NODE=PARAMETERS_FILE" in r.stderr, r.stderr
+
+
+@pytest.mark.timeout(150)
+def test_a_fatal_error_of_one_hosted_agent_stops_its_process_and_the_launch_with_2(tmp_path: Path) -> None:
+    """facility-20 (20 agents, two processes of 10: the default on 2 cores) with a policy its agents refuse once the
+    run is announced (QMDP: the optimum is too large to compute): the process exits 2, naming the agent and the
+    reason, and the launch stops with 2 as it would for one agent."""
+    run = tmp_path / "qmdp"
+    r = subprocess.run(
+        [HTLM, "launch", "evaluate", "--scenario", "facility-20", "--policy", "qmdp", "--episodes", "1", "--batch",
+         "1", "--agents-per-process", "10", "--domain-id", str(next_domain()), "--run-dir", str(run), "--json",
+         "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=140,
+        check=False,
+    )  # fmt: skip
+    assert r.returncode == 2, r.stdout + r.stderr
+    said = re.search(r"htlm launch: (\S+) exited with 2 \(bad parameters or store\): fatal in htlm_(\w+): ", r.stderr)
+    assert said is not None, r.stderr
+    assert said.group(1) in {p.stem for p in (run / "logs").iterdir()} and "policy qmdp" in r.stderr
+    assert alive_with(str(run)) == []

@@ -13,7 +13,7 @@ machine).
 Every word before `--ros-args` is NODE=PARAMETERS_FILE: a hosted agent, its node name and its parameters file (the
 file an agent_node of its own would get). ROS arguments after `--ros-args` apply to every hosted node (a node's own
 name and file win). The process keeps a process's rules for all of them (`htlm_msgs_py.ros.lifecycle.run_nodes`):
-an agent whose run is over leaves the graph at once and the process exits 0 when the last one has; SIGINT or
+an agent whose run is over stops at once and the process exits 0 when the last one has; SIGINT or
 SIGTERM stops every agent (130, 143); a bad parameter of any agent (2 at start), a fatal error of one (2: a policy
 or checkpoint that does not fit, which stops the launch as it would for one agent) or an exception in any agent's
 callback (1) ends the process, and with it every agent it hosts: the launcher restarts or stops the process as its

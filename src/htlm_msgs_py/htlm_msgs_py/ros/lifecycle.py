@@ -203,9 +203,12 @@ def run_nodes(
     entities); a bad parameter of any of them exits with code 2, as `run_node` does, naming the node. The nodes
     spin in one executor (the first node's `settings.executor`) until:
 
-    - a node is `finished()` (its run is over and its work flushed): it leaves the graph at once (`cleanup`, its
-      counters logged, `flush`, removed from the executor and destroyed) while the others go on; when the last
-      one has finished, the process exits 0;
+    - a node is `finished()` (its run is over and its work flushed): it stops at once (`cleanup`, its counters
+      logged, `flush`, removed from the executor) while the others go on; when the last one has finished, the
+      process exits 0. A finished node is destroyed, and leaves the graph, with the process: the EventsExecutor
+      may still hold events of a node it no longer runs, and one that came for a destroyed node's subscription
+      raised InvalidHandle out of `spin_once` (a training run's last acknowledgements, seen in
+      tests/ros/test_compose.py);
     - a node has a `fatal` error (the process alone would exit 2: a bad policy or checkpoint, which would fail the
       same way again): every node stops and the process exits 2;
     - SIGINT or SIGTERM: every node stops (each node's `stop_signal` is set), exit 128 + signal;
@@ -243,6 +246,7 @@ def run_nodes(
     for n in nodes:
         executor.add_node(n)
     live = list(nodes)
+    retired: list[Any] = []
 
     def counters(node: Any) -> None:
         health = getattr(node, "health", None)
@@ -251,15 +255,15 @@ def run_nodes(
             node.get_logger().info(f"counters at exit: {counts}")
 
     def retire(node: Any) -> None:
-        """A finished node leaves the graph now, as its own process would exit, while the others go on."""
+        """A finished node stops now, as its own process would exit, while the others go on."""
         live.remove(node)
+        retired.append(node)
         try:
             cleanup(node)
             counters(node)
             flush(node, FLUSH_SECONDS)
         finally:
             executor.remove_node(node)
-            node.destroy_node()
 
     code = 1
     try:
@@ -270,7 +274,7 @@ def run_nodes(
             fatal = [n for n in live if n.fatal is not None]
             if fatal:
                 for n in fatal:
-                    n.get_logger().error(f"fatal: {n.fatal}; stopping every node of this process")
+                    n.get_logger().error(f"fatal in {n.get_name()}: {n.fatal}; stopping every node of this process")
                 code = 2
                 break
             for n in [n for n in live if n.finished()]:
@@ -300,7 +304,7 @@ def run_nodes(
                 executor.remove_node(n)
             executor.shutdown()
         finally:
-            for n in live:
+            for n in live + retired:
                 n.destroy_node()
             rclpy.try_shutdown()
     return code
