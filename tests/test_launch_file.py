@@ -225,3 +225,33 @@ def test_setup_py_installs_the_launch_file() -> None:
     m = re.search(r'\(f"share/\{PACKAGE\}/launch", sorted\(glob\("([^"]+)"\)\)\)', setup)
     assert m is not None, "setup.py installs no launch file into share/htlm_agent/launch"
     assert [p.name for p in LAUNCH_FILE.parents[1].glob(m.group(1))] == ["team.launch.py"]
+
+
+def test_the_launch_file_composes_agents_as_the_launcher_does(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`agents_per_process:=3`: the agents run in `agents_node` processes, each named by the agents it hosts, with
+    every hosted agent's node name and parameters file as its arguments (the files `htlm launch` writes), and no
+    node name of its own (that would rename every node of the process)."""
+    run = tmp_path / "run"
+    argv = ["deploy", "--policy", "greedy", "--run-dir", str(run), "--agents-per-process", "3"]
+    want = {spec.name: spec for spec, _ in prepare(config(argv))}
+    _, actions = _launch(monkeypatch, mode="deploy", policy="greedy", run_dir=str(run), agents_per_process="3")
+    nodes = [a for a in actions if type(a).__name__ == "Node"]
+    assert len(nodes) == 4
+    composed = [n.kwargs for n in nodes if n.kwargs["executable"] == "agents_node"]
+    assert len(composed) == 2 and all("name" not in kw and kw["respawn"] for kw in composed)
+    params = run / "parameters"
+    assert [kw["arguments"] for kw in composed] == [
+        [f"htlm_agent{i}={params}/agent{i}.yaml" for i in (1, 2, 3)],
+        [f"htlm_agent{i}={params}/agent{i}.yaml" for i in (4, 5)],
+    ]
+    assert [kw["parameters"] for kw in composed] == [
+        [str(params / "agent1+agent2+agent3.yaml")],
+        [str(params / "agent4+agent5.yaml")],
+    ]
+    assert want["agent4+agent5"].agents == ("agent4", "agent5")
+    for i in range(1, 6):
+        assert f'agent: "agent{i}"' in (params / f"agent{i}.yaml").read_text()
+    _, actions = _launch(monkeypatch, mode="evaluate", policy="greedy", run_dir=str(run), agents_per_process="3")
+    handlers = [a.args[0].kwargs for a in actions if type(a).__name__ == "RegisterEventHandler"]
+    (ended,) = handlers[2]["on_exit"](types.SimpleNamespace(returncode=-9), None)
+    assert ended.kwargs["event"].kwargs["reason"] == "agent1+agent2+agent3 exited with -9"

@@ -40,6 +40,7 @@ setup(
     entry_points={
         "console_scripts": [
             "agent_node = htlm_agent.ros.agent_node:main",
+            "agents_node = htlm_agent.ros.agents_node:main",
             "trainer_node = htlm_agent.ros.trainer_node:main",
             "record_node = htlm_agent.ros.record_node:main",
             "htlm = htlm_agent.cli:main",

@@ -22,6 +22,9 @@
   value out of range, bytes that are not UTF-8; or well-formed records signed with a wrong key), as fast as it can
   (or at --rate) from a start signal until stopped, and write how many went out; --hog burns as much CPU without
   publishing;
+- graph: what the graph shows of some nodes (what `ros2 node info` and `ros2 param get` show): each node's
+  publishers, subscriptions and services with their types, and some of its parameters, once every one is there and
+  nothing changed for a second;
 - listen: read one topic with the team's QoS for records as a node does (serialized), --cost seconds of work per
   record, and count what came and what the reader's message_lost QoS event reported lost.
 """
@@ -378,6 +381,48 @@ def describe(args: argparse.Namespace) -> None:
     Path(args.out).write_text(json.dumps(out))
 
 
+def graph(args: argparse.Namespace) -> None:
+    from rclpy.parameter_client import AsyncParameterClient
+
+    node = Node("test_graph")
+    names = args.nodes.split(",")
+
+    def seen() -> dict[str, Any]:
+        there = {n for n, _ in node.get_node_names_and_namespaces()}
+        if not all(n in there for n in names):
+            return {}
+        return {
+            n: {
+                "publishers": sorted([t, ty] for t, ty in node.get_publisher_names_and_types_by_node(n, "/")),
+                "subscriptions": sorted([t, ty] for t, ty in node.get_subscriber_names_and_types_by_node(n, "/")),
+                "services": sorted([t, ty] for t, ty in node.get_service_names_and_types_by_node(n, "/")),
+            }
+            for n in names
+        }
+
+    end, last, since = time.monotonic() + 60.0, {}, time.monotonic()
+    while time.monotonic() < end:
+        _spin_for(node, 0.2)
+        now = seen()
+        if now != last:
+            last, since = now, time.monotonic()
+        elif now and time.monotonic() - since >= 1.0:
+            break
+    else:
+        raise SystemExit(f"the graph did not settle with {names}: {sorted(last)}")
+    for n in names:
+        client = AsyncParameterClient(node, f"/{n}")
+        if not client.wait_for_services(timeout_sec=30.0):
+            raise SystemExit(f"no parameter services of {n}")
+        future = client.get_parameters(args.params.split(","))
+        rclpy.spin_until_future_complete(node, future, timeout_sec=20.0)
+        got = future.result()
+        if got is None:
+            raise SystemExit(f"{n}: get_parameters did not answer")
+        last[n]["parameters"] = {k: v.string_value for k, v in zip(args.params.split(","), got.values, strict=True)}
+    Path(args.out).write_text(json.dumps(last))
+
+
 def markers(args: argparse.Namespace) -> None:
     from visualization_msgs.msg import MarkerArray
 
@@ -712,6 +757,10 @@ def main() -> None:
     ds = sub.add_parser("describe")
     ds.add_argument("--out", required=True)
     ds.add_argument("--nodes", required=True, help="comma-separated node names, e.g. /htlm_world,/htlm_trainer")
+    gr = sub.add_parser("graph")
+    gr.add_argument("--out", required=True)
+    gr.add_argument("--nodes", required=True, help="comma-separated node names without the slash, e.g. htlm_agent1")
+    gr.add_argument("--params", default="agent,policy", help="comma-separated string parameters to read")
     mk = sub.add_parser("markers")
     mk.add_argument("--out", required=True)
     rc = sub.add_parser("record")
@@ -775,6 +824,7 @@ def main() -> None:
             "rogue": rogue,
             "setparam": setparam,
             "describe": describe,
+            "graph": graph,
             "markers": markers,
             "flood": flood,
             "send": send,

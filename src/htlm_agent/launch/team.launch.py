@@ -10,7 +10,9 @@ started), and `htlm_agent.ros.launch.prepare` gives the processes, their paramet
 the one definition both use, with the respawn parameters (`respawn_delay`, `respawn_max_retries`). In deploy every
 process respawns when it exits (the team keeps stepping on its own clock meanwhile), and the launch ends when the world
 finishes its run; in train and evaluate a process that exits with an error or is killed ends the launch (launch_ros
-cannot restart only the killed ones, as `htlm launch` does).
+cannot restart only the killed ones, as `htlm launch` does). A large team's agents share processes as with
+`htlm launch` (`agents_per_process`): such a process is `agents_node` with every hosted agent's node name and
+parameters file as its arguments, and it respawns or ends the launch as one agent's process would.
 """
 
 from __future__ import annotations
@@ -47,6 +49,11 @@ ARGUMENTS = {
     "key_file": ("--key-file", "team key file: sign every message"),
     "respawn_delay": ("--respawn-delay", "deploy: seconds before a process that exited starts again (default 1)"),
     "max_restarts": ("--max-restarts", "deploy: restarts of one process before it is left down (default 5)"),
+    "agents_per_process": (
+        "--agents-per-process",
+        "most agents one process hosts (1: a process per agent; default: 1 up to 8 agents, else as many processes "
+        "as cores)",
+    ),
 }
 
 
@@ -68,10 +75,12 @@ def team(context: LaunchContext) -> list[Any]:
     env = ros_env(cfg)
     actions: list[Any] = []
     for spec, params_file in prepare(cfg):
+        # a composed process has no node name of its own: its arguments name each hosted agent and its file
+        named: dict[str, Any] = {"name": spec.node} if spec.node else {"arguments": spec.arguments(params_file.parent)}
         node = Node(
             package=spec.package,
             executable=spec.executable,
-            name=spec.node,
+            **named,
             parameters=[str(params_file)],
             env=env,
             output="screen",

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from htlm_agent.baselines.optimal import QmdpPolicy
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate, own_assignment
 from htlm_agent.mind.context import Context
@@ -153,6 +152,8 @@ def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPoli
     if name == "auction":
         return RowPolicy(scenario, AuctionPolicy(scenario), agent), 0.0
     if name == "qmdp":
+        from htlm_agent.baselines.optimal import QmdpPolicy  # the optimum's code: only when asked for
+
         return RowPolicy(scenario, QmdpPolicy(scenario), agent), 0.0
     if name == "lookahead":
         from htlm_agent.baselines.lookahead import AgentLookahead, LookaheadPolicy  # torch: only when asked for

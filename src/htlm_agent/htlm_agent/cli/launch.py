@@ -1,4 +1,5 @@
-"""`htlm launch {train,evaluate,deploy}`: run a team over ROS 2, one OS process per agent (htlm_agent.ros.launch)."""
+"""`htlm launch {train,evaluate,deploy}`: run a team over ROS 2, its agents one OS process each or several per process
+on a large team (htlm_agent.ros.launch)."""
 
 from __future__ import annotations
 
@@ -32,7 +33,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm launch`."""
     from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
     from htlm_agent.learning.settings import Settings
-    from htlm_agent.ros.launch import EXIT_CODES, MAX_RESTARTS, RESPAWN_DELAY, RESPAWN_DELAY_MAX, RESPAWN_STABLE
+    from htlm_agent.ros.launch import (
+        ALONE_UP_TO,
+        EXIT_CODES,
+        MAX_RESTARTS,
+        RESPAWN_DELAY,
+        RESPAWN_DELAY_MAX,
+        RESPAWN_STABLE,
+    )
 
     p.add_argument("mode", choices=("train", "evaluate", "deploy"), help="what the team does")
     p.add_argument(
@@ -76,6 +84,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--only",
         default="",
         help="comma-separated processes to start on this host: world, trainer, agent names (default: all)",
+    )
+    p.add_argument(
+        "--agents-per-process",
+        type=int,
+        default=0,
+        metavar="N",
+        help=f"most agents one process hosts, each still its own node (1: a process per agent; default 0 = auto: 1 "
+        f"up to {ALONE_UP_TO} agents on this host, else the agents spread over as many processes as cores); a "
+        "process that dies takes its agents with it, and they rejoin when it is restarted",
     )
     p.add_argument("--domain-id", type=int, default=42, help="ROS_DOMAIN_ID of every process (default 42)")
     p.add_argument(
@@ -223,6 +240,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         bad.append(f"--period {args.period!r}: must be > 0")
     if not args.respawn_delay >= 0:
         bad.append(f"--respawn-delay {args.respawn_delay!r}: must be >= 0")
+    if args.agents_per_process < 0:
+        bad.append(f"--agents-per-process {args.agents_per_process!r}: must be >= 1 (or 0: auto)")
     if args.max_restarts < 0:
         bad.append(f"--max-restarts {args.max_restarts!r}: must be >= 0")
     if batch < 1 or args.first_episode % batch:
@@ -267,6 +286,7 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         record=args.record,
         respawn_delay=args.respawn_delay,
         max_restarts=args.max_restarts,
+        agents_per_process=args.agents_per_process,
     )
     return cfg, bad + check_launch(cfg)
 

@@ -47,11 +47,14 @@ from htlm_msgs_py.schema import record_text
 
 
 class AgentNode(Node):
-    """One agent process."""
+    """One agent: alone in its process (`main`), or one of several in a composed one (`htlm_agent.ros.agents_node`)."""
 
-    def __init__(self) -> None:
-        """Declare parameters, create publishers, subscriptions and timers; the rest waits for /htlm/scenario."""
-        super().__init__("htlm_agent")
+    def __init__(self, cli_args: list[str] | None = None) -> None:
+        """Declare parameters, create publishers, subscriptions and timers; the rest waits for /htlm/scenario.
+
+        `cli_args`: this node's own ROS arguments (`--ros-args -r __node:=NAME --params-file FILE`), which take
+        precedence over the process's: how a composed process gives each of its agents its name and parameters."""
+        super().__init__("htlm_agent", cli_args=cli_args)
         self.settings, self.signer = start_node(self, AgentSettings, validate_agent_settings)
         s = self.settings
         self.name = s.agent
@@ -204,7 +207,8 @@ class AgentNode(Node):
         h.publish()
 
 
-def _cleanup(node: AgentNode) -> None:
+def cleanup(node: AgentNode) -> None:
+    """The agent's last diagnostics and its episode log closed, before the node goes."""
     node._publish_health()
     if node.log_file is not None:
         node.log_file.close()
@@ -212,7 +216,7 @@ def _cleanup(node: AgentNode) -> None:
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of `agent_node` (exit code: 0 done, 2 bad parameters or policy, 130/143 SIGINT/SIGTERM)."""
-    return run_node("agent_node", AgentNode, spin_until_finished, _cleanup, args)
+    return run_node("agent_node", AgentNode, spin_until_finished, cleanup, args)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""Start a team over ROS 2 as separate OS processes: the world, one process per agent, the trainer.
+"""Start a team over ROS 2 as separate OS processes: the world, the agents (one process each, or several per process
+on a large team: `agents_per_process`), the trainer.
 
 Every process gets its own parameters file and log file under the run directory, the ROS domain and discovery
 settings of the launch (by default ROS_DOMAIN_ID=42 and discovery on localhost: UDP on 127.0.0.1 only, see
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import signal
@@ -121,6 +123,11 @@ class LaunchConfig:
     max_restarts: int = MAX_RESTARTS
     """Restarts in a row of one process before the launcher gives up on the team (0: none; a process that stayed up
     RESPAWN_STABLE seconds starts counting again)."""
+    agents_per_process: int = 0
+    """Most agents one process hosts (`htlm_agent.ros.agents_node`); 1: a process per agent; 0: `auto_per_process`
+    of the agents this host starts and its cores."""
+    cores: int = 0
+    """Cores the launch counts for `auto_per_process` (0: those this process may run on)."""
 
 
 @dataclass
@@ -201,6 +208,9 @@ class ProcessSpec:
     max_restarts: int = MAX_RESTARTS
     """Restarts before the launch gives up (team.launch.py's `respawn_max_retries`; `htlm launch` counts restarts in
     a row)."""
+    hosted: tuple[ProcessSpec, ...] = ()
+    """A composed process (`AGENTS_NODE`): the agents it hosts, each the process it would be alone (its node name
+    and parameters file are those of that process); empty: a process of one node."""
 
     @property
     def package(self) -> str:
@@ -214,8 +224,18 @@ class ProcessSpec:
 
     @property
     def node(self) -> str:
-        """Its node name."""
-        return f"htlm_{self.name}"
+        """Its node name (a composed process has none of its own: its agents are named by `arguments`)."""
+        return "" if self.hosted else f"htlm_{self.name}"
+
+    def arguments(self, params_dir: Path) -> list[str]:
+        """Its words before `--ros-args`: for a composed process every hosted agent's NODE=PARAMETERS_FILE, with
+        the files `prepare` writes into `params_dir`."""
+        return [f"{h.node}={params_dir / f'{h.name}.yaml'}" for h in self.hosted]
+
+    @property
+    def agents(self) -> tuple[str, ...]:
+        """The agents of the process: those it hosts, or its own name for an agent's own process."""
+        return tuple(h.name for h in self.hosted) if self.hosted else (self.name,)
 
 
 RESPAWN_DELAY_MAX = 30.0
@@ -235,12 +255,86 @@ store, stops every mode's launch: a restart would fail the same way)."""
 def team_processes(cfg: LaunchConfig) -> list[ProcessSpec]:
     """Every process this host starts, with its parameters: the one definition `htlm launch` and team.launch.py use.
 
-    ROS-free; it writes the learner settings file (parameters/learner.json) the trainer's parameters name."""
+    The agents this host starts are grouped into composed processes of at most `per_process(cfg)` agents each, in
+    the scenario's order (`compose`). ROS-free; it writes the learner settings file (parameters/learner.json) the
+    trainer's parameters name."""
     respawn = cfg.mode == "deploy"
-    return [
+    specs = [
         ProcessSpec(name, module, params, respawn, cfg.respawn_delay, cfg.max_restarts)
         for name, module, params in process_specs(cfg)
     ]
+    return compose(specs, per_process(cfg))
+
+
+AGENT_NODE = "htlm_agent.ros.agent_node"
+"""An agent's own process."""
+AGENTS_NODE = "htlm_agent.ros.agents_node"
+"""A process hosting several agents (`htlm launch --agents-per-process`)."""
+
+ALONE_UP_TO = 8
+"""`auto_per_process`: teams of at most this many agents (on this host) run one process per agent."""
+
+
+def auto_per_process(agents: int, cores: int) -> int:
+    """How many agents one process hosts by default, for the `agents` this host starts on `cores` cores.
+
+    Up to ALONE_UP_TO agents: one each (every agent isolated, as small teams always ran). Beyond, as many processes
+    as cores, each hosting its share: a process's agents run on one core (one executor thread, one interpreter), so
+    `cores` processes can use every core, and every further process only adds its start-up (the imports, a DDS
+    participant that every other one discovers) and its memory (docs/ros.md, A large team on one machine)."""
+    if agents <= ALONE_UP_TO:
+        return 1
+    return math.ceil(agents / max(1, cores))
+
+
+def host_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def per_process(cfg: LaunchConfig) -> int:
+    """Most agents one process of this launch hosts: `cfg.agents_per_process`, or `auto_per_process` of the agents
+    this host starts (`--only`) and its cores."""
+    if cfg.agents_per_process > 0:
+        return cfg.agents_per_process
+    here = [a.name for a in cfg.scenario.agents if not cfg.only or a.name in cfg.only]
+    return auto_per_process(len(here), cfg.cores or host_cores())
+
+
+GROUP_NAME_MAX = 60
+"""Longest name of a composed process that lists all its agents; a longer one names its first and last."""
+
+
+def group_name(agents: list[str]) -> str:
+    """The process name of a composed process (its log is logs/NAME.log): its agents joined by "+" ("agent1+agent2+
+    agent3"), or, when that is longer than GROUP_NAME_MAX, its first and last agent and their count
+    ("agent1..agent25_25": the 25 agents from agent1 to agent25 in the scenario's order)."""
+    joined = "+".join(agents)
+    return joined if len(joined) <= GROUP_NAME_MAX else f"{agents[0]}..{agents[-1]}_{len(agents)}"
+
+
+def compose(specs: list[ProcessSpec], per: int) -> list[ProcessSpec]:
+    """`specs` with their agents' processes (AGENT_NODE) grouped, in order, into composed processes (AGENTS_NODE) of
+    at most `per` agents each, in the place of the first agent; a group of one stays an agent's own process."""
+    agents = [s for s in specs if s.module == AGENT_NODE]
+    if per <= 1 or len(agents) <= 1:
+        return specs
+    out: list[ProcessSpec] = []
+    for s in specs:
+        if s.module != AGENT_NODE:
+            out.append(s)
+        elif s is agents[0]:
+            for i in range(0, len(agents), per):
+                group = agents[i : i + per]
+                if len(group) == 1:
+                    out.append(group[0])
+                    continue
+                name = group_name([g.name for g in group])
+                out.append(ProcessSpec(name, AGENTS_NODE, {}, s.respawn, s.respawn_delay, s.max_restarts, tuple(group)))
+    return out
 
 
 def killed(rc: int) -> bool:
@@ -263,12 +357,17 @@ def restarts(spec: ProcessSpec, rc: int) -> bool:
 
 
 def prepare(cfg: LaunchConfig) -> list[tuple[ProcessSpec, Path]]:
-    """`team_processes` with the parameters file of each written (parameters/NAME.yaml), and logs/ made."""
+    """`team_processes` with the parameters file of each written (parameters/NAME.yaml; a composed process's holds
+    the parameters of the process, none, and every hosted agent has its own file, as its own process would), and
+    logs/ made."""
     (cfg.run_dir / "logs").mkdir(parents=True, exist_ok=True)
-    return [
-        (spec, write_params(cfg.run_dir / "parameters" / f"{spec.name}.yaml", spec.params))
-        for spec in team_processes(cfg)
-    ]
+    params = cfg.run_dir / "parameters"
+    out = []
+    for spec in team_processes(cfg):
+        for h in spec.hosted:
+            write_params(params / f"{h.name}.yaml", h.params)
+        out.append((spec, write_params(params / f"{spec.name}.yaml", spec.params)))
+    return out
 
 
 EXPERT_WEIGHTS_TIMEOUT = 3600.0
@@ -319,7 +418,7 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         params.update(cfg.agent_params)
         if cfg.checkpoint:
             params["checkpoint"] = str(Path(cfg.checkpoint).resolve())
-        specs.append((a.name, "htlm_agent.ros.agent_node", params))
+        specs.append((a.name, AGENT_NODE, params))
     if cfg.robots == "sim":
         specs.append(("operation", "htlm_world.ros.operation_node", {}))
         for a in sc.agents:
@@ -349,16 +448,9 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
 
 def spawn(spec: ProcessSpec, params_file: Path, log: Path, env: dict[str, str], note: str = "") -> Proc:
     """Start one process of the launch, its output appended to `log` (after the line `note`, if given)."""
-    cmd = [
-        sys.executable,
-        "-m",
-        spec.module,
-        "--ros-args",
-        "-r",
-        f"__node:={spec.node}",
-        "--params-file",
-        str(params_file),
-    ]
+    name = ["-r", f"__node:={spec.node}"] if spec.node else []  # a composed process names each of its agents
+    cmd = [sys.executable, "-m", spec.module, *spec.arguments(params_file.parent), "--ros-args", *name]
+    cmd += ["--params-file", str(params_file)]
     with open(log, "ab") as out:
         if note:
             out.write(f"{note}\n".encode())
@@ -600,6 +692,10 @@ def run_team(cfg: LaunchConfig) -> int:
         slots = _start_slots(cfg)
         env = ros_env(cfg)
         names = ", ".join(s.name for s in slots)
+        composed = [s for s in slots if s.spec.hosted]
+        if composed:
+            hosted = sum(len(s.spec.hosted) for s in composed)
+            names += f" ({hosted} agents in {len(composed)} processes of at most {per_process(cfg)})"
         print(
             f"htlm launch {cfg.mode}: {names} on ROS_DOMAIN_ID={cfg.domain_id} "
             f"(discovery {cfg.discovery}{', peers ' + cfg.peers if cfg.peers else ''}); logs in {cfg.run_dir / 'logs'}",

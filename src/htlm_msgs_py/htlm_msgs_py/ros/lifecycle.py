@@ -188,3 +188,123 @@ def run_node(
             node.destroy_node()
             rclpy.try_shutdown()
     return code
+
+
+def run_nodes(
+    name: str,
+    make_nodes: Callable[[], list[Any]],
+    cleanup: Callable[[Any], None],
+    args: list[str] | None = None,
+) -> int:
+    """The skeleton of a process that hosts several nodes in one executor (as a ROS 2 component container hosts
+    components), each the node `run_node` would run alone, with that process's rules kept for the whole process.
+
+    `make_nodes()` constructs every hosted node in one rclpy context (each with its own name, parameters and
+    entities); a bad parameter of any of them exits with code 2, as `run_node` does, naming the node. The nodes
+    spin in one executor (the first node's `settings.executor`) until:
+
+    - a node is `finished()` (its run is over and its work flushed): it stops at once (`cleanup`, its counters
+      logged, `flush`, removed from the executor) while the others go on; when the last one has finished, the
+      process exits 0. A finished node is destroyed, and leaves the graph, with the process: the EventsExecutor
+      may still hold events of a node it no longer runs, and one that came for a destroyed node's subscription
+      raised InvalidHandle out of `spin_once` (a training run's last acknowledgements, seen in
+      tests/ros/test_compose.py);
+    - a node has a `fatal` error (the process alone would exit 2: a bad policy or checkpoint, which would fail the
+      same way again): every node stops and the process exits 2;
+    - SIGINT or SIGTERM: every node stops (each node's `stop_signal` is set), exit 128 + signal;
+    - an exception escapes a callback: every node is torn down as below and the exception ends the process (exit 1
+      with its traceback), as it would end a process of one node.
+
+    The teardown of the nodes still up is `run_node`'s: `cleanup`, counters, one `flush` budget for all of them,
+    the garbage collector off, the exit watchdog, every node removed and destroyed, rclpy shut down. Call it only
+    as the process's main.
+    """
+    import signal
+    import traceback
+
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
+
+    faulthandler.register(signal.SIGUSR1)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        nodes = make_nodes()
+    except SettingsError as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    stop_signal: list[int] = []
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        stop_signal.append(signum)
+        for n in nodes:
+            n.stop_signal = signum
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    executor = make_executor(nodes[0].settings.executor)
+    for n in nodes:
+        executor.add_node(n)
+    live = list(nodes)
+    retired: list[Any] = []
+
+    def counters(node: Any) -> None:
+        health = getattr(node, "health", None)
+        if health is not None and health.counters:
+            counts = ", ".join(f"{k} {v}" for k, v in sorted(health.counters.items()))
+            node.get_logger().info(f"counters at exit: {counts}")
+
+    def retire(node: Any) -> None:
+        """A finished node stops now, as its own process would exit, while the others go on."""
+        live.remove(node)
+        retired.append(node)
+        try:
+            cleanup(node)
+            counters(node)
+            flush(node, FLUSH_SECONDS)
+        finally:
+            executor.remove_node(node)
+
+    code = 1
+    try:
+        while True:
+            if stop_signal:
+                code = 128 + int(stop_signal[0])
+                break
+            fatal = [n for n in live if n.fatal is not None]
+            if fatal:
+                for n in fatal:
+                    n.get_logger().error(f"fatal in {n.get_name()}: {n.fatal}; stopping every node of this process")
+                code = 2
+                break
+            for n in [n for n in live if n.finished()]:
+                retire(n)
+            if not live:
+                code = 0
+                break
+            executor.spin_once(timeout_sec=0.25)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        code = 130
+    finally:  # an exception from a callback propagates after this (exit 1, its traceback at the end of the log)
+        for n in live:
+            try:
+                cleanup(n)
+                counters(n)
+            except Exception:  # one node's cleanup must not keep the others from theirs
+                traceback.print_exc()
+        end = time.monotonic() + FLUSH_SECONDS
+        for n in live:
+            flush(n, max(0.0, end - time.monotonic()))
+        gc.disable()
+        gc.freeze()
+        timed = exit_timer.exit_after(TEARDOWN_SECONDS + 0.5, code)
+        faulthandler.dump_traceback_later(TEARDOWN_SECONDS, exit=not timed)
+        try:
+            for n in live:
+                executor.remove_node(n)
+            executor.shutdown()
+        finally:
+            for n in live + retired:
+                n.destroy_node()
+            rclpy.try_shutdown()
+    return code
