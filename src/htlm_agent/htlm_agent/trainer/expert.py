@@ -16,12 +16,14 @@ networks; a step some agent's transitions missed is left out of the teacher's st
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from htlm_agent.experiments.expert import ExpertRounds, RoundRow, write_rounds
+from htlm_agent.learning.checkpoint import save_checkpoint
 from htlm_agent.learning.qnet import pack_weights
 from htlm_agent.learning.settings import Settings
 from htlm_world.episode import batch_index
@@ -107,7 +109,7 @@ class ExpertTrainer:
         whole = all(len(self.truth.get(e, {})) >= h for e in self.ended)
         return whole or now - self.ended_at > deadline
 
-    def learn(self) -> None:
+    def learn(self) -> Future[Any]:
         """Hand the round's true levels to the learner (batches in order; those missing a step are left out,
         counted) and start the round's learning in the worker."""
         h = self.scenario.horizon
@@ -122,6 +124,7 @@ class ExpertTrainer:
         self.ended = []
         assert not self.busy
         self.job = self.pool.submit(self._learn)
+        return self.job
 
     def _learn(self) -> RoundRow:
         row = self.rounds.learn()
@@ -150,10 +153,6 @@ class ExpertTrainer:
     def save(self, directory: Path, extra: dict[str, Any]) -> Path:
         """The checkpoint of the best round so far (the format of `htlm train --learner expert`), with rounds.csv
         and rounds.png beside it in the run directory."""
-        from dataclasses import asdict
-
-        from htlm_agent.learning.checkpoint import save_checkpoint
-
         ex = self.rounds
         info = {**extra, "best_round": ex.best[1], "rounds": [asdict(r) for r in ex.rows]}
         if len(ex.rows) > 1:
@@ -169,9 +168,7 @@ class ExpertTrainer:
             self.job.result()
             self.job = None
         if self.ended and not self.finished:
-            self.learn()
-            assert self.job is not None
-            self.job.result()
+            self.learn().result()
             self.job = None
 
     def close(self) -> None:
