@@ -139,7 +139,7 @@ def test_start_publishes_the_first_weights_progress_and_settings(tmp_path: Path)
     eff = core.on_scenario(_scenario(), 0.0)
     assert [w["agent"] for w in eff.weights] == list(range(N))
     assert all(w["version"] == 2**32 + 1 and w["trained"] == 0 and w["settings"]["seed"] == 7 for w in eff.weights)
-    assert eff.progress == [{"run": "r1", "trained": 0, "updates": 0}]
+    assert eff.progress == [{"run": "r1", "trained": 0, "updates": 0, "finished": False}]
     assert (tmp_path / "settings.json").exists() and core.learner.settings.hidden == (16,) and core.batch == 2
     assert any("training 5 agents" in text and "batches of 2" in text for _, text in eff.log), eff.log
     assert core.publish_weights() == []  # nothing trained since
@@ -151,7 +151,9 @@ def test_rounds_run_in_step_order_once_every_agent_sent_its_step(tmp_path: Path)
     eff = _feed(core, s0[:-1])
     assert eff.progress == [] and eff.counters == {} and core.trained == 0  # agent 4 missing
     eff = _feed(core, s0[-1:])
-    assert eff.progress == [{"run": "r1", "trained": 1, "updates": 0}] and eff.counters == {"train_rounds": 1}
+    assert eff.progress == [{"run": "r1", "trained": 1, "updates": 0, "finished": False}] and eff.counters == {
+        "train_rounds": 1
+    }
     assert [w["trained"] for w in eff.weights] == [1] * N
     eff = _feed(core, s2)  # complete, but step 1 is not: it waits
     assert eff.progress == [] and core.trained == 1 and core.values()["rounds_waiting"] == "1"
@@ -262,7 +264,7 @@ def test_weights_on_their_cadence_and_progress_after_every_round(tmp_path: Path,
     eff = core.on_scenario(_scenario(first=first), 0.0)
     lo = core.first_step
     assert lo == first // 2 * H and [w["trained"] for w in eff.weights] == [lo] * N
-    assert eff.progress == [{"run": "r1", "trained": lo, "updates": 0}]
+    assert eff.progress == [{"run": "r1", "trained": lo, "updates": 0, "finished": False}]
     eff = _feed(core, _steps(lo, lo + 13))
     assert [p["trained"] for p in eff.progress] == list(range(lo + 1, lo + 14))
     due = [g for g in range(lo + 1, lo + 14) if (g - lo) % every == 0]
@@ -377,7 +379,9 @@ def test_resume_from_the_checkpoint_and_the_later_records(tmp_path: Path) -> Non
     rows = (H + 10) * N * 2
     assert any(f"{rows} transitions" in text and f"{10 * N * 2} fed to the learner" in text for _, text in eff.log)
     # what the store holds counts as trained: the world goes on from step H + 10
-    assert again.trained == H + 10 and eff.progress == [{"run": "r1", "trained": H + 10, "updates": at_checkpoint[0]}]
+    assert again.trained == H + 10 and eff.progress == [
+        {"run": "r1", "trained": H + 10, "updates": at_checkpoint[0], "finished": False}
+    ]
     assert (again.updates, _weights(again)) == at_checkpoint
     assert again.episodes_seen == 2 and int(again.learner.replay.size.sum()) == rows
     assert again.selection.episode == 2 and again.selection.flat is not None
