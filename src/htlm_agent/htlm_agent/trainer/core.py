@@ -581,6 +581,8 @@ class TrainerCore:
         `HEARTBEAT` seconds meanwhile."""
         out = TrainerEffects()
         ex = self.rounds_of
+        if self.finished and not self.stopping and now - self.heard_at >= HEARTBEAT:
+            self._announce(out, now=now)  # again, until the world ends the run (a record may be lost)
         if ex is not None and self.held and self.fatal is None:
             try:
                 self._expert_tick(ex, now, out)
