@@ -397,7 +397,7 @@ class TrainerCore:
                 f"{self.dir}: holds transitions or a checkpoint, and the expert-iteration learner does not resume a "
                 "run (its rounds are quick to run again): use a new run_dir"
             )
-        self.rounds_of = self.learner = ExpertTrainer(sc, settings, self.run_range[0], self.batch)
+        self.rounds_of = self.learner = ExpertTrainer(sc, settings, self.batch)
         self.schedule = Schedule(
             weights_every=settings.round_batches * sc.horizon,
             round_deadline=self.schedule.round_deadline,
@@ -581,21 +581,20 @@ class TrainerCore:
         `HEARTBEAT` seconds meanwhile."""
         out = TrainerEffects()
         ex = self.rounds_of
-        if self.finished and not self.stopping and now - self.heard_at >= HEARTBEAT:
-            self._announce(out, now=now)  # again, until the world ends the run (a record may be lost)
         if ex is not None and self.held and self.fatal is None:
             try:
                 self._expert_tick(ex, now, out)
             except Exception as e:  # the worker's error is the trainer's
                 self._fail(f"the expert-iteration learner failed: {type(e).__name__}: {e}", out)
                 return out
+        # while a round learns, and once finished until the world ends the run (a record may be lost): again
+        if (self.held or self.finished) and not self.stopping and now - self.heard_at >= HEARTBEAT:
+            self._announce(out, now=now)
         self._run_rounds(now, out)
         return out
 
     def _expert_tick(self, ex: ExpertTrainer, now: float, out: TrainerEffects) -> None:
         if ex.busy:
-            if now - self.heard_at >= HEARTBEAT:
-                self._announce(out, now=now)
             return
         if ex.job is not None:  # round 0 done, or a round's learning
             row = ex.result()
@@ -616,8 +615,6 @@ class TrainerCore:
         if ex.ended and ex.rounds.rows and ex.truth_ready(now, self.schedule.round_deadline):  # round 0 is done
             ex.learn()
             out.log.append(("info", f"expert: round {ex.rounds.round} played ({ex.episodes_done} episodes): learning"))
-        if now - self.heard_at >= HEARTBEAT:
-            self._announce(out, now=now)
 
     def _log_round(self, row: Any, out: TrainerEffects) -> None:
         self._write_log({"episodes": row.episodes, "round": row.round, "val_completion": row.val_completion,
@@ -657,7 +654,7 @@ class TrainerCore:
             self._round(rnd, out)
             self.trained += 1
             if rnd.step == self.scenario.horizon:  # type: ignore[union-attr]
-                self._batch_done(rnd, out)
+                self._batch_done(rnd, now, out)
             self._announce(out)
 
     def _round(self, rnd: _Round, out: TrainerEffects) -> None:
@@ -719,15 +716,14 @@ class TrainerCore:
         if force_weights or (self.trained - self.first_step) % self.schedule.weights_every == 0:
             out.weights.extend(self.publish_weights())
 
-    def _batch_done(self, rnd: _Round, out: TrainerEffects) -> None:
+    def _batch_done(self, rnd: _Round, now: float, out: TrainerEffects) -> None:
         """The last round of a batch: count its episodes, validate and select as `htlm train`, checkpoint when due."""
         from htlm_agent.experiments.train import validate
 
         if self.rounds_of is not None:  # the expert: a round's last batch starts its learning
-            self.episodes_seen = self.rounds_of.episodes_done + rnd.size
+            self.held = self.rounds_of.end_batch(rnd.episode, rnd.size, now)  # held: the round learns (`tick`)
+            self.episodes_seen = self.rounds_of.episodes_done
             self._write_log({"episodes": self.episodes_seen, "round": self.rounds_of.rounds.round})
-            if self.rounds_of.end_batch(rnd.episode, rnd.size, time.monotonic()):
-                self.held = True  # the step's announcement waits for the round's learning (`tick`)
             return
         s = self.learner.settings
         self.learner.episodes_done += rnd.size
@@ -879,6 +875,8 @@ class TrainerCore:
                 self.checkpoint(out)
             self.store.close()
             self.store = None
+        if self.rounds_of is not None:
+            self.rounds_of.close()
         if self.log_file is not None:
             self.log_file.close()
             self.log_file = None
@@ -896,4 +894,12 @@ class TrainerCore:
             "rounds_waiting": str(len(self.rounds)),
             "weights_version": str(self.weights_version),
             "epoch": str(self.epoch),
+            **(
+                {
+                    "expert_steps_skipped": str(self.rounds_of.skipped),
+                    "expert_batches_untrue": str(self.rounds_of.untrue),
+                }
+                if self.rounds_of is not None
+                else {}
+            ),
         }

@@ -35,9 +35,9 @@ from htlm_world.types import BoolArray, IntArray
 class ExpertTrainer:
     """The expert-iteration learner of one training run over ROS, fed step by step by `TrainerCore`."""
 
-    def __init__(self, sc: Scenario, settings: Settings, first_episode: int, batch: int) -> None:
-        """The learner of a run whose first episode is `first_episode`, played in batches of `batch` (the learner's
-        `envs`); its round 0 (`ExpertRounds.prepare`) starts at once in the worker, while round 1 is played.
+    def __init__(self, sc: Scenario, settings: Settings, batch: int) -> None:
+        """The learner of a run played in batches of `batch` (the learner's `envs`); its round 0
+        (`ExpertRounds.prepare`) starts at once in the worker, while round 1 is played.
 
         Raises:
             ValueError: a batch other than the learner's envs.
@@ -49,7 +49,7 @@ class ExpertTrainer:
             )
         self.scenario, self.settings = sc, settings
         self.n_agents = sc.n_agents
-        self.first, self.batch = first_episode, batch
+        self.batch = batch
         self.rounds = ExpertRounds(sc, settings, progress=False)  # the trainer logs each round itself
         self.start_mask = Model.build(sc).action_mask(np.full((batch, sc.n_agents), sc.start_assignment))
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="expert")
