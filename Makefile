@@ -13,9 +13,10 @@ run: setup
 test: setup
 	$(VENV)/python -m pytest -q
 
-# the tests marked slow: the fault and attack tests of the ROS runtime (kills, restarts, network cut, flood), the
-# batch-1 variants of the equivalence tests, the network tests (partition, bad links, clock offsets) and the install
-# test of the packages in a fresh venv (about 14 min)
+# the tests marked slow: the fault and attack tests of the ROS runtime (kills, restarts, network cut, flood, fuzzed
+# training topics, forgeries beyond one), the batch-1 and other variants of the equivalence tests, the network tests
+# (namespaces, partition, bad links, clock offsets), the quick reproduction and the install test of the packages in a
+# fresh venv (about 30 min; the default run keeps one test of each family, about 10 min)
 test-slow: setup
 	$(VENV)/python -m pytest -q -m slow
 

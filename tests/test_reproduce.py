@@ -35,6 +35,7 @@ def _run(out: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.slow  # CI budget: a quick reproduction trains 30 configurations (about 2 min): -m slow
 @pytest.mark.timeout(2 * RUN_TIMEOUT + 60)  # two runs, each bounded by its own timeout, not the suite's 300 s
 def test_quick_reproduction_produces_every_result(tmp_path: Path) -> None:
     out = tmp_path / "rep"

@@ -88,6 +88,7 @@ def test_a_composed_team_evaluates_exactly_as_a_process_per_agent(tmp_path: Path
         assert _lines(tmp_path / "composed" / f"{a}.jsonl") == _lines(tmp_path / "alone" / f"{a}.jsonl"), a
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the composed evaluation and graph; this one with -m slow
 @pytest.mark.timeout(300)
 def test_a_composed_team_trains_exactly_the_networks_of_htlm_train(ros_team: Any, tmp_path: Path) -> None:
     """Training with agents 1-3 and 4-5 in two processes (the agents act with the trainer's weights, the world paces
@@ -139,6 +140,7 @@ def _graph(launcher: Any, where: Path, per: int) -> dict[str, Any]:
     return got
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the composed evaluation; this one with -m slow
 @pytest.mark.timeout(300)
 def test_on_the_graph_a_composed_agent_is_the_node_its_own_process_would_be(launcher: Any, tmp_path: Path) -> None:
     composed = _graph(launcher, tmp_path / "composed", 3)

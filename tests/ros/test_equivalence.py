@@ -52,7 +52,9 @@ def test_ros_evaluation_of_a_batch_of_16_equals_team_of_that_batch(
     assert all(sum(w["metrics"]["absent"]) == 0 for w in eps)
 
 
-@pytest.mark.parametrize(("batch", "episodes", "first"), [(1, 2, 7), (16, 16, 32)])
+@pytest.mark.parametrize(
+    ("batch", "episodes", "first"), [pytest.param(1, 2, 7, marks=pytest.mark.slow), (16, 16, 32)]
+)  # at B=1: -m slow
 def test_ros_evaluation_of_a_checkpoint_equals_in_process(
     ros_team: Any, tmp_path: Path, batch: int, episodes: int, first: int
 ) -> None:
@@ -157,6 +159,7 @@ def test_no_launched_process_maps_fast_dds_shared_memory(ros_team: Any) -> None:
     assert team.wait_all(30) == dict.fromkeys(team.procs, 0)
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the checkpoint evaluations; this one with -m slow
 def test_token_networks_with_a_roster_over_ros_equal_in_process(ros_team: Any, tmp_path: Path) -> None:
     """The token learner's networks (one shared network, a copy in every agent process) on a scenario with the roster,
     the teammates' places and a dropout: every agent sees from the broadcasts who went silent and where the others

@@ -162,6 +162,7 @@ def _initial_networks(team: RosTeam) -> Callable[[int], Any]:
     return run
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the fuzzing of an evaluation's topics; this one with -m slow
 def test_fuzzing_the_training_topics(ros_team: Any) -> None:
     team = ros_team(
         mode="train",

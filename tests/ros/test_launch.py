@@ -51,6 +51,7 @@ def test_team_script_runs_an_evaluation(repo_root: Path, tmp_path: Path) -> None
     assert alive_with(str(run)) == []
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the lookahead over ROS of test_equivalence; this one with -m slow
 def test_agents_run_the_lookahead_each_with_its_own_value_network(tmp_path: Path) -> None:
     """`--policy lookahead`: every agent process fits the value network when it joins (before the first step, within
     the join timeout) and acts on its own belief; no agent misses a step and the team completes its episodes."""
@@ -106,6 +107,7 @@ def test_json_is_the_only_output_on_stdout(tmp_path: Path) -> None:
     assert alive_with(str(run)) == []
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the launcher's other tests; this one with -m slow
 def test_a_killed_world_is_restarted_and_ctrl_c_stops_every_process(repo_root: Path, tmp_path: Path) -> None:
     """The team outlives its world: SIGKILLed, it is started again and the run goes on; then Ctrl-C stops it all."""
     run = tmp_path / "deploy"

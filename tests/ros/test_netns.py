@@ -86,6 +86,7 @@ def _launch(net: Net, script: str, name: str, args: list[str], run: Path) -> sub
     return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
+@pytest.mark.slow  # CI budget: every network test (root, 20-45 s each) runs with -m slow
 def test_world_trainer_and_agents_in_separate_network_namespaces(net: Net, repo_root: Path, tmp_path: Path) -> None:
     seed, episodes = 3, 4  # two batches of 2: time for every process to discover the world
     run = tmp_path / "run"

@@ -143,6 +143,7 @@ def test_a_recorded_evaluation_holds_every_message_the_team_published(tmp_path: 
     assert shown.levels.tolist() == world[1]["levels"] and shown.actions.tolist() == world[1]["actions"]
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the recorded evaluation; this one with -m slow
 def test_a_recorded_deployment_holds_the_robots_odometry_and_goal_poses(tmp_path: Path) -> None:
     run = tmp_path / "run"
     args = ["deploy", "--policy", "greedy", "--robots", "sim", "--episodes", "1", "--period", "0.25"]

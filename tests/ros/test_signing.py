@@ -79,6 +79,7 @@ def test_with_a_team_key_forged_records_change_no_belief(ros_team: Any) -> None:
     print(f"rogues sent {info['sent']} forged records; rejected for their signature: {sig}")
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the forged records under a team key; this one with -m slow
 def test_without_a_key_the_same_forgeries_do_change_the_run(ros_team: Any) -> None:
     # forged broadcasts alone: they enter the agents' beliefs (forged observations and assignments would too, but
     # they also stall the protocol until its deadlines, which makes this control slow)
@@ -87,6 +88,7 @@ def test_without_a_key_the_same_forgeries_do_change_the_run(ros_team: Any) -> No
         assert_same_as_in_process(team, SEED, "greedy")
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the forged records under a team key; this one with -m slow
 def test_signed_records_of_another_run_are_rejected_at_every_subscriber(ros_team: Any) -> None:
     """Broadcasts, observations and assignments signed with the team's key but of another run (an earlier run's
     records replayed at the matching episode and step) are rejected as other_run by the world and every agent; the

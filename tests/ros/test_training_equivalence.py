@@ -30,10 +30,10 @@ trainer's networks learn to rank its choices first."""
 
 @pytest.mark.parametrize(
     ("lag", "changes"),
-    [
-        (0, {}),
+    [  # the default run keeps the default lag; lag 0 and the warm start with -m slow (CI budget)
+        pytest.param(0, {}, marks=pytest.mark.slow),
         *([(Settings().trainer_lag, {})] if Settings().trainer_lag else []),
-        (Settings().trainer_lag, WARM_START),
+        pytest.param(Settings().trainer_lag, WARM_START, marks=pytest.mark.slow),
     ],
     ids=lambda v: "warm-start" if v == WARM_START else str(v) if not isinstance(v, dict) else "paper",
 )
