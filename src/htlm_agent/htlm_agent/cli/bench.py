@@ -14,7 +14,8 @@ the paper's), and the team's agent-steps/s of the paper's team are measured in t
 of an agent-step as a ratio to the paper's.
 
 `htlm bench ros` measures the ROS 2 runtime: it calls `ros_bench(args) -> dict` of the module named in ROS_BENCH,
-which the ROS runtime provides; this module does not depend on it.
+which the ROS runtime provides; this module does not depend on it. `htlm bench scale` measures what a team costs as
+it grows, over ROS 2 (a process per agent and composed) and in process: `scale_bench(args) -> dict` of SCALE_BENCH.
 """
 
 from __future__ import annotations
@@ -25,15 +26,18 @@ import json
 import os
 import sys
 import tempfile
-import time
 from typing import Any
 
 import numpy as np
 
+from htlm_agent.experiments.speed import rate as _rate
+from htlm_agent.experiments.speed import sim_rate, team_rate
 from htlm_world.scenario import Scenario, ScenarioError, builtin, load
 
 ROS_BENCH = "htlm_agent.ros.bench"
 """Module providing `ros_bench(args: argparse.Namespace) -> dict` and optionally `add_arguments(parser)`."""
+SCALE_BENCH = "htlm_agent.ros.scale"
+"""Module providing `scale_bench(args: argparse.Namespace) -> dict` and optionally `add_arguments(parser)`."""
 
 OPTIMUM = {"heterogeneous": 7.09, "semi-heterogeneous": 6.70, "homogeneous": 7.61}
 """Expected completion step of the centralized optimum (docs/model.md, Reference figures)."""
@@ -47,75 +51,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "what",
         nargs="?",
-        choices=["inproc", "ros"],
+        choices=["inproc", "ros", "scale"],
         default="inproc",
-        help="inproc (default): simulator, team and learner in this process; ros: the ROS 2 runtime",
+        help="inproc (default): simulator, team and learner in this process; ros: the ROS 2 runtime; scale: time to "
+        "join, memory, CPU and agent-steps/s of teams of 5 to 100 agents over ROS 2, a process per agent and "
+        "composed, and their team step and evaluations in process",
     )
     p.add_argument("--json", action="store_true", help="print the figures as JSON on stdout")
     p.add_argument("--seconds", type=float, default=2.0, help="measuring time per speed figure (default: 2)")
     p.add_argument("--no-train", action="store_true", help="skip the default training run")
     p.add_argument("--episodes", type=int, default=None, help="episodes of the training run (default: Settings)")
-    p.add_argument("--out", default=None, metavar="DIR", help="keep the training run here (default: a temp dir)")
+    p.add_argument(
+        "--out",
+        default=None,
+        metavar="DIR",
+        help="keep the training run here (default: a temp dir); scale: write the results and runs here (default: "
+        "runs/bench-scale-TIME)",
+    )
     p.add_argument("--scenario", default=None, metavar="FILE", help="measure this scenario (a file or a shipped name)")
     p.add_argument("--team", default=None, help="a team of the scenario's `teams`")
-    try:
-        mod = importlib.import_module(ROS_BENCH)
-    except ModuleNotFoundError as e:
-        if e.name != ROS_BENCH:
-            raise
-    else:
-        if hasattr(mod, "add_arguments"):
-            mod.add_arguments(p)
-
-
-def _rate(step: Any, seconds: float) -> tuple[float, int]:
-    """Calls of step() per second over about `seconds` (after one warm-up call)."""
-    step()
-    n, t0 = 0, time.perf_counter()
-    while True:
-        step()
-        n += 1
-        el = time.perf_counter() - t0
-        if el >= seconds:
-            return n / el, n
-
-
-def sim_rate(batch: int, seconds: float, sc: Scenario | None = None) -> float:
-    """Simulator agent-steps/s at batch B with uniformly random joint actions (the paper's scenario by default)."""
-    from htlm_world.simulator import BatchSim
-
-    sc = sc or builtin()
-    sim = BatchSim(sc, batch, np.random.default_rng(0))
-    rng = np.random.default_rng(1)
-    actions = rng.integers(0, sc.n_actions, (64, batch, sc.n_agents))
-    i = [0]
-
-    def step() -> None:
-        if sim.t >= sc.horizon:
-            sim.reset()
-        sim.step(actions[i[0] % 64])
-        i[0] += 1
-
-    r, _ = _rate(step, seconds)
-    return r * batch * sc.n_agents
-
-
-def team_rate(batch: int, seconds: float, sc: Scenario | None = None) -> float:
-    """Team agent-steps/s (simulator + belief filters + rewards) at batch B with random actions from Â."""
-    from htlm_agent.baselines.heuristics import RandomPolicy
-    from htlm_agent.runtime.team import Team
-
-    sc = sc or builtin()
-    team = Team(sc, batch, 0)
-    pol = RandomPolicy(sc, 0)
-
-    def step() -> None:
-        if team.t >= sc.horizon:
-            team.reset()
-        team.step(pol.act(team.context()))
-
-    r, _ = _rate(step, seconds)
-    return r * batch * sc.n_agents
+    for name in (ROS_BENCH, SCALE_BENCH):
+        try:
+            mod = importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            if e.name != name:
+                raise
+        else:
+            if hasattr(mod, "add_arguments"):
+                mod.add_arguments(p)
 
 
 def learner_rate(seconds: float, sc: Scenario | None = None) -> float:
@@ -237,15 +200,21 @@ def training_run(episodes: int | None, out: str | None, sc: Scenario | None = No
 
 def run(args: argparse.Namespace) -> int:
     """Measure and print."""
-    if args.what == "ros":
+    if args.what in ("ros", "scale"):
+        name = ROS_BENCH if args.what == "ros" else SCALE_BENCH
         try:
-            mod = importlib.import_module(ROS_BENCH)
+            mod = importlib.import_module(name)
         except ModuleNotFoundError as e:
-            if e.name != ROS_BENCH:
+            if e.name != name:
                 raise
             raise SystemExit(
-                f"htlm bench ros: the ROS benchmark is not available in this build (no {ROS_BENCH})"
+                f"htlm bench {args.what}: the ROS benchmark is not available in this build (no {name})"
             ) from None
+        if args.what == "scale":
+            res = mod.scale_bench(args)
+            if args.json:
+                print(json.dumps(res))
+            return 0
         res = mod.ros_bench(args)
         print(json.dumps(res) if args.json else "\n".join(f"{k}: {v}" for k, v in res.items()))
         return 0

@@ -47,7 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="ros: episodes of the timed training runs, over ROS and in process (default: htlm train's budget, "
         "12288; 0: none)",
     )
-    p.add_argument("--domain-id", type=int, default=99, help="ros: ROS_DOMAIN_ID of the timed team (default 99)")
+    p.add_argument("--domain-id", type=int, default=99, help="ros, scale: ROS_DOMAIN_ID of the teams (default 99)")
     p.add_argument("--keep", default="", metavar="DIR", help="ros: keep the run directories here")
 
 
