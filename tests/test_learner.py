@@ -12,7 +12,6 @@ import pytest
 import torch
 
 from htlm_agent.baselines.heuristics import GreedyPolicy, RandomPolicy
-from htlm_agent.experiments.evaluate import evaluate
 from htlm_agent.experiments.train import train, train_batch
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.dqn import Learner
@@ -24,6 +23,7 @@ from htlm_agent.learning.replay import Replay
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
 from htlm_agent.mind.policies import epsilon_greedy
+from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team
 from htlm_msgs_py.params import field_docs
 from htlm_world.scenario import builtin

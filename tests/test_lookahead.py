@@ -11,8 +11,8 @@ import pytest
 
 from htlm_agent.baselines.heuristics import AuctionPolicy
 from htlm_agent.baselines.lookahead import BaseValue, LookaheadPolicy, ValueSettings, base_rollouts
-from htlm_agent.experiments.evaluate import evaluate
 from htlm_agent.mind.auction import allocate
+from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario, builtin

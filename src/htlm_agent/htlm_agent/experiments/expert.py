@@ -36,7 +36,6 @@ import torch
 
 from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
 from htlm_agent.baselines.lookahead import LOAD_CAP, BaseValue, Teacher, ValueSettings, load_rates
-from htlm_agent.experiments.evaluate import evaluate
 from htlm_agent.learning.qnet import init_params
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
@@ -45,6 +44,7 @@ from htlm_agent.mind.context import Policy
 from htlm_agent.mind.policies import knowledge_context, team_epsilon_greedy
 from htlm_agent.mind.reward import RewardTables
 from htlm_agent.progress import Progress
+from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team
 from htlm_world import seeds
 from htlm_world.metrics import completion_step

@@ -31,7 +31,6 @@ import yaml
 from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
 from htlm_agent.baselines.lookahead import BaseValue, ValueSettings, own_rewards, team_policy
 from htlm_agent.baselines.optimal import ProblemTooLarge, QmdpPolicy
-from htlm_agent.experiments.evaluate import evaluate, evaluate_run, write_reports
 from htlm_agent.experiments.expert import train_expert, write_rounds
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.dqn import Learner
@@ -40,6 +39,7 @@ from htlm_agent.learning.settings import Settings
 from htlm_agent.mind.context import Policy
 from htlm_agent.mind.policies import knowledge_context, team_epsilon_greedy
 from htlm_agent.progress import Progress
+from htlm_agent.runtime.evaluate import evaluate, evaluate_run, write_reports
 from htlm_agent.runtime.team import Team
 from htlm_world import seeds
 from htlm_world.metrics import episode_metrics
