@@ -156,7 +156,7 @@ def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPoli
 
         return RowPolicy(scenario, QmdpPolicy(scenario), agent), 0.0
     if name == "lookahead":
-        from htlm_agent.baselines.lookahead import AgentLookahead, LookaheadPolicy  # torch: only when asked for
+        from htlm_agent.learning.lookahead import AgentLookahead, LookaheadPolicy  # torch: only when asked for
 
         return AgentLookahead(scenario, LookaheadPolicy(scenario), agent), 0.0
     return RowPolicy(scenario, GreedyPolicy(scenario), agent), (1.0 if name == "random" else 0.0)

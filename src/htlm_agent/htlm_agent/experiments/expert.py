@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
-from htlm_agent.baselines.lookahead import LOAD_CAP, BaseValue, Teacher, ValueSettings, load_rates
+from htlm_agent.learning.lookahead import LOAD_CAP, BaseValue, Teacher, ValueSettings, load_rates
 from htlm_agent.learning.qnet import init_params
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings

@@ -30,12 +30,12 @@ from typing import Any
 import numpy as np
 import yaml
 
-from htlm_agent.baselines.lookahead import LookaheadPolicy, team_policy, value_of
 from htlm_agent.baselines.optimal import ProblemTooLarge
 from htlm_agent.experiments.baselines import make_baseline
 from htlm_agent.experiments.stress import run_stress
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
+from htlm_agent.learning.lookahead import LookaheadPolicy, team_policy, value_of
 from htlm_agent.learning.qnet import build_network
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings

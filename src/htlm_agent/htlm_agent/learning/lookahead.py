@@ -25,7 +25,6 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from htlm_agent.baselines.optimal import QMDP_LOAD_COST
 from htlm_agent.learning.checkpoint import Checkpoint
 from htlm_agent.learning.qnet import AgentQ
 from htlm_agent.learning.qpolicy import QPolicy
@@ -34,7 +33,7 @@ from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate
 from htlm_agent.mind.context import Context, Policy
 from htlm_agent.mind.policies import AgentPolicy, RowPolicy
-from htlm_agent.mind.reward import RewardTables, confident_levels, reward
+from htlm_agent.mind.reward import LOAD_PRICE, RewardTables, confident_levels, reward
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
@@ -271,7 +270,7 @@ class LookaheadPolicy:
         value: BaseValue | None = None,
         samples: int = LOOKAHEAD_SAMPLES,
         seed: int = 0,
-        load_price: float = QMDP_LOAD_COST,
+        load_price: float = LOAD_PRICE,
         floor: float | None = None,
     ) -> None:
         """`value`: a fitted `BaseValue` (default: one fitted here with `seed`); `load_price`: the steps a unit of
