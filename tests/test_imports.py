@@ -23,8 +23,8 @@ LAZY_MODULES = {
     "htlm_agent.session.policy": "an agent's choice of policy: loads torch only for a checkpoint",
     "htlm_agent.session.weights": "an agent's client of the trainer's weights: loads torch only to train on them",
     "htlm_agent.learning.transition_store": "read by the trainer node: loads the learner settings only on demand",
-    "htlm_agent.baselines.heuristics": "the built-in policies by name: loads torch only for the lookahead, the "
-    "optimum's code only for QMDP",
+    "htlm_agent.session.builtin": "the built-in policies by name: loads torch only for the lookahead, the optimum's "
+    "code only for QMDP",
 }
 """Other modules allowed first-party imports inside functions, with the reason."""
 

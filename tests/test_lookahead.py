@@ -112,8 +112,8 @@ def test_lookahead_beats_the_auction_on_the_paper_operation(paper_value: BaseVal
 def test_an_agent_process_works_out_its_own_head_only(paper_value: BaseValue) -> None:
     """`policy:=lookahead` (`builtin_policy`): agent i's process, from its own knowledge state alone, takes an
     action of its reduced action space, and works on the one open task it is needed on."""
-    from htlm_agent.baselines.heuristics import builtin_policy
     from htlm_agent.learning.lookahead import AgentLookahead
+    from htlm_agent.session.builtin import builtin_policy
 
     sc = builtin()
     team = Team(sc, 4, 7)

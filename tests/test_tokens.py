@@ -177,9 +177,9 @@ def test_every_agent_knows_where_its_teammates_were_as_the_in_process_team_does(
     """With `teammates` (and the roster), K ends with where the teammates were at the last step: an agent's mind
     builds it from the broadcasts it heard, the in-process Team from the joint assignment, and the two agree
     step for step; a teammate's capability on a task, or its presence at an idle location, shows there."""
-    from htlm_agent.baselines.heuristics import builtin_policy
     from htlm_agent.mind.policies import DecentralizedPolicy
     from htlm_agent.runtime.team import rollout
+    from htlm_agent.session.builtin import builtin_policy
     from support.team import loopback_episode
 
     sc = builtin().replace(roster=True, teammates=True)

@@ -31,7 +31,6 @@ def _kv(text: str) -> tuple[str, Any]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm launch`."""
-    from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
     from htlm_agent.learning.settings import Settings
     from htlm_agent.ros.launch import (
         ALONE_UP_TO,
@@ -41,6 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         RESPAWN_DELAY_MAX,
         RESPAWN_STABLE,
     )
+    from htlm_agent.session.builtin import BUILTIN_POLICIES
 
     p.add_argument("mode", choices=("train", "evaluate", "deploy"), help="what the team does")
     p.add_argument(

@@ -269,8 +269,9 @@ def checkpoint_problems(
 ) -> list[str]:
     """The problem of the checkpoint the agents started here would load, if any.
 
-    Loaded as the agent node does (`load_checkpoint(path, scenario)`, then `learning.lookahead.agent_policy` for the index of
-    each agent); with `scenario` None (the scenario file has problems) the checkpoint is only checked on its own.
+    Loaded as the agent node does (`load_checkpoint(path, scenario)`, then `learning.lookahead.agent_policy` for
+    the index of each agent); with `scenario` None (the scenario file has problems) the checkpoint is only checked on
+    its own.
     """
     from htlm_agent.learning.checkpoint import load_checkpoint
     from htlm_agent.learning.lookahead import agent_policy

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from htlm_agent.baselines.heuristics import BUILTIN_POLICIES, builtin_policy
 from htlm_agent.mind.policies import AgentPolicy
+from htlm_agent.session.builtin import BUILTIN_POLICIES, builtin_policy
 from htlm_agent.session.effects import SessionEffects
 from htlm_agent.session.run import JoinedRun
 from htlm_agent.session.weights import WeightsClient
