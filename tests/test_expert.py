@@ -13,7 +13,8 @@ import pytest
 from htlm_agent.baselines.heuristics import AuctionPolicy
 from htlm_agent.experiments.expert import soft_targets, unread_settings
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-from htlm_agent.learning.lookahead import LOAD_CAP, BaseValue, Teacher, load_rates, team_policy
+from htlm_agent.learning.learners import team_policy
+from htlm_agent.learning.lookahead import LOAD_CAP, BaseValue, Teacher, load_rates
 from htlm_agent.learning.settings import Settings
 from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team

@@ -13,10 +13,11 @@ import pytest
 SRC = Path(__file__).resolve().parent.parent / "src"
 PACKAGES = ("htlm_msgs_py", "htlm_world", "htlm_agent")
 
-LAZY_FOLDERS = ("cli", "ros")
+LAZY_FOLDERS = ("cli", "ros", "learners")
 """Folders whose modules import first-party modules inside functions on purpose: the command line loads a
 subcommand's module only when it runs (`htlm optimal` never loads torch), a ROS node loads the learner only in the
-mode that needs it."""
+mode that needs it, a learner of the registry (`learning.learners`, which every `Settings` reads) loads its
+training code and networks only when it trains or acts."""
 
 LAZY_MODULES = {
     "htlm_agent.trainer.core": "the ROS trainer's core: loads the learner (torch) only once a run starts",

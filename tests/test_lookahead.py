@@ -154,7 +154,8 @@ def test_a_run_of_the_lookahead_learner_holds_its_value_network(tmp_path: Path) 
     settings and seed fit, and the run's evaluation is the team acting with it."""
     from htlm_agent.experiments.train import train
     from htlm_agent.learning.checkpoint import load_checkpoint
-    from htlm_agent.learning.lookahead import team_policy, value_of
+    from htlm_agent.learning.learners import team_policy
+    from htlm_agent.learning.lookahead import value_of
     from htlm_agent.learning.settings import Settings
 
     sc = builtin()

@@ -79,7 +79,7 @@ def _run_equals_in_process(team: Any, ckpt: Path, seed: int, batch: int, team_wi
     against Team(scenario, batch, seed, b) with every agent's policy from the same checkpoint (`team_wide`: with the
     team policy `htlm evaluate` acts with, one call for every agent); their number."""
     from htlm_agent.learning.checkpoint import load_checkpoint
-    from htlm_agent.learning.lookahead import agent_policy, team_policy
+    from htlm_agent.learning.learners import agent_policy, team_policy
 
     sc = team.cfg.scenario
     team.cfg.checkpoint = str(ckpt)

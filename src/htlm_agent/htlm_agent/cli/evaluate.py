@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
     """Evaluate, print and write the reports."""
     from htlm_agent.experiments.baselines import make_baseline
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-    from htlm_agent.learning.lookahead import team_policy
+    from htlm_agent.learning.learners import team_policy
     from htlm_agent.runtime.evaluate import evaluate_run, write_reports
 
     if args.episodes < 1:

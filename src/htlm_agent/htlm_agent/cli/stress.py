@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from htlm_agent.experiments.baselines import make_baseline
     from htlm_agent.experiments.stress import format_stress, run_stress, write_stress
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-    from htlm_agent.learning.lookahead import team_policy
+    from htlm_agent.learning.learners import team_policy
     from htlm_agent.progress import Progress
     from htlm_agent.runtime.evaluate import importance_table
     from htlm_world.events import resolve_agent

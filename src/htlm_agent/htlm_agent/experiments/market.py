@@ -35,7 +35,8 @@ from htlm_agent.experiments.baselines import make_baseline
 from htlm_agent.experiments.stress import run_stress
 from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
-from htlm_agent.learning.lookahead import LookaheadPolicy, team_policy, value_of
+from htlm_agent.learning.learners import team_policy
+from htlm_agent.learning.lookahead import LookaheadPolicy, value_of
 from htlm_agent.learning.qnet import build_network
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings

@@ -33,7 +33,8 @@ from htlm_agent.baselines.optimal import ProblemTooLarge, QmdpPolicy
 from htlm_agent.experiments.expert import train_expert, write_rounds
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.dqn import Learner
-from htlm_agent.learning.lookahead import BaseValue, ValueSettings, own_rewards, team_policy
+from htlm_agent.learning.learners import team_policy
+from htlm_agent.learning.lookahead import BaseValue, ValueSettings, own_rewards
 from htlm_agent.learning.loop import LaggedNets, Selection, episode_epsilons
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind.context import Policy

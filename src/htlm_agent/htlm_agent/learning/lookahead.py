@@ -8,9 +8,9 @@ each pick the action that minimizes the expected steps to go, one step ahead, ov
 with the teammates before it on their improved choices and those after it on the auction's. An agent runs that
 sequence in its head and keeps its own choice, as it does the auction (one-agent-at-a-time rollout, Bertsekas 2020).
 
-Trained as a run of `htlm train` it is the lookahead learner (docs/model.md, The lookahead learner): its value network
-is the checkpoint, and `team_policy` / `agent_policy` make the policy of a checkpoint of any learner. With the
-learned value of the team's own play it is the expert-iteration learner's teacher (`Teacher`).
+Trained as a run of `htlm train` it is the lookahead learner (docs/model.md, The lookahead learner;
+`learning.learners.lookahead`): its value network is the checkpoint (`value_of`). With the learned value of the team's
+own play it is the expert-iteration learner's teacher (`Teacher`).
 """
 
 from __future__ import annotations
@@ -26,13 +26,11 @@ import torch
 from numpy.typing import NDArray
 
 from htlm_agent.learning.checkpoint import Checkpoint
-from htlm_agent.learning.qnet import AgentQ
-from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate
-from htlm_agent.mind.context import Context, Policy
-from htlm_agent.mind.policies import AgentPolicy, RowPolicy
+from htlm_agent.mind.context import Context
+from htlm_agent.mind.policies import RowPolicy
 from htlm_agent.mind.reward import LOAD_PRICE, RewardTables, confident_levels, reward
 from htlm_world import seeds
 from htlm_world.model import Model
@@ -394,21 +392,6 @@ class AgentLookahead(RowPolicy):
 def value_of(ck: Checkpoint) -> BaseValue:
     """The value network of a checkpoint of the lookahead learner (every agent holds the same copy)."""
     return BaseValue(ck.scenario, ValueSettings.of(ck.settings), ck.seed).load_params(ck.weights[0])
-
-
-def team_policy(ck: Checkpoint) -> Policy:
-    """The team policy of a checkpoint of any learner: the lookahead with its value network, else the agents'
-    Q-networks."""
-    if ck.settings.learner == "lookahead":
-        return LookaheadPolicy(ck.scenario, value_of(ck), seed=ck.seed, load_price=ck.settings.load_price)
-    return QPolicy.from_checkpoint(ck)
-
-
-def agent_policy(ck: Checkpoint, agent: int) -> AgentPolicy:
-    """Agent `agent`'s policy in its own process from a checkpoint of any learner (`team_policy`'s column)."""
-    if ck.settings.learner == "lookahead":
-        return AgentLookahead(ck.scenario, team_policy(ck), agent)
-    return AgentQ.from_checkpoint(ck, agent)
 
 
 LOAD_CAP = 0.45

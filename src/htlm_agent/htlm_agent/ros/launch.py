@@ -90,8 +90,8 @@ class LaunchConfig:
     key_file: str = ""
     """Team key file for message signing (HTLM_TEAM_KEY_FILE)."""
     learner: dict[str, Any] = field(default_factory=dict)
-    """Learner settings of a training run (`--set`; none: those of `htlm train`, with `TOKENS_PRESET` first for the
-    token learner, `Settings.with_preset`)."""
+    """Learner settings of a training run (`--set`, with the learner `htlm launch` chose), after the preset of the
+    learner they name (`Settings.with_preset`)."""
     world_params: dict[str, Any] = field(default_factory=dict)
     """Extra world_node parameters."""
     agent_params: dict[str, Any] = field(default_factory=dict)

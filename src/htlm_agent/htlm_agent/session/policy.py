@@ -54,7 +54,7 @@ class PolicySource:
             self.policy, self.own_epsilon = builtin_policy(run.scenario, kind, run.index)
         elif kind == "checkpoint":
             from htlm_agent.learning.checkpoint import load_checkpoint
-            from htlm_agent.learning.lookahead import agent_policy  # torch only for the policies that need it
+            from htlm_agent.learning.learners import agent_policy  # torch only for the policies that need it
 
             ck = load_checkpoint(self.checkpoint, run.scenario)
             self.policy = agent_policy(ck, run.index)

@@ -23,7 +23,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from htlm_agent.learning.settings import IN_PROCESS_ONLY, IN_PROCESS_WHY, Settings
+from htlm_agent.learning.learners import learner
+from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
 from htlm_msgs_py.payload import seal
 from htlm_msgs_py.run_control import REFUSED, RunControl, Verdict
@@ -312,8 +313,9 @@ class TrainerCore:
         if self.mode != "train":  # evaluate, deploy: record metrics and any transitions, learn nothing
             out.log.append(("info", f"run {self.run}: mode {self.mode}: recording only (store {store_path})"))
             return
-        if settings.learner in IN_PROCESS_ONLY:
-            raise ValueError(f"{self.learner_source}: settings.learner: {settings.learner!r} {IN_PROCESS_WHY}")
+        refusal = learner(settings.learner).in_process_only
+        if refusal is not None:
+            raise ValueError(f"{self.learner_source}: settings.learner: {settings.learner!r} {refusal}")
         if settings.learner == "expert":
             self._start_expert(sc, settings, ckpt, out)
             return
