@@ -152,10 +152,10 @@ def test_an_agent_draws_the_same_in_any_batch(paper_value: BaseValue) -> None:
 def test_a_run_of_the_lookahead_learner_holds_its_value_network(tmp_path: Path) -> None:
     """`htlm train --learner lookahead`: the checkpoint gives every agent a copy of the value network the same
     settings and seed fit, and the run's evaluation is the team acting with it."""
-    from htlm_agent.experiments.train import train
     from htlm_agent.learning.checkpoint import load_checkpoint
     from htlm_agent.learning.learners import team_policy
     from htlm_agent.learning.lookahead import value_of
+    from htlm_agent.learning.run import train
     from htlm_agent.learning.settings import Settings
 
     sc = builtin()
@@ -183,8 +183,8 @@ def test_the_lookahead_learner_learns_in_process_only(tmp_path: Path) -> None:
     import subprocess
     import sys
 
-    from htlm_agent.experiments.train import train
     from htlm_agent.learning.checkpoint import CheckpointError
+    from htlm_agent.learning.run import train
     from htlm_agent.learning.settings import Settings
 
     cmd = [sys.executable, "-m", "htlm_agent.cli", "launch", "train", "--set", "learner=lookahead"]

@@ -18,8 +18,8 @@ import numpy as np
 import torch
 
 from htlm_agent.baselines.heuristics import GreedyPolicy, RandomPolicy
-from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
+from htlm_agent.learning.run import train
 from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.runtime.evaluate import _log_lines, evaluate_run
 from htlm_agent.runtime.team import Team, rollout

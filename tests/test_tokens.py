@@ -13,11 +13,12 @@ import torch
 from htlm_agent.baselines.heuristics import AuctionPolicy
 from htlm_agent.baselines.optimal import QmdpPolicy
 from htlm_agent.experiments.market import changed_operations
-from htlm_agent.experiments.train import imitate_step, train
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.dqn import Learner
+from htlm_agent.learning.loop import imitate_step
 from htlm_agent.learning.qnet import AgentQ, build_network, init_params, network_shapes
 from htlm_agent.learning.qpolicy import QPolicy, greedy_actions
+from htlm_agent.learning.run import train
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.reward import RewardTables, reward

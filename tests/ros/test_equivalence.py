@@ -181,7 +181,7 @@ def test_the_lookahead_learner_over_ros_equals_in_process(ros_team: Any, tmp_pat
     Team(scenario, 4, seed, b) acting with that policy bit for bit."""
     import yaml
 
-    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.run import train
     from htlm_agent.learning.settings import Settings
     from htlm_world.scenario import EventSpec, builtin
 

@@ -91,8 +91,8 @@ def run(args: argparse.Namespace) -> int:
     """Train and print where the run went and its final evaluation."""
     import json
 
-    from htlm_agent.experiments.train import RESUMABLE_CHANGES, train
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+    from htlm_agent.learning.run import RESUMABLE_CHANGES, train
     from htlm_agent.learning.settings import Settings
 
     changes = settings_changes(args)

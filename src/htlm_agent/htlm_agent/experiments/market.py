@@ -4,7 +4,7 @@ learner, greedy and the auction; then the same teams under the scenario's stress
 
 Every scenario runs with the roster on (`Scenario.roster`), so that the auction is the fair market that leaves a
 silent teammate out, as Open-RMF reassigns the tasks of a robot that dropped out. Every learned team is trained in
-process with `htlm train`'s code (`experiments.train.train`) for each seed, and
+process with `htlm train`'s code (`learning.run.train`) for each seed, and
 evaluated on the seed's evaluation episodes, on which the baselines run too (their episodes are the same numbers:
 the world's streams depend on the seed, not on the policy). Under a stress set, `htlm stress`'s figures
 (`experiments.stress.run_stress`) with the most important agent named by the learned team's importance.
@@ -33,12 +33,12 @@ import yaml
 from htlm_agent.baselines.optimal import ProblemTooLarge
 from htlm_agent.experiments.baselines import make_baseline
 from htlm_agent.experiments.stress import run_stress
-from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.learners import team_policy
 from htlm_agent.learning.lookahead import LookaheadPolicy, value_of
 from htlm_agent.learning.qnet import build_network
 from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.run import train
 from htlm_agent.learning.settings import Settings
 from htlm_agent.runtime.evaluate import evaluate, importance_table
 from htlm_world.events import resolve_agent

@@ -33,9 +33,9 @@ from htlm_agent.experiments.configs import (
 )
 from htlm_agent.experiments.report import claims, git_commit, write_report
 from htlm_agent.experiments.stress import run_stress
-from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.run import train
 from htlm_agent.learning.settings import Settings
 from htlm_agent.progress import Progress
 from htlm_agent.runtime.evaluate import evaluate, evaluate_run, importance_table

@@ -106,7 +106,7 @@ def ros_rate(batch: int, batches: int, policy: str, domain: int, run_dir: Path) 
 def train_walls(episodes: int, domain: int, run_dir: Path) -> dict[str, float]:
     """Wall seconds of a training run over ROS (7 processes, start-up included) and of `htlm train` in process,
     both with `episodes` episodes of the default settings and no validation or final evaluation."""
-    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.run import train
     from htlm_agent.learning.settings import Settings
     from htlm_agent.ros.launch import LaunchConfig, run_team
     from htlm_world.scenario import builtin

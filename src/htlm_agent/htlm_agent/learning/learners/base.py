@@ -8,18 +8,21 @@ it.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from htlm_agent.learning.checkpoint import Checkpoint
+    from htlm_agent.learning.run import TrainResult
     from htlm_agent.learning.settings import Settings
     from htlm_agent.mind.context import Policy
     from htlm_agent.mind.policies import AgentPolicy
     from htlm_world.scenario import Scenario
 
 
-class LearnerKind:
+class LearnerKind(ABC):
     """One learner a run can train (`Settings.learner`), one object of this class each (`learners.LEARNERS`).
 
     The defaults are those of a learner of Q-networks whose checkpoint holds every agent's own network: the agents
@@ -63,6 +66,28 @@ class LearnerKind:
     def warm_baseline(self, settings: Settings) -> str:
         """The baseline that acts in the warm start (`Settings.warm_baseline`): `imitate`."""
         return settings.imitate
+
+    @abstractmethod
+    def train(
+        self,
+        scenario: Scenario,
+        settings: Settings,
+        out: Path,
+        progress: bool,
+        resume: bool,
+        tensorboard: bool,
+        evaluate_at_end: bool,
+    ) -> TrainResult:
+        """Train in process into the run directory `out` (`learning.run.train`, whose arguments these are)."""
+
+    def over_ros(self, scenario: Scenario, settings: Settings, seed: int, batch: int, checkpoint: Path | None) -> Any:
+        """The learner the trainer node feeds (`trainer.core.TrainerCore`) in a run with master seed `seed` played
+        in batches of `batch` episodes: fresh, or resumed from `checkpoint`.
+
+        Raises:
+            ValueError: it trains in process only (`in_process_only`), or cannot train this run.
+        """
+        raise ValueError(f"settings.learner: {self.name!r} {self.in_process_only}")
 
     def team_policy(self, ck: Checkpoint) -> Policy:
         """The team policy of a checkpoint of this learner, as `htlm evaluate` acts with it: every agent greedy on

@@ -4,13 +4,15 @@ the team's own play improved by the lookahead with every agent's own reward and 
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from htlm_agent.learning.learners.base import LearnerKind, shared_tokens_policy
 
 if TYPE_CHECKING:
     from htlm_agent.learning.checkpoint import Checkpoint
+    from htlm_agent.learning.run import TrainResult
     from htlm_agent.learning.settings import Settings
     from htlm_agent.mind.context import Policy
     from htlm_world.scenario import Scenario
@@ -81,6 +83,30 @@ class ExpertLearner(LearnerKind):
     def warm_baseline(self, settings: Settings) -> str:
         """See LearnerKind.warm_baseline: the auction's unless `imitate` names greedy."""
         return "auction" if settings.imitate == "none" else settings.imitate
+
+    def train(
+        self,
+        scenario: Scenario,
+        settings: Settings,
+        out: Path,
+        progress: bool,
+        resume: bool,
+        tensorboard: bool,
+        evaluate_at_end: bool,
+    ) -> TrainResult:
+        """See LearnerKind.train: its rounds (`expert.train_expert_run`)."""
+        from htlm_agent.learning.expert import train_expert_run
+
+        return train_expert_run(scenario, settings, out, progress, resume, tensorboard, evaluate_at_end)
+
+    def over_ros(self, scenario: Scenario, settings: Settings, seed: int, batch: int, checkpoint: Path | None) -> Any:
+        """See LearnerKind.over_ros: its rounds fed from the agents' transitions and the world's true levels
+        (`expert_trainer.ExpertTrainer`); a run's rounds are quick to run again, so there is no resuming one."""
+        from htlm_agent.learning.expert_trainer import ExpertTrainer
+
+        if checkpoint is not None:
+            raise ValueError(f"{checkpoint}: the expert-iteration learner does not resume a run")
+        return ExpertTrainer(scenario, settings, batch)
 
     def transfer_policy(self, ck: Checkpoint, scenario: Scenario) -> Policy | None:
         """See LearnerKind.transfer_policy: its shared token network reads any operation."""

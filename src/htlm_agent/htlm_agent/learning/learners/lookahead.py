@@ -4,6 +4,7 @@ own belief (`learning.lookahead`). It learns from the true levels of simulated e
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import MappingProxyType
 from typing import TYPE_CHECKING
 
@@ -12,6 +13,8 @@ from htlm_agent.learning.learners.base import LearnerKind
 if TYPE_CHECKING:
     from htlm_agent.learning.checkpoint import Checkpoint
     from htlm_agent.learning.lookahead import LookaheadPolicy
+    from htlm_agent.learning.run import TrainResult
+    from htlm_agent.learning.settings import Settings
     from htlm_agent.mind.context import Policy
     from htlm_agent.mind.policies import AgentPolicy
     from htlm_world.scenario import Scenario
@@ -28,6 +31,21 @@ class LookaheadLearner(LearnerKind):
         "learns in process only (from the true levels of simulated episodes, which a trainer node does not receive): "
         "train it with `htlm train`, then run the team with `htlm launch evaluate --checkpoint RUN`"
     )
+
+    def train(
+        self,
+        scenario: Scenario,
+        settings: Settings,
+        out: Path,
+        progress: bool,
+        resume: bool,
+        tensorboard: bool,
+        evaluate_at_end: bool,
+    ) -> TrainResult:
+        """See LearnerKind.train: the value network fitted in one go (`lookahead.train_lookahead`)."""
+        from htlm_agent.learning.lookahead import train_lookahead
+
+        return train_lookahead(scenario, settings, out, progress, resume, tensorboard, evaluate_at_end)
 
     def team_policy(self, ck: Checkpoint) -> Policy:
         """See LearnerKind.team_policy: the lookahead with the checkpoint's value network."""
