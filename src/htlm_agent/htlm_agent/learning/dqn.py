@@ -87,7 +87,7 @@ class Learner:
         self.net: QNetwork
         self.target: QNetwork
         self.opt: StackedAdam | torch.optim.Adam
-        if settings.learner == "tokens":  # autograd and torch.optim
+        if settings.network == "tokens":  # autograd and torch.optim
             count = 1 if settings.shared else n
             init = [init_params(scenario, settings, seeds.network_init(self.seed, i)) for i in range(count)]
             self.net = build_network(scenario, settings, init)

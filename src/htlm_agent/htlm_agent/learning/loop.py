@@ -13,6 +13,7 @@ import torch
 
 from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
 from htlm_agent.baselines.optimal import ProblemTooLarge, QmdpPolicy
+from htlm_agent.learning import learners
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.qnet import QNetwork, copy_network
@@ -28,8 +29,9 @@ from htlm_world.types import FloatArray
 def episode_epsilons(settings: Settings, episodes_done: int, batch: int) -> tuple[float, float | FloatArray]:
     """ε of the schedule, and the ε of each of the batch's episodes: ε for all, or with `eps_spread` from 0 (greedy
     episodes) to 2ε, mean ε; eps_end for all in the warm start (`Settings.warm_start`), around the baseline's
-    choices; eps_end for all throughout for the expert-iteration learner, which plays its policy around ε = eps_end."""
-    if settings.warm_start(episodes_done) or settings.learner == "expert":
+    choices; eps_end for all throughout for a learner in rounds (`LearnerKind.rounds`), which plays its policy around
+    ε = eps_end."""
+    if settings.warm_start(episodes_done) or learners.learner(settings.learner).rounds:
         return settings.eps_end, settings.eps_end
     eps = settings.epsilon(episodes_done)
     if settings.eps_spread and batch > 1:
