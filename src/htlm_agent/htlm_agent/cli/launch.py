@@ -31,7 +31,7 @@ def _kv(text: str) -> tuple[str, Any]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm launch`."""
-    from htlm_agent.learning.learners import DEFAULT_LEARNER, LEARNERS
+    from htlm_agent.learning.learners import DEFAULT_LEARNER, DEFAULT_Q_LEARNER, LEARNERS
     from htlm_agent.learning.settings import Settings
     from htlm_agent.ros.launch import (
         ALONE_UP_TO,
@@ -50,12 +50,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=TEAM_HELP,
     )
     p.add_argument("--scenario", default="", help="scenario YAML file (default: the built-in 'paper')")
+    budget = Settings.for_learner(learner=DEFAULT_LEARNER).episodes
     p.add_argument(
         "--episodes",
         type=int,
         default=None,
-        help=f"episodes to run (default: train the learner's budget, {Settings().episodes} unless --set "
-        "episodes=N; evaluate 500; deploy 0 = until Ctrl-C)",
+        help=f"episodes to run (default: train the learner's budget, {budget} for the {DEFAULT_LEARNER} learner, "
+        "unless --set episodes=N; evaluate 500; deploy 0 = until Ctrl-C)",
     )
     p.add_argument("--first-episode", type=int, default=0, help="index of the first episode (seeds derive from it)")
     p.add_argument(
@@ -113,7 +114,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="NAME=VALUE",
         help="learner setting (htlm_agent.learning.settings.Settings), e.g. --set learning_starts=500; train: the "
         f"{DEFAULT_LEARNER} learner unless --set learner=NAME ({', '.join(LEARNERS)}) or a setting it does not read "
-        "is given (then the tokens learner, as htlm train)",
+        f"is given (then the {DEFAULT_Q_LEARNER} learner, as htlm train)",
     )
     p.add_argument(
         "--world-param",
