@@ -9,15 +9,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy, RandomPolicy, builtin_policy
+from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy, RandomPolicy
 from htlm_agent.experiments.baselines import make_baseline
-from htlm_agent.experiments.evaluate import evaluate
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate, own_assignment
 from htlm_agent.mind.context import Context
 from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.mind.reward import confident_levels
+from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team, rollout
+from htlm_agent.session.builtin import builtin_policy
 from htlm_world.model import Model
 from htlm_world.scenario import AgentSpec, EventSpec, Scenario, builtin, load
 

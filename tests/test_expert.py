@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from htlm_agent.baselines.heuristics import AuctionPolicy
-from htlm_agent.baselines.lookahead import LOAD_CAP, BaseValue, Teacher, load_rates, team_policy
-from htlm_agent.experiments.evaluate import evaluate
-from htlm_agent.experiments.expert import soft_targets, unread_settings
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+from htlm_agent.learning.expert import soft_targets, unread_settings
+from htlm_agent.learning.learners import team_policy
+from htlm_agent.learning.lookahead import LOAD_CAP, BaseValue, Teacher, load_rates
 from htlm_agent.learning.settings import Settings
+from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team
 from htlm_world.scenario import Scenario, builtin
 
@@ -74,7 +75,7 @@ def test_a_short_run_learns_the_teachers_choices_and_beats_the_auction(tmp_path:
     """One round on the paper's operation: the network agrees with most of the teacher's best choices, and the
     team that acts with the run's checkpoint is sooner than the auction on the same episodes; rounds.csv holds
     round 0 (the auction) and round 1, and the run cannot be resumed."""
-    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.run import train
 
     s = Settings.for_learner(
         learner="expert", episodes=512, rounds=1, policy_updates=400, validate_episodes=100, eval_episodes=0

@@ -143,8 +143,8 @@ def test_sensing_is_the_model_observation_with_its_own_stream() -> None:
 
 
 def test_an_agent_whose_robot_is_on_its_way_counts_its_assignment_as_idle() -> None:
-    from htlm_agent.baselines.heuristics import builtin_policy
     from htlm_agent.mind.agent import AgentMind
+    from htlm_agent.session.builtin import builtin_policy
 
     sc = builtin()
     model = Model.build(sc)

@@ -7,9 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from htlm_agent.baselines.heuristics import GreedyPolicy, builtin_policy
+from htlm_agent.baselines.heuristics import GreedyPolicy
 from htlm_agent.mind import belief as bf
 from htlm_agent.runtime.team import Team
+from htlm_agent.session.builtin import builtin_policy
 from htlm_msgs_py import schema
 from htlm_world.metrics import completion_step
 from htlm_world.model import Model, kind_table

@@ -13,18 +13,19 @@ import pytest
 SRC = Path(__file__).resolve().parent.parent / "src"
 PACKAGES = ("htlm_msgs_py", "htlm_world", "htlm_agent")
 
-LAZY_FOLDERS = ("cli", "ros")
+LAZY_FOLDERS = ("cli", "ros", "learners")
 """Folders whose modules import first-party modules inside functions on purpose: the command line loads a
 subcommand's module only when it runs (`htlm optimal` never loads torch), a ROS node loads the learner only in the
-mode that needs it."""
+mode that needs it, a learner of the registry (`learning.learners`, which every `Settings` reads) loads its
+training code and networks only when it trains or acts."""
 
 LAZY_MODULES = {
     "htlm_agent.trainer.core": "the ROS trainer's core: loads the learner (torch) only once a run starts",
     "htlm_agent.session.policy": "an agent's choice of policy: loads torch only for a checkpoint",
     "htlm_agent.session.weights": "an agent's client of the trainer's weights: loads torch only to train on them",
     "htlm_agent.learning.transition_store": "read by the trainer node: loads the learner settings only on demand",
-    "htlm_agent.baselines.heuristics": "the built-in policies by name: loads torch only for the lookahead, the "
-    "optimum's code only for QMDP",
+    "htlm_agent.session.builtin": "the built-in policies by name: loads torch only for the lookahead, the optimum's "
+    "code only for QMDP",
 }
 """Other modules allowed first-party imports inside functions, with the reason."""
 

@@ -12,18 +12,19 @@ import pytest
 import torch
 
 from htlm_agent.baselines.heuristics import GreedyPolicy, RandomPolicy
-from htlm_agent.experiments.evaluate import evaluate
-from htlm_agent.experiments.train import train, train_batch
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from htlm_agent.learning.dqn import Learner
+from htlm_agent.learning.dqn_run import train_batch
 from htlm_agent.learning.loop import LaggedNets
 from htlm_agent.learning.optim import StackedAdam
 from htlm_agent.learning.qnet import AgentQ, StackedQ, layer_sizes, masked_argmax, pack_weights, unpack_weights
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.replay import Replay
+from htlm_agent.learning.run import train
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
 from htlm_agent.mind.policies import epsilon_greedy
+from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team
 from htlm_msgs_py.params import field_docs
 from htlm_world.scenario import builtin
@@ -451,7 +452,7 @@ def test_layout_and_agent_count_mismatches_are_rejected(saved: Path, tmp_path: P
 def test_dropout_sits_one_teammate_out_of_a_share_of_training_episodes() -> None:
     """Training for resilience: in a share of the episodes one drawn agent idles at its site for the whole episode,
     and its stored transitions are those of idling; with dropout 0 the training draws are untouched."""
-    from htlm_agent.experiments.train import dropouts
+    from htlm_agent.learning.dqn_run import dropouts
     from htlm_world import seeds
 
     mask = dropouts(0.5, 4000, 5, seeds.train_dropout(0, 0))

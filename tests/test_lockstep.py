@@ -10,13 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from htlm_agent.baselines.heuristics import GreedyPolicy, builtin_policy
+from htlm_agent.baselines.heuristics import GreedyPolicy
 from htlm_agent.learning.transition_store import StoreError, TransitionStore, read_store
 from htlm_agent.mind.agent import AgentMind
 from htlm_agent.mind.policies import DecentralizedPolicy
 from htlm_agent.ros.launch import LaunchConfig, process_specs, ros_env, write_params
 from htlm_agent.ros.settings import AgentSettings, TrainerSettings, validate_agent_settings, validate_trainer_settings
 from htlm_agent.runtime.team import Team, rollout
+from htlm_agent.session.builtin import builtin_policy
 from htlm_world.episode import WorldEpisode
 from htlm_world.model import Model
 from htlm_world.ros.settings import WorldSettings, validate_world_settings

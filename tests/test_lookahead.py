@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from htlm_agent.baselines.heuristics import AuctionPolicy
-from htlm_agent.baselines.lookahead import BaseValue, LookaheadPolicy, ValueSettings, base_rollouts
-from htlm_agent.experiments.evaluate import evaluate
+from htlm_agent.learning.lookahead import BaseValue, LookaheadPolicy, ValueSettings, base_rollouts
 from htlm_agent.mind.auction import allocate
+from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario, builtin
@@ -112,8 +112,8 @@ def test_lookahead_beats_the_auction_on_the_paper_operation(paper_value: BaseVal
 def test_an_agent_process_works_out_its_own_head_only(paper_value: BaseValue) -> None:
     """`policy:=lookahead` (`builtin_policy`): agent i's process, from its own knowledge state alone, takes an
     action of its reduced action space, and works on the one open task it is needed on."""
-    from htlm_agent.baselines.heuristics import builtin_policy
-    from htlm_agent.baselines.lookahead import AgentLookahead
+    from htlm_agent.learning.lookahead import AgentLookahead
+    from htlm_agent.session.builtin import builtin_policy
 
     sc = builtin()
     team = Team(sc, 4, 7)
@@ -133,7 +133,7 @@ def test_an_agent_process_works_out_its_own_head_only(paper_value: BaseValue) ->
 def test_an_agent_draws_the_same_in_any_batch(paper_value: BaseValue) -> None:
     """The draws are a hash of the agent and its own knowledge state: an episode's actions do not depend on the
     episodes batched with it, nor on whether the team or one agent's process asks."""
-    from htlm_agent.baselines.lookahead import AgentLookahead
+    from htlm_agent.learning.lookahead import AgentLookahead
 
     sc = builtin()
     team = Team(sc, 6, 11)
@@ -152,9 +152,10 @@ def test_an_agent_draws_the_same_in_any_batch(paper_value: BaseValue) -> None:
 def test_a_run_of_the_lookahead_learner_holds_its_value_network(tmp_path: Path) -> None:
     """`htlm train --learner lookahead`: the checkpoint gives every agent a copy of the value network the same
     settings and seed fit, and the run's evaluation is the team acting with it."""
-    from htlm_agent.baselines.lookahead import team_policy, value_of
-    from htlm_agent.experiments.train import train
     from htlm_agent.learning.checkpoint import load_checkpoint
+    from htlm_agent.learning.learners import team_policy
+    from htlm_agent.learning.lookahead import value_of
+    from htlm_agent.learning.run import train
     from htlm_agent.learning.settings import Settings
 
     sc = builtin()
@@ -182,8 +183,8 @@ def test_the_lookahead_learner_learns_in_process_only(tmp_path: Path) -> None:
     import subprocess
     import sys
 
-    from htlm_agent.experiments.train import train
     from htlm_agent.learning.checkpoint import CheckpointError
+    from htlm_agent.learning.run import train
     from htlm_agent.learning.settings import Settings
 
     cmd = [sys.executable, "-m", "htlm_agent.cli", "launch", "train", "--set", "learner=lookahead"]

@@ -25,7 +25,7 @@ from htlm_agent.baselines.optimal import (
     solve,
     state_index,
 )
-from htlm_agent.experiments.evaluate import evaluate
+from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario, builtin, from_dict

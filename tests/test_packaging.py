@@ -159,7 +159,7 @@ def test_packages_alone_install_and_run(repo_root: Path, tmp_path: Path) -> None
             python,
             "-c",
             "import htlm_msgs_py, htlm_world, htlm_agent;"
-            "import htlm_agent.learning.dqn, htlm_agent.runtime.pz_env, htlm_agent.experiments.evaluate;"
+            "import htlm_agent.learning.dqn, htlm_agent.runtime.pz_env, htlm_agent.runtime.evaluate;"
             "import htlm_world.ros.world_node, htlm_agent.ros.agent_node, htlm_agent.ros.trainer_node;"
             "from torch.utils.tensorboard import SummaryWriter;"
             "print(htlm_msgs_py.__file__, htlm_world.__file__, htlm_agent.__file__)",

@@ -17,12 +17,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from htlm_agent.baselines.heuristics import GreedyPolicy, RandomPolicy, builtin_policy
-from htlm_agent.experiments.evaluate import _log_lines, evaluate_run
-from htlm_agent.experiments.train import train
+from htlm_agent.baselines.heuristics import GreedyPolicy, RandomPolicy
 from htlm_agent.learning.checkpoint import load_checkpoint
+from htlm_agent.learning.run import train
 from htlm_agent.mind.policies import DecentralizedPolicy
+from htlm_agent.runtime.evaluate import _log_lines, evaluate_run
 from htlm_agent.runtime.team import Team, rollout
+from htlm_agent.session.builtin import builtin_policy
 from htlm_world.scenario import Scenario, builtin, load
 from support.learning import TINY  # the learner tests' run of a few seconds
 

@@ -247,7 +247,7 @@ class _Host:
 
     @staticmethod
     def _policy() -> tuple[Any, Any]:
-        from htlm_agent.baselines.heuristics import builtin_policy
+        from htlm_agent.session.builtin import builtin_policy
         from htlm_world.model import Model
 
         return builtin_policy(SC, "greedy", 0)[0], Model.build(SC)

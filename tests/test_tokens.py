@@ -13,11 +13,12 @@ import torch
 from htlm_agent.baselines.heuristics import AuctionPolicy
 from htlm_agent.baselines.optimal import QmdpPolicy
 from htlm_agent.experiments.market import changed_operations
-from htlm_agent.experiments.train import imitate_step, train
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.dqn import Learner
+from htlm_agent.learning.loop import imitate_step
 from htlm_agent.learning.qnet import AgentQ, build_network, init_params, network_shapes
 from htlm_agent.learning.qpolicy import QPolicy, greedy_actions
+from htlm_agent.learning.run import train
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.reward import RewardTables, reward
@@ -177,9 +178,9 @@ def test_every_agent_knows_where_its_teammates_were_as_the_in_process_team_does(
     """With `teammates` (and the roster), K ends with where the teammates were at the last step: an agent's mind
     builds it from the broadcasts it heard, the in-process Team from the joint assignment, and the two agree
     step for step; a teammate's capability on a task, or its presence at an idle location, shows there."""
-    from htlm_agent.baselines.heuristics import builtin_policy
     from htlm_agent.mind.policies import DecentralizedPolicy
     from htlm_agent.runtime.team import rollout
+    from htlm_agent.session.builtin import builtin_policy
     from support.team import loopback_episode
 
     sc = builtin().replace(roster=True, teammates=True)

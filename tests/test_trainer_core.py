@@ -195,7 +195,7 @@ def test_trainer_rounds_equal_the_in_process_learner(tmp_path: Path, wire: bool,
     then train_steps(updates_per_step); the networks are identical. Also when the records went through the wire
     (`wire`: K and K' as float32, the rest exactly) while the in-process learner gets the float64 originals, and in
     a warm start (the imitation update of `imitate_step` on the step's knowledge states first)."""
-    from htlm_agent.experiments.train import imitate_step, warm_start_expert
+    from htlm_agent.learning.loop import imitate_step, warm_start_expert
 
     batch, steps = 4, 2 * H + 5
     core = _core(tmp_path, batch=batch, learner=settings)

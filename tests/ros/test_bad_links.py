@@ -116,7 +116,7 @@ def bad_then_clean(
     """`htlm train` in process, then the team over bad links once per heartbeat period (None: the launch's profile
     as it is), then over clean links in the same namespaces; every run must end with the in-process networks and
     nobody absent. Returns each run's wall time and the frames the agents' links sent and lost."""
-    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.run import train
 
     settings = Settings.from_dict({**LEARNER, "episodes": episodes, "seed": SEED, "eval_episodes": 0})
     train(builtin(), settings, tmp / "inproc", progress=False, tensorboard=False, evaluate_at_end=False)

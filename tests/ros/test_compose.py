@@ -96,7 +96,7 @@ def test_a_composed_team_trains_exactly_the_networks_of_htlm_train(ros_team: Any
     process per agent does (tests/ros/test_training_equivalence.py)."""
     import numpy as np
 
-    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.run import train
 
     sc, episodes, learner = builtin(), 64, {"envs": 32, "learning_starts": 300, "batch_size": 32}
     learner |= {"validate_every": 0, "select_best": False}

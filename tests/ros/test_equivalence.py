@@ -80,8 +80,8 @@ def _run_equals_in_process(team: Any, ckpt: Path, seed: int, batch: int, team_wi
     """Run `team` (not started, policy checkpoint, master seed `seed`) on the checkpoint `ckpt` and check its episodes
     against Team(scenario, batch, seed, b) with every agent's policy from the same checkpoint (`team_wide`: with the
     team policy `htlm evaluate` acts with, one call for every agent); their number."""
-    from htlm_agent.baselines.lookahead import agent_policy, team_policy
     from htlm_agent.learning.checkpoint import load_checkpoint
+    from htlm_agent.learning.learners import agent_policy, team_policy
 
     sc = team.cfg.scenario
     team.cfg.checkpoint = str(ckpt)
@@ -184,7 +184,7 @@ def test_the_lookahead_learner_over_ros_equals_in_process(ros_team: Any, tmp_pat
     Team(scenario, 4, seed, b) acting with that policy bit for bit."""
     import yaml
 
-    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.run import train
     from htlm_agent.learning.settings import Settings
     from htlm_world.scenario import EventSpec, builtin
 

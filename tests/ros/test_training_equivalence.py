@@ -1,7 +1,7 @@
 """Training over ROS equals `htlm train` bit for bit: with the same settings and seed, the trainer process of a
 launched team (world, five agents, trainer over real DDS; the world paces steps by the trainer's progress and the
 agents act with the trainer's weights on the cadence) ends with exactly the Q-networks of the in-process
-htlm_agent.experiments.train.train(), 96 episodes in batches of 32, at trainer lag 0 (Algorithm 1 as written) and at the
+htlm_agent.learning.run.train(), 96 episodes in batches of 32, at trainer lag 0 (Algorithm 1 as written) and at the
 learner's default lag (the agents act with networks k steps older while the trainer's updates overlap their work),
 for the token networks with a warm start on the auction; and the expert-iteration learner's rounds."""
 
@@ -38,7 +38,7 @@ trainer's networks learn to rank its choices first."""
     ids=lambda v: "warm-start" if v == WARM_START else str(v) if not isinstance(v, dict) else "paper",
 )
 def test_training_over_ros_equals_htlm_train(ros_team: Any, tmp_path: Path, lag: int, changes: dict[str, Any]) -> None:
-    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.run import train
 
     sc = builtin()
     learner = {**LEARNER, "trainer_lag": lag, **changes}
@@ -78,7 +78,7 @@ def test_expert_iteration_over_ros_equals_htlm_train(tmp_path: Path) -> None:
     import subprocess
     import sys
 
-    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.run import train
 
     settings = Settings.for_learner(**EXPERT, validate_episodes=40, eval_episodes=0, seed=SEED)
     train(builtin(), settings, tmp_path / "inproc", progress=False, tensorboard=False, evaluate_at_end=False)

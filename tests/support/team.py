@@ -19,11 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from htlm_agent.baselines.heuristics import builtin_policy
 from htlm_agent.mind.agent import AgentMind, Effects
 from htlm_agent.mind.policies import AgentPolicy, DecentralizedPolicy
 from htlm_agent.ros.settings import AgentSettings
 from htlm_agent.runtime.team import Team, Trajectory, rollout
+from htlm_agent.session.builtin import builtin_policy
 from htlm_agent.session.core import AgentSession, SessionEffects
 from htlm_msgs_py import schema as S
 from htlm_msgs_py.schema import limits

@@ -21,7 +21,6 @@ import numpy as np
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate, own_assignment
 from htlm_agent.mind.context import Context
-from htlm_agent.mind.policies import AgentPolicy, RowPolicy
 from htlm_agent.mind.reward import RewardTables, confident_levels
 from htlm_world import seeds
 from htlm_world.model import Model
@@ -31,10 +30,6 @@ from htlm_world.types import BoolArray, IntArray
 BASELINES = ("random", "greedy", "auction", "qmdp", "lookahead", "ht", "optimal")
 """Names accepted by `registry.make_baseline` and `htlm evaluate --baseline` (here, in a module without torch, so
 that the command line lists them without loading the learner)."""
-
-BUILTIN_POLICIES = ("greedy", "auction", "qmdp", "lookahead", "random")
-"""Baselines an agent process runs by name, without a network (`policies.builtin_policy`; the agent node's
-`policy:=NAME`, `htlm launch --policy NAME`)."""
 
 
 class RandomPolicy:
@@ -139,24 +134,3 @@ class AuctionPolicy:
         # agent i's result in the auction it runs on its own row (allocate's, without the rounds after it)
         own = own_assignment(self.model, lv.reshape(b * n, p), np.tile(np.arange(n), b), present).reshape(b, n)
         return np.where(own >= 0, own, self.model.rest_action(ctx.prev)).astype(np.int64)
-
-
-def builtin_policy(scenario: Scenario, name: str, agent: int) -> tuple[AgentPolicy, float]:
-    """A policy that needs no network, and its ε (one of `BUILTIN_POLICIES`): "greedy" (`GreedyPolicy` on the
-    agent's own row), "auction" (`AuctionPolicy`: the auction the agent runs on its own belief, keeping its own
-    assignment), "qmdp" (`QmdpPolicy`, where the optimum can be computed), "lookahead" (`LookaheadPolicy`: its value
-    network fitted here, a few seconds, the same in every process) or "random" (uniform over Â(a_o) from the agent's
-    exploration generator, ε = 1)."""
-    if name not in BUILTIN_POLICIES:
-        raise ValueError(f"unknown built-in policy {name!r}; choose one of {', '.join(BUILTIN_POLICIES)}")
-    if name == "auction":
-        return RowPolicy(scenario, AuctionPolicy(scenario), agent), 0.0
-    if name == "qmdp":
-        from htlm_agent.baselines.optimal import QmdpPolicy  # the optimum's code: only when asked for
-
-        return RowPolicy(scenario, QmdpPolicy(scenario), agent), 0.0
-    if name == "lookahead":
-        from htlm_agent.baselines.lookahead import AgentLookahead, LookaheadPolicy  # torch: only when asked for
-
-        return AgentLookahead(scenario, LookaheadPolicy(scenario), agent), 0.0
-    return RowPolicy(scenario, GreedyPolicy(scenario), agent), (1.0 if name == "random" else 0.0)

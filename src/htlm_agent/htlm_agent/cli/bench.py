@@ -85,8 +85,9 @@ def learner_rate(seconds: float, sc: Scenario | None = None) -> float:
     """Gradient updates/s of the default learner (each update trains every agent's network once)."""
     import torch
 
-    from htlm_agent.experiments.train import keep_freed_memory, train_batch
     from htlm_agent.learning.dqn import Learner
+    from htlm_agent.learning.dqn_run import train_batch
+    from htlm_agent.learning.run import keep_freed_memory
     from htlm_agent.learning.settings import Settings
     from htlm_agent.runtime.team import Team
 
@@ -162,7 +163,7 @@ def wire_costs(batch: int, seconds: float, sc: Scenario | None = None) -> dict[s
 def training_run(episodes: int | None, out: str | None, sc: Scenario | None = None) -> dict[str, Any]:
     """A default `htlm train` run (no TensorBoard, no progress) and its final evaluation against the targets (the
     paper's teams only)."""
-    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.run import train
     from htlm_agent.learning.settings import Settings
 
     s = Settings() if episodes is None else Settings(episodes=episodes)

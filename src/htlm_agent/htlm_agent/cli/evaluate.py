@@ -110,10 +110,10 @@ def format_metrics(m: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate, print and write the reports."""
-    from htlm_agent.baselines.lookahead import team_policy
     from htlm_agent.experiments.baselines import make_baseline
-    from htlm_agent.experiments.evaluate import evaluate_run, write_reports
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+    from htlm_agent.learning.learners import team_policy
+    from htlm_agent.runtime.evaluate import evaluate_run, write_reports
 
     if args.episodes < 1:
         raise SystemExit(f"htlm evaluate: --episodes must be >= 1, got {args.episodes}")

@@ -25,9 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Compute, print and write the table."""
-    from htlm_agent.baselines.lookahead import team_policy
-    from htlm_agent.experiments.evaluate import format_importance, importance_table, write_importance
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+    from htlm_agent.learning.learners import team_policy
+    from htlm_agent.runtime.evaluate import format_importance, importance_table, write_importance
 
     if args.episodes < 1:
         raise SystemExit(f"htlm importance: --episodes must be >= 1, got {args.episodes}")

@@ -31,7 +31,7 @@ def _kv(text: str) -> tuple[str, Any]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of `htlm launch`."""
-    from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
+    from htlm_agent.learning.learners import DEFAULT_LEARNER, DEFAULT_Q_LEARNER, LEARNERS
     from htlm_agent.learning.settings import Settings
     from htlm_agent.ros.launch import (
         ALONE_UP_TO,
@@ -41,6 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         RESPAWN_DELAY_MAX,
         RESPAWN_STABLE,
     )
+    from htlm_agent.session.builtin import BUILTIN_POLICIES
 
     p.add_argument("mode", choices=("train", "evaluate", "deploy"), help="what the team does")
     p.add_argument(
@@ -49,12 +50,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=TEAM_HELP,
     )
     p.add_argument("--scenario", default="", help="scenario YAML file (default: the built-in 'paper')")
+    budget = Settings.for_learner(learner=DEFAULT_LEARNER).episodes
     p.add_argument(
         "--episodes",
         type=int,
         default=None,
-        help=f"episodes to run (default: train the learner's budget, {Settings().episodes} unless --set "
-        "episodes=N; evaluate 500; deploy 0 = until Ctrl-C)",
+        help=f"episodes to run (default: train the learner's budget, {budget} for the {DEFAULT_LEARNER} learner, "
+        "unless --set episodes=N; evaluate 500; deploy 0 = until Ctrl-C)",
     )
     p.add_argument("--first-episode", type=int, default=0, help="index of the first episode (seeds derive from it)")
     p.add_argument(
@@ -111,7 +113,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=[],
         metavar="NAME=VALUE",
         help="learner setting (htlm_agent.learning.settings.Settings), e.g. --set learning_starts=500; train: the "
-        "token learner unless --set learner=paper",
+        f"{DEFAULT_LEARNER} learner unless --set learner=NAME ({', '.join(LEARNERS)}) or a setting it does not read "
+        f"is given (then the {DEFAULT_Q_LEARNER} learner, as htlm train)",
     )
     p.add_argument(
         "--world-param",
@@ -207,7 +210,8 @@ def config(argv: list[str]) -> LaunchConfig:
 
 def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     """The launch of parsed `htlm launch` options and every problem of its input (empty: it can start)."""
-    from htlm_agent.learning.settings import IN_PROCESS_ONLY, IN_PROCESS_WHY, Settings
+    from htlm_agent.learning.learners import learner
+    from htlm_agent.learning.settings import Settings
     from htlm_agent.ros.launch import LaunchConfig
     from htlm_agent.ros.launch_check import check_launch
 
@@ -221,18 +225,19 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     if args.mode in ("evaluate", "deploy") and args.policy in ("auto", "checkpoint") and not args.checkpoint:
         bad.append(f"{args.mode}: needs --checkpoint DIR (or --policy greedy / auction / random)")
     try:
-        learner = Settings.from_dict(Settings.for_users(dict(args.learner)), "--set")  # for the defaults
+        settings = Settings.from_dict(Settings.for_users(dict(args.learner)), "--set")  # for the defaults
     except ValueError:  # check_launch reports every bad key
-        learner = Settings()
-    if args.mode == "train" and learner.learner in IN_PROCESS_ONLY:
-        bad.append(f"train: --set learner={learner.learner} {IN_PROCESS_WHY}")
-    if args.mode == "train" and learner.dropout > 0:
-        bad.append(f"train: --set dropout={learner.dropout!r}: training for resilience runs in process only")
-    default_episodes = {"train": learner.episodes, "evaluate": 500, "deploy": 0}[args.mode]
-    if args.mode == "train" and learner.learner == "expert":  # every round whole, as `htlm train` plays them
-        default_episodes = learner.rounds * learner.round_batches * learner.envs
+        settings = Settings()
+    kind = learner(settings.learner)
+    if args.mode == "train" and kind.in_process_only is not None:
+        bad.append(f"train: --set learner={settings.learner} {kind.in_process_only}")
+    if args.mode == "train" and settings.dropout > 0:
+        bad.append(f"train: --set dropout={settings.dropout!r}: training for resilience runs in process only")
+    default_episodes = {"train": settings.episodes, "evaluate": 500, "deploy": 0}[args.mode]
+    if args.mode == "train" and kind.rounds:  # every round whole, as `htlm train` plays them
+        default_episodes = settings.rounds * settings.round_batches * settings.envs
     episodes = args.episodes if args.episodes is not None else default_episodes
-    batch = args.batch if args.batch is not None else {"train": learner.envs, "evaluate": 128, "deploy": 1}[args.mode]
+    batch = args.batch if args.batch is not None else {"train": settings.envs, "evaluate": 128, "deploy": 1}[args.mode]
     deployed = args.operation == "external" or args.robots == "sim"
     if deployed and (args.mode == "train" or batch != 1):
         bad.append(f"{args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
@@ -272,7 +277,7 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         discovery=args.discovery,
         peers=args.peers,
         key_file=args.key_file,
-        learner={"learner": learner.learner, **dict(args.learner)} if args.mode == "train" else dict(args.learner),
+        learner={"learner": settings.learner, **dict(args.learner)} if args.mode == "train" else dict(args.learner),
         world_params=dict(args.world_param),
         agent_params=dict(args.agent_param),
         trainer_params=dict(args.trainer_param),

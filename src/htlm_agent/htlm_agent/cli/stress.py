@@ -65,12 +65,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate and write the table."""
-    from htlm_agent.baselines.lookahead import team_policy
     from htlm_agent.experiments.baselines import make_baseline
-    from htlm_agent.experiments.evaluate import importance_table
     from htlm_agent.experiments.stress import format_stress, run_stress, write_stress
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+    from htlm_agent.learning.learners import team_policy
     from htlm_agent.progress import Progress
+    from htlm_agent.runtime.evaluate import importance_table
     from htlm_world.events import resolve_agent
     from htlm_world.scenario import ScenarioError, builtin, load, read_events
 

@@ -26,21 +26,26 @@ def _flag(name: str) -> str:
 
 def add_settings_arguments(p: argparse.ArgumentParser) -> None:
     """One option per field of `learner.Settings` (default None: keep the Settings default)."""
-    from htlm_agent.learning.settings import DEFAULT_LEARNER, Settings
+    from htlm_agent.learning.learners import DEFAULT_LEARNER, DEFAULT_Q_LEARNER, LEARNERS
+    from htlm_agent.learning.settings import Settings
     from htlm_msgs_py.params import field_docs
 
     docs = field_docs(Settings)
+    default_learner = (
+        f"{DEFAULT_LEARNER}, or {DEFAULT_Q_LEARNER} given a setting the {DEFAULT_LEARNER} learner does not read"
+    )
     g = p.add_argument_group(
-        "learner settings (defaults: the lookahead learner where it is affordable and no agent has its own reward, "
-        "else the expert-iteration learner, the token learner when a Q-learner setting is given; the learner's "
-        "preset over htlm_agent.learning.settings.Settings)"
+        f"learner settings (defaults: the learner's preset over htlm_agent.learning.settings.Settings; the learner: "
+        f"{default_learner})"
     )
     for f in dataclasses.fields(Settings):
         if f.name in EXPLICIT:
             continue
-        default = f"{DEFAULT_LEARNER}, or tokens given a Q-learner's setting" if f.name == "learner" else f.default
+        default = default_learner if f.name == "learner" else f.default
         help_text = f"{docs.get(f.name, '')} (default: {default})".replace("%", "%%")
-        if f.name == "hidden":
+        if f.name == "learner":
+            g.add_argument(_flag(f.name), choices=list(LEARNERS), default=None, help=help_text)
+        elif f.name == "hidden":
             g.add_argument(_flag(f.name), type=_int_list, default=None, metavar="H1,H2", help=help_text)
         elif isinstance(f.default, bool):
             g.add_argument(_flag(f.name), action=argparse.BooleanOptionalAction, default=None, help=help_text)
@@ -86,8 +91,8 @@ def run(args: argparse.Namespace) -> int:
     """Train and print where the run went and its final evaluation."""
     import json
 
-    from htlm_agent.experiments.train import RESUMABLE_CHANGES, train
     from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+    from htlm_agent.learning.run import RESUMABLE_CHANGES, train
     from htlm_agent.learning.settings import Settings
 
     changes = settings_changes(args)

@@ -7,10 +7,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from htlm_agent.baselines.heuristics import BASELINES, AuctionPolicy, GreedyPolicy, RandomPolicy
-from htlm_agent.baselines.lookahead import LookaheadPolicy, team_policy
 from htlm_agent.baselines.optimal import OptimalPolicy, QmdpPolicy
-from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
+from htlm_agent.learning.learners import team_policy
+from htlm_agent.learning.lookahead import LookaheadPolicy
+from htlm_agent.learning.run import train
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind.context import Policy
 from htlm_world.scenario import Scenario

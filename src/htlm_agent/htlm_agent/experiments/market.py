@@ -4,7 +4,7 @@ learner, greedy and the auction; then the same teams under the scenario's stress
 
 Every scenario runs with the roster on (`Scenario.roster`), so that the auction is the fair market that leaves a
 silent teammate out, as Open-RMF reassigns the tasks of a robot that dropped out. Every learned team is trained in
-process with `htlm train`'s code (`experiments.train.train`) for each seed, and
+process with `htlm train`'s code (`learning.run.train`) for each seed, and
 evaluated on the seed's evaluation episodes, on which the baselines run too (their episodes are the same numbers:
 the world's streams depend on the seed, not on the policy). Under a stress set, `htlm stress`'s figures
 (`experiments.stress.run_stress`) with the most important agent named by the learned team's importance.
@@ -30,16 +30,15 @@ from typing import Any
 import numpy as np
 import yaml
 
-from htlm_agent.baselines.lookahead import LookaheadPolicy, team_policy, value_of
 from htlm_agent.baselines.optimal import ProblemTooLarge
 from htlm_agent.experiments.baselines import make_baseline
-from htlm_agent.experiments.evaluate import evaluate, importance_table
 from htlm_agent.experiments.stress import run_stress
-from htlm_agent.experiments.train import train
+from htlm_agent.learning import learners
 from htlm_agent.learning.checkpoint import load_checkpoint
-from htlm_agent.learning.qnet import build_network
-from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.learners import team_policy
+from htlm_agent.learning.run import train
 from htlm_agent.learning.settings import Settings
+from htlm_agent.runtime.evaluate import evaluate, importance_table
 from htlm_world.events import resolve_agent
 from htlm_world.scenario import Scenario, load
 
@@ -54,6 +53,9 @@ LEARNERS: dict[str, dict[str, Any]] = {
     "expert": {"settings": {"learner": "expert"}, "credit": None},
 }
 """The learned teams: `Settings.for_learner` changes and the credit of the scenario they train on."""
+
+TRANSFER = ("tokens", "lookahead")
+"""The learned teams `--transfer` trains once and acts with on changed operations (the first: its default)."""
 
 BASELINES = ("greedy", "auction", "qmdp")
 """The teams a user would pick instead, and QMDP where the optimum can be computed (left out elsewhere): the
@@ -174,28 +176,27 @@ def changed_operations(sc: Scenario) -> dict[str, Scenario]:
 
 
 def run_transfer(
-    name: str, seed: int, episodes: int | None, eval_episodes: int, out: Path, learner: str = "tokens"
+    name: str, seed: int, episodes: int | None, eval_episodes: int, out: Path, learner: str = TRANSFER[0]
 ) -> list[dict[str, Any]]:
-    """The team of `learner` (tokens or lookahead) trained once on `name`, acting on every `changed_operations`
-    without retraining, beside a team retrained on the change, greedy and the auction, on the same episodes. The
-    lookahead's value network reads every task's level, so it acts on a change that keeps the tasks (not a site
-    added: its team is retrained only)."""
+    """The team of `learner` (one of `TRANSFER`) trained once on `name`, acting on every `changed_operations` without
+    retraining where its network can (`LearnerKind.transfer_policy`), beside a team retrained on the change, greedy
+    and the auction, on the same episodes. The lookahead's value network reads every task's level, so it acts on a
+    change that keeps the tasks (not a site added: its team is retrained only)."""
+    spec = LEARNERS[learner]
     sc = load(name).replace(roster=True)
-    sc = sc.with_credit("difference") if learner == "tokens" else sc
+    sc = sc.with_credit(spec["credit"]) if spec["credit"] else sc
     budget = {} if episodes is None else {"episodes": episodes}
-    settings = Settings.for_learner(learner=learner, seed=seed, eval_episodes=eval_episodes, **budget)
+    settings = Settings.for_learner(**spec["settings"], seed=seed, eval_episodes=eval_episodes, **budget)
     base = out / "runs" / f"{name}__{learner}__transfer__{seed}"
     train(sc, settings, base, progress=False, tensorboard=False)
     ck = load_checkpoint(base)
+    kind = learners.learner(settings.learner)
     rows = []
     for change, changed in changed_operations(sc).items():
         teams: dict[str, Any] = {}
-        if learner == "tokens":
-            net = build_network(changed, settings, [ck.weights[0]])  # the shared network
-            net.requires_grad_(False)
-            teams["trained before"] = QPolicy(changed, net)
-        elif changed.n_tasks == sc.n_tasks:
-            teams["trained before"] = LookaheadPolicy(changed, value_of(ck), seed=seed)
+        before = kind.transfer_policy(ck, changed)
+        if before is not None:
+            teams["trained before"] = before
         retrained = out / "runs" / f"{name}__{learner}__{change.replace(' ', '-')}__{seed}"
         t0 = time.perf_counter()
         train(changed, settings, retrained, progress=False, tensorboard=False, evaluate_at_end=False)
@@ -359,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = [
             r
             for n in args.scenarios
-            for learner in [x for x in args.learners if x in ("tokens", "lookahead")] or ["tokens"]
+            for learner in [x for x in args.learners if x in TRANSFER] or [TRANSFER[0]]
             for r in run_transfer(n, args.seeds[0], args.episodes, args.eval_episodes, out, learner)
         ]
         (out / "transfer.json").write_text(json.dumps(rows, indent=1) + "\n")

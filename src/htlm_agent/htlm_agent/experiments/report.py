@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from htlm_agent.experiments.configs import FIRST_CONFIGS, HET, IDLE_CONFIGS, Config
-from htlm_agent.experiments.evaluate import importance_columns
+from htlm_agent.runtime.evaluate import importance_columns
 
 # ----- the paper's claims -----------------------------------------------------------------------------------------
 

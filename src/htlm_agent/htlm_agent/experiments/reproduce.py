@@ -31,14 +31,14 @@ from htlm_agent.experiments.configs import (
     Config,
     all_configs,
 )
-from htlm_agent.experiments.evaluate import evaluate, evaluate_run, importance_table
 from htlm_agent.experiments.report import claims, git_commit, write_report
 from htlm_agent.experiments.stress import run_stress
-from htlm_agent.experiments.train import train
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.run import train
 from htlm_agent.learning.settings import Settings
 from htlm_agent.progress import Progress
+from htlm_agent.runtime.evaluate import evaluate, evaluate_run, importance_table
 from htlm_agent.runtime.team import Team, rollout
 from htlm_world.events import resolve_agent
 from htlm_world.metrics import mean_se, spearman

@@ -18,7 +18,7 @@ import numpy as np
 
 from htlm_agent.baselines.optimal import ProblemTooLarge
 from htlm_agent.experiments.baselines import make_baseline
-from htlm_agent.experiments.evaluate import evaluate_run
+from htlm_agent.runtime.evaluate import evaluate_run
 from htlm_world.metrics import mean_se
 from htlm_world.scenario import Scenario
 

@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from htlm_agent.experiments.evaluate import Evaluation, evaluate_run, write_reports
 from htlm_agent.mind.context import Policy
 from htlm_agent.progress import Progress
+from htlm_agent.runtime.evaluate import Evaluation, evaluate_run, write_reports
 from htlm_world.events import SURGE, EventRun
 from htlm_world.metrics import mean_se
 from htlm_world.scenario import EventSpec, Scenario

@@ -8,7 +8,7 @@ and target networks share one tensor and a gradient update is written by hand (`
 both networks, the backward pass of `loss` without autograd), which is what makes the small networks quick to train.
 
 Two ways to feed the learner:
-- in process: `htlm_agent.experiments.train.train()` runs B episodes at once in `team.Team` (line 3-10 of
+- in process: `htlm_agent.learning.run.train()` runs B episodes at once in `team.Team` (line 3-10 of
   Algorithm 1 as array operations);
 - from another process (the ROS trainer node): `Learner.store()` one transition at a time, `Learner.train_step()`,
   and `Learner.agent_weights()` to send an agent its new weights.
@@ -87,7 +87,7 @@ class Learner:
         self.net: QNetwork
         self.target: QNetwork
         self.opt: StackedAdam | torch.optim.Adam
-        if settings.learner == "tokens":  # autograd and torch.optim
+        if settings.network == "tokens":  # autograd and torch.optim
             count = 1 if settings.shared else n
             init = [init_params(scenario, settings, seeds.network_init(self.seed, i)) for i in range(count)]
             self.net = build_network(scenario, settings, init)

@@ -1,6 +1,6 @@
-"""Pieces of the training loop that every trainer shares (`htlm train` in process and the processes over ROS): the ε
-of a batch's episodes, which networks act at a step under a trainer lag, and the selection of the best networks by
-validation."""
+"""Pieces of the deep Q-learners' training loop that every trainer shares (`htlm train` in process and the trainer
+over ROS): the ε of a batch's episodes, which networks act at a step under a trainer lag, the warm start's baseline
+and its update, validation and the selection of the best networks by it."""
 
 from __future__ import annotations
 
@@ -11,18 +11,27 @@ from typing import Any
 import numpy as np
 import torch
 
+from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
+from htlm_agent.baselines.optimal import ProblemTooLarge, QmdpPolicy
+from htlm_agent.learning import learners
 from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.qnet import QNetwork, copy_network
 from htlm_agent.learning.settings import Settings
+from htlm_agent.mind.context import Policy
+from htlm_agent.mind.policies import knowledge_context
+from htlm_agent.runtime.evaluate import evaluate
+from htlm_world import seeds
+from htlm_world.scenario import Scenario
 from htlm_world.types import FloatArray
 
 
 def episode_epsilons(settings: Settings, episodes_done: int, batch: int) -> tuple[float, float | FloatArray]:
     """ε of the schedule, and the ε of each of the batch's episodes: ε for all, or with `eps_spread` from 0 (greedy
     episodes) to 2ε, mean ε; eps_end for all in the warm start (`Settings.warm_start`), around the baseline's
-    choices; eps_end for all throughout for the expert-iteration learner, which plays its policy around ε = eps_end."""
-    if settings.warm_start(episodes_done) or settings.learner == "expert":
+    choices; eps_end for all throughout for a learner in rounds (`LearnerKind.rounds`), which plays its policy around
+    ε = eps_end."""
+    if settings.warm_start(episodes_done) or learners.learner(settings.learner).rounds:
         return settings.eps_end, settings.eps_end
     eps = settings.epsilon(episodes_done)
     if settings.eps_spread and batch > 1:
@@ -69,6 +78,48 @@ class LaggedNets:
         with torch.no_grad():
             self.net.flat.copy_(self.versions[version])
         return self.net
+
+
+# ----- the warm start ---------------------------------------------------------------------------------------------
+
+
+def imitate_step(learner: Learner, expert: Policy, k: FloatArray) -> float:
+    """The warm start's update of one step for the whole team, in process and in the trainer over ROS alike: the
+    networks learn to rank first the expert's choices made from every agent's own knowledge state (B, N, K) and its
+    Â(a_o) (`Learner.imitate`), the knowledge as the trainer receives it (float32, the precision of the wire and of
+    the replay memories); with `Settings.imitate_updates` > 1, also on minibatches of the expert choices stored so
+    far. Returns the last update's loss."""
+    k32 = np.asarray(k, dtype=np.float32).astype(np.float64)  # the values of float32, as the trainer has them
+    m = learner.knowledge_mask(k32).numpy()
+    a = np.asarray(expert.act(knowledge_context(learner.scenario, k32, m)), dtype=np.int64)
+    loss = learner.imitate(k32, m, a)
+    s = learner.settings
+    if s.imitate_updates > 1:  # more updates on every expert choice of the warm start so far
+        memory = learner.expert_memory()
+        memory.add(k32, m, a)
+        for _ in range(s.imitate_updates - 1):
+            loss = learner.imitate(*memory.sample(s.batch_size))
+    return loss
+
+
+def warm_start_expert(scenario: Scenario, settings: Settings) -> Policy | None:
+    """The baseline the warm start imitates (`Settings.imitate`), None without a warm start."""
+    if settings.imitate == "none" or settings.imitate_episodes == 0:
+        return None
+    if settings.imitate == "qmdp":
+        try:
+            return QmdpPolicy(scenario)
+        except ProblemTooLarge as e:
+            raise ValueError(f"settings.imitate: 'qmdp' needs the centralized optimum, and {e}") from None
+    return AuctionPolicy(scenario) if settings.imitate == "auction" else GreedyPolicy(scenario)
+
+
+# ----- validation and selection -----------------------------------------------------------------------------------
+
+
+def validate(learner: Learner, episodes: int) -> dict[str, Any]:
+    """Greedy validation of the current networks on episodes of the run's validation stream."""
+    return evaluate(learner.policy(), learner.scenario, episodes, seed=seeds.validation(learner.seed))
 
 
 class Selection:

@@ -10,100 +10,13 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+from htlm_agent.learning import learners
 from htlm_agent.mind.reward import LOAD_PRICE
 from htlm_msgs_py.validation import ConversionError, convert_value
 from htlm_world.episode import TRAINER_LAG
 
-LEARNERS = ("paper", "tokens", "lookahead", "expert")
-"""The learners a run can train (`Settings.learner`)."""
-
 IMITATE = ("none", "auction", "greedy", "qmdp")
 """The baselines a warm start can imitate (`Settings.imitate`)."""
-
-
-DEFAULT_LEARNER = "expert"
-"""The learner `htlm train` and `htlm launch train` (and so `make run` and `ros2 launch`) train unless told otherwise
-(`--learner`, `--set learner=...`; `Settings.for_users`): the expert-iteration learner, which learns from the team's
-own play in process and over ROS alike, reads every agent's own reward, and acts in one forward pass
-(docs/results/market.md). `Settings()` itself is the paper's learner, which `htlm reproduce`, the benchmarks and the
-pinned digests use."""
-
-EXPERT_FIELDS = frozenset(
-    {
-        "learner",
-        "episodes",
-        "rounds",
-        "envs",
-        "imitate",
-        "eps_end",
-        "value_updates",
-        "policy_updates",
-        "load_weight",
-        "hidden",
-        "lr",
-        "batch_size",
-        "trainer_lag",
-        "seed",
-        "threads",
-        "validate_episodes",
-        "eval_episodes",
-    }
-)
-"""The settings the expert-iteration learner reads (`experiments.expert`); a user's change of any other makes the
-default learner the token learner, which reads the Q-learners' settings (`Settings.for_users`)."""
-
-TOKENS_PRESET: dict[str, Any] = {
-    "learner": "tokens",
-    "hidden": (32, 32),
-    "updates_per_step": 8,
-    "imitate": "auction",
-    "imitate_episodes": 2048,
-    "eps_start": 0.3,
-}
-"""The settings the token learner starts from (`with_preset`; docs/model.md, The token learner): smaller layers than
-the paper's MLPs (one network serves every action), a warm start on the auction, and less exploration after it."""
-
-LOOKAHEAD_PRESET: dict[str, Any] = {
-    "learner": "lookahead",
-    "episodes": 10_000,
-    "batch_size": 2048,
-}
-"""The settings the lookahead learner starts from (`with_preset`; docs/model.md, The lookahead learner): 10,000
-simulated episodes and minibatches of 2,048 states for its value network."""
-
-IN_PROCESS_ONLY = frozenset({"lookahead"})
-"""The learners that learn in process only (`IN_PROCESS_WHY`): the lookahead's value network learns from simulated
-episodes, not from the team's play. (The expert-iteration learner learns from the team's play and, in training, the
-world's true levels, which the trainer node receives on /htlm/ground_truth.)"""
-IN_PROCESS_WHY = (
-    "learns in process only (from the true levels of simulated episodes, which a trainer node does not receive): "
-    "train it with `htlm train`, then run the team with `htlm launch evaluate --checkpoint RUN`"
-)
-
-NETWORKS = {"paper": "mlp", "tokens": "tokens", "lookahead": "value", "expert": "tokens"}
-"""The network every learner's checkpoint holds per agent (`Settings.network`): `mlp`, the paper's Q-network;
-`tokens`, the token network (Q-values, or the expert-iteration learner's policy scores); `value`, the lookahead's
-value network of the levels."""
-
-EXPERT_PRESET: dict[str, Any] = {
-    "learner": "expert",
-    "hidden": (32, 32),
-    "rounds": 4,
-    "episodes": 8192,
-    "envs": 256,
-    "imitate": "auction",
-    "trainer_lag": 0,
-    "batch_size": 1024,
-    "value_updates": 1500,
-}
-"""The settings the expert-iteration learner starts from (`with_preset`; docs/model.md, The expert-iteration
-learner): the token network's layers for its policy, the auction playing the first round, up to 8,192 episodes of
-its own play (4 rounds of 2,048),
-1,500 updates of the value network a round on what the team played, minibatches of 1,024 agent-steps for the
-policy."""
-
-PRESETS: dict[str, dict[str, Any]] = {"tokens": TOKENS_PRESET, "lookahead": LOOKAHEAD_PRESET, "expert": EXPERT_PRESET}
-"""The preset of every learner that has one: what `htlm train --learner NAME` starts from."""
 
 
 @dataclass(frozen=True)
@@ -111,12 +24,13 @@ class Settings:
     """Everything that decides a training run besides the scenario. Saved with every run (settings.json)."""
 
     learner: str = "paper"
-    """The learner: `paper`, one MLP per agent from K to one Q-value per element of Ḡ (the paper's learner);
-    `tokens`, one network scoring every action from its own features, shared across tasks (docs/model.md, The
-    token learner); `lookahead`, a value network of the auction learned from simulated episodes, with which every
-    agent improves on the auction from its own belief (docs/model.md, The lookahead learner; it learns in process
-    only, `htlm train`); `expert`, rounds of the team's own play improved by that lookahead with every agent's own
-    reward and learned into a token policy network (docs/model.md, The expert-iteration learner; in process only)."""
+    """The learner (`learning.learners`): `paper`, one MLP per agent from K to one Q-value per element of Ḡ (the
+    paper's learner); `tokens`, one network scoring every action from its own features, shared across tasks
+    (docs/model.md, The token learner); `lookahead`, a value network of the auction learned from simulated episodes,
+    with which every agent improves on the auction from its own belief (docs/model.md, The lookahead learner; it
+    learns in process only, `htlm train`); `expert`, rounds of the team's own play improved by that lookahead with
+    every agent's own reward and learned into a token policy network (docs/model.md, The expert-iteration
+    learner)."""
     shared: bool = True
     """tokens: the agents share one network (their capabilities and preferences are inputs); False: each agent
     trains its own."""
@@ -257,8 +171,7 @@ class Settings:
             raise ValueError(
                 f"settings: reward_scale {self.reward_scale!r} and huber_delta {self.huber_delta!r} must be > 0"
             )
-        if self.learner not in LEARNERS:
-            raise ValueError(f"settings.learner: {self.learner!r} is not one of {', '.join(LEARNERS)}")
+        learners.learner(self.learner)  # one of them, else the error names the value and the choices
         if self.imitate not in IMITATE:
             raise ValueError(f"settings.imitate: {self.imitate!r} is not one of {', '.join(IMITATE)}")
         if self.imitate_episodes < 0 or self.imitate_episodes > self.episodes:
@@ -267,27 +180,14 @@ class Settings:
             )
         if self.imitate_updates < 1:
             raise ValueError(f"settings.imitate_updates: {self.imitate_updates!r} must be >= 1")
-        if self.imitate != "none" and self.learner not in ("tokens", "expert"):
-            raise ValueError(
-                f"settings.imitate: {self.imitate!r} needs learner 'tokens' or 'expert', not {self.learner!r}"
-            )
-        if self.learner == "expert" and self.trainer_lag != 0:
-            raise ValueError(
-                f"settings.trainer_lag: {self.trainer_lag!r}: the expert-iteration learner's rounds play each policy "
-                "whole (0)"
-            )
-        if self.learner == "expert" and self.imitate == "qmdp":
-            raise ValueError(
-                "settings.imitate: 'qmdp': the expert-iteration learner's first round is played by 'auction' or "
-                "'greedy'"
-            )
+        learners.check(self)
         if self.envs > self.memory:
             raise ValueError(f"settings.envs: {self.envs!r} must not exceed settings.memory {self.memory!r}")
 
     @property
     def network(self) -> str:
-        """The network of this learner's checkpoints (`NETWORKS`): `mlp`, `tokens` or `value`."""
-        return NETWORKS[self.learner]
+        """The network of this learner's checkpoints (`LearnerKind.network`): `mlp`, `tokens` or `value`."""
+        return learners.learner(self.learner).network
 
     def epsilon(self, episode: float) -> float:
         """ε of ε-greedy at training episode `episode`: linear decay from eps_start to eps_end over the first
@@ -307,18 +207,14 @@ class Settings:
     def warm_start(self, episodes_done: int) -> bool:
         """Whether the batch after `episodes_done` training episodes is one of the warm start: the baseline of
         `imitate` acts (ε-greedily with eps_end) and the networks learn to rank its choices first; the
-        expert-iteration learner's first round (`round_batches`), which the baseline plays."""
-        if self.learner == "expert":
-            return episodes_done < self.round_batches * self.envs
-        return self.imitate != "none" and episodes_done < self.imitate_episodes
+        expert-iteration learner's first round (`round_batches`), which the baseline plays (`LearnerKind`)."""
+        return learners.learner(self.learner).warm_start(self, episodes_done)
 
     @property
     def warm_baseline(self) -> str:
         """The baseline that acts in the warm start (`warm_start`): `imitate`; the expert-iteration learner's first
-        round is the auction's unless `imitate` names greedy."""
-        if self.learner == "expert" and self.imitate == "none":
-            return "auction"
-        return self.imitate
+        round is the auction's unless `imitate` names greedy (`LearnerKind.warm_baseline`)."""
+        return learners.learner(self.learner).warm_baseline(self)
 
     @property
     def round_batches(self) -> int:
@@ -336,28 +232,21 @@ class Settings:
 
     @staticmethod
     def with_preset(changes: dict[str, Any]) -> dict[str, Any]:
-        """Settings changes as plain data, after the preset of the learner they choose (`PRESETS`: what
-        `htlm train --learner tokens` and `htlm launch train --set learner=tokens` start from). A budget of
-        `episodes` below twice the token preset's warm start keeps half of it for the warm start."""
-        learner = changes.get("learner")
-        if learner not in PRESETS:
-            return dict(changes)
-        base = dict(PRESETS[learner])
-        if learner == "tokens" and isinstance(changes.get("episodes"), int):
-            base["imitate_episodes"] = min(base["imitate_episodes"], max(changes["episodes"], 0) // 2)
-        return {**base, **changes}
+        """Settings changes as plain data, after the preset of the learner they choose (`LearnerKind.with_preset`:
+        what `htlm train --learner tokens` and `htlm launch train --set learner=tokens` start from); unchanged when
+        they choose none."""
+        name = changes.get("learner")
+        return learners.LEARNERS[name].with_preset(changes) if name in learners.LEARNERS else dict(changes)
 
     @staticmethod
     def for_users(changes: dict[str, Any]) -> dict[str, Any]:
         """The changes of a user's command (`htlm train`, `htlm launch train`), after the preset of their learner
-        (`with_preset`): the one they choose, else `DEFAULT_LEARNER`, or the token learner when they change a setting
-        the expert-iteration learner does not read (`EXPERT_FIELDS`: a Q-learner's, such as learning_starts)."""
-        default = DEFAULT_LEARNER if set(changes) <= EXPERT_FIELDS else "tokens"
-        return Settings.with_preset({"learner": default, **changes})
+        (`with_preset`): the one they choose, else the default (`learners.default_learner`)."""
+        return Settings.with_preset({"learner": learners.default_learner(changes), **changes})
 
     @staticmethod
     def for_learner(**changes: Any) -> Settings:
-        """Settings with `changes`, starting from the preset of the learner they choose (`PRESETS`)."""
+        """Settings with `changes`, starting from the preset of the learner they choose (`with_preset`)."""
         return Settings(**Settings.with_preset(changes))
 
     def replace(self, **changes: Any) -> Settings:

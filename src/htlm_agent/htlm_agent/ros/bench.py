@@ -24,7 +24,7 @@ TARGET_TRAIN_RATIO = 3.0
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Options of the ROS benchmark (added to `htlm bench`)."""
-    from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
+    from htlm_agent.session.builtin import BUILTIN_POLICIES
 
     p.add_argument(
         "--ros-batches",
@@ -53,9 +53,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def inprocess_rate(policy: str, batch: int, batches: int, seed: int = 0) -> float:
     """Episode-steps per second of the in-process runtime at batch B with the same per-agent policies."""
-    from htlm_agent.baselines.heuristics import builtin_policy
     from htlm_agent.mind.policies import DecentralizedPolicy
     from htlm_agent.runtime.team import Team, rollout
+    from htlm_agent.session.builtin import builtin_policy
     from htlm_world.scenario import builtin
 
     sc = builtin()
@@ -106,7 +106,7 @@ def ros_rate(batch: int, batches: int, policy: str, domain: int, run_dir: Path) 
 def train_walls(episodes: int, domain: int, run_dir: Path) -> dict[str, float]:
     """Wall seconds of a training run over ROS (7 processes, start-up included) and of `htlm train` in process,
     both with `episodes` episodes of the default settings and no validation or final evaluation."""
-    from htlm_agent.experiments.train import train
+    from htlm_agent.learning.run import train
     from htlm_agent.learning.settings import Settings
     from htlm_agent.ros.launch import LaunchConfig, run_team
     from htlm_world.scenario import builtin

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from htlm_agent.learning.learners import LEARNERS
 from htlm_agent.learning.settings import Settings
 from htlm_msgs_py.files import write_atomic
 from htlm_msgs_py.qos import FASTDDS_LOOPBACK_PROFILE, FASTDDS_PROFILE
@@ -90,8 +91,8 @@ class LaunchConfig:
     key_file: str = ""
     """Team key file for message signing (HTLM_TEAM_KEY_FILE)."""
     learner: dict[str, Any] = field(default_factory=dict)
-    """Learner settings of a training run (`--set`; none: those of `htlm train`, with `TOKENS_PRESET` first for the
-    token learner, `Settings.with_preset`)."""
+    """Learner settings of a training run (`--set`, with the learner `htlm launch` chose), after the preset of the
+    learner they name (`Settings.with_preset`)."""
     world_params: dict[str, Any] = field(default_factory=dict)
     """Extra world_node parameters."""
     agent_params: dict[str, Any] = field(default_factory=dict)
@@ -376,6 +377,13 @@ the last step of a round and the first of the next, takes minutes on a large tea
 alive meanwhile)."""
 
 
+def in_rounds(learner: dict[str, Any]) -> bool:
+    """Whether the learner settings `learner` name a learner in rounds (`LearnerKind.rounds`, the expert-iteration
+    learner): its play stops after each round while it learns."""
+    name = learner.get("learner")
+    return isinstance(name, str) and name in LEARNERS and LEARNERS[name].rounds
+
+
 def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     """(name, module, parameters) of every process this host starts."""
     run = cfg.run_dir.resolve()
@@ -413,7 +421,7 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
         params: dict[str, Any] = {"agent": a.name, "policy": cfg.policy, "run_dir": str(run)}
         if cfg.robots == "sim":  # arrival from the simulated robot's odometry
             params.update({"pose_topic": f"/htlm/{a.name}/odom", "pose_type": "odometry"})
-        if learner.get("learner") == "expert":  # the first step of a round waits for the round's learning
+        if in_rounds(learner):  # the first step of a round waits for the round's learning
             params["weights_timeout"] = EXPERT_WEIGHTS_TIMEOUT
         params.update(cfg.agent_params)
         if cfg.checkpoint:
@@ -706,8 +714,8 @@ def run_team(cfg: LaunchConfig) -> int:
         if cfg.echo:
             for s in slots:
                 if s.name == "world" and cfg.mode == "train" and cfg.episodes:
-                    expert = cfg.learner.get("learner") == "expert"
-                    tails.append(_ProgressTail(s.proc.log, cfg.episodes, cfg.first_episode, rounds=expert))
+                    rounds = in_rounds(cfg.learner)
+                    tails.append(_ProgressTail(s.proc.log, cfg.episodes, cfg.first_episode, rounds=rounds))
                 elif s.name == "world":
                     tails.append(_Tail(s.proc.log, ("episode", "ERROR"), "[world] ", cfg.echo_to_stderr))
                 elif s.name == "trainer":

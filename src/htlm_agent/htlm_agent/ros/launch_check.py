@@ -11,7 +11,7 @@ each naming the file or option, the field and the value:
 - the parameters of every process this host starts, exactly as `process_specs` hands them over: unknown names
   (with the known ones), wrong types (`htlm_msgs_py.validation.convert_value`, as `declare_settings` converts
   them) and values the node's validate function refuses (ranges and choices of `htlm_msgs_py.params.problems`);
-- the checkpoint the agents would load: `load_checkpoint(path, scenario)` and `lookahead.agent_policy` for each
+- the checkpoint the agents would load: `load_checkpoint(path, scenario)` and `learning.learners.agent_policy` for each
   agent started here, as the agent node does (missing, corrupt `meta.json` or `agents.pt`, another layout or team).
 
 ROS-free: it starts no process and writes nothing under the run directory.
@@ -269,11 +269,12 @@ def checkpoint_problems(
 ) -> list[str]:
     """The problem of the checkpoint the agents started here would load, if any.
 
-    Loaded as the agent node does (`load_checkpoint(path, scenario)`, then `lookahead.agent_policy` for the index of
-    each agent); with `scenario` None (the scenario file has problems) the checkpoint is only checked on its own.
+    Loaded as the agent node does (`load_checkpoint(path, scenario)`, then `learning.learners.agent_policy` for
+    the index of each agent); with `scenario` None (the scenario file has problems) the checkpoint is only checked on
+    its own.
     """
-    from htlm_agent.baselines.lookahead import agent_policy
     from htlm_agent.learning.checkpoint import load_checkpoint
+    from htlm_agent.learning.learners import agent_policy
 
     names = [a.name for a in cfg.scenario.agents]
     by_path: dict[str, list[int]] = {}

@@ -496,8 +496,8 @@ def inprocess(sc: Scenario, batch: int, seconds: float, episodes: int, say: Call
     """The team step of `sc` at batch B and the wall time of an evaluation of `episodes` episodes with greedy and
     with the auction, in this process."""
     from htlm_agent.experiments.baselines import make_baseline
-    from htlm_agent.experiments.evaluate import evaluate_run
     from htlm_agent.experiments.speed import team_rate
+    from htlm_agent.runtime.evaluate import evaluate_run
 
     row: dict[str, Any] = {"scenario": sc.name, "agents": sc.n_agents, "batch": batch}
     row["team_agent_steps_per_s"] = round(team_rate(batch, seconds, sc))

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from htlm_agent.baselines.heuristics import BUILTIN_POLICIES
+from htlm_agent.session.builtin import BUILTIN_POLICIES
 from htlm_agent.session.core import SessionSettings
 from htlm_agent.trainer.core import Schedule, load_learner_data
 from htlm_msgs_py.params import SECONDS, problems, setting

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from htlm_agent.baselines.heuristics import BUILTIN_POLICIES, builtin_policy
 from htlm_agent.mind.policies import AgentPolicy
+from htlm_agent.session.builtin import BUILTIN_POLICIES, builtin_policy
 from htlm_agent.session.effects import SessionEffects
 from htlm_agent.session.run import JoinedRun
 from htlm_agent.session.weights import WeightsClient
@@ -53,8 +53,8 @@ class PolicySource:
         if kind in BUILTIN_POLICIES:
             self.policy, self.own_epsilon = builtin_policy(run.scenario, kind, run.index)
         elif kind == "checkpoint":
-            from htlm_agent.baselines.lookahead import agent_policy  # torch only for the policies that need it
             from htlm_agent.learning.checkpoint import load_checkpoint
+            from htlm_agent.learning.learners import agent_policy  # torch only for the policies that need it
 
             ck = load_checkpoint(self.checkpoint, run.scenario)
             self.policy = agent_policy(ck, run.index)

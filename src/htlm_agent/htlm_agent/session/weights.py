@@ -6,8 +6,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from htlm_agent.baselines.heuristics import builtin_policy
 from htlm_agent.mind.policies import AgentPolicy
+from htlm_agent.session.builtin import builtin_policy
 from htlm_agent.session.effects import SessionEffects
 from htlm_msgs_py.payload import PayloadError, unseal
 from htlm_world.episode import global_step

@@ -1,2 +1,2 @@
-"""The trainer process's core without ROS (`core.TrainerCore`): above the learning loop and the experiments' validation
-it uses; its node (htlm_agent.ros.trainer_node) only moves messages."""
+"""The trainer process's core without ROS (`core.TrainerCore`): above the learners it feeds (`htlm_agent.learning`);
+its node (htlm_agent.ros.trainer_node) only moves messages."""

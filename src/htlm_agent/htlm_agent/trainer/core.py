@@ -2,13 +2,16 @@
 
 The trainer node (htlm_agent.ros.trainer_node) only decodes messages, feeds them and the time to `TrainerCore` and
 publishes what it returns. The core keeps every transition in the durable store (transition_store.py) and feeds it
-to the learner of `htlm train` (htlm_agent.learning.dqn.Learner) round by round: one round of `updates_per_step`
+to the learner of `htlm train` that the settings name (`LearnerKind.over_ros` of htlm_agent.learning.learners; a
+deep Q-learner's htlm_agent.learning.dqn.Learner) round by round: one round of `updates_per_step`
 updates per step of the batched lockstep, in step order (`TrainerCore` says when a round is complete); it publishes
 its progress after every round (the world's rate limiter), the weights on a fixed cadence (every `weights_every`
 steps), validates and selects as `htlm train` does, and checkpoints every `checkpoint_every` episodes and at
 shutdown. On start it resumes from run_dir: it loads run_dir/checkpoint (written by
 Learner.save), feeds the learner the store's records that came after it, and counts its starts (`epoch`) so that
-weight versions grow across restarts.
+weight versions grow across restarts. A learner in rounds (`LearnerKind.rounds`, the expert-iteration learner) takes
+every step's transitions and the world's true levels, learns after a round's last step while the world waits, and
+publishes its weights once a round.
 """
 
 from __future__ import annotations
@@ -23,7 +26,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from htlm_agent.learning.settings import IN_PROCESS_ONLY, IN_PROCESS_WHY, Settings
+from htlm_agent.learning.learners import learner
+from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.transition_store import StoreError, TransitionStore
 from htlm_msgs_py.payload import seal
 from htlm_msgs_py.run_control import REFUSED, RunControl, Verdict
@@ -31,7 +35,7 @@ from htlm_world.episode import global_step
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
 
 if TYPE_CHECKING:
-    from htlm_agent.trainer.expert import ExpertTrainer
+    from htlm_agent.learning.expert_trainer import ExpertTrainer
 
 
 HEARTBEAT = 1.0
@@ -192,7 +196,7 @@ class TrainerCore:
         self.world_episode = -1
         """The first episode of the latest batch the world's step records announced (-1: none yet in this run)."""
         self.rounds_of: ExpertTrainer | None = None
-        """The expert-iteration learner (`trainer.expert`; then also `learner`), None for the Q-learners."""
+        """The expert-iteration learner (`learning.expert_trainer`; then also `learner`), None for the Q-learners."""
         self.held = False
         """Whether the last step's announcement waits for the expert's round of learning."""
         self.heard_at = 0.0
@@ -293,10 +297,8 @@ class TrainerCore:
         """
         import torch
 
-        from htlm_agent.experiments.train import warm_start_expert
         from htlm_agent.learning.checkpoint import CheckpointError
-        from htlm_agent.learning.dqn import Learner
-        from htlm_agent.learning.loop import Selection
+        from htlm_agent.learning.loop import Selection, warm_start_expert
 
         settings = self.learner_settings(seed)
         torch.set_num_threads(settings.threads)  # as `htlm train`
@@ -312,16 +314,17 @@ class TrainerCore:
         if self.mode != "train":  # evaluate, deploy: record metrics and any transitions, learn nothing
             out.log.append(("info", f"run {self.run}: mode {self.mode}: recording only (store {store_path})"))
             return
-        if settings.learner in IN_PROCESS_ONLY:
-            raise ValueError(f"{self.learner_source}: settings.learner: {settings.learner!r} {IN_PROCESS_WHY}")
-        if settings.learner == "expert":
-            self._start_expert(sc, settings, ckpt, out)
+        kind = learner(settings.learner)
+        if kind.in_process_only is not None:
+            raise ValueError(f"{self.learner_source}: settings.learner: {settings.learner!r} {kind.in_process_only}")
+        if kind.rounds:
+            self._start_rounds(sc, settings, seed, ckpt, out)
             return
         fed = 0
         info: dict[str, Any] = {}
         if (ckpt / "meta.json").exists():
             try:
-                self.learner = Learner.load(ckpt, settings)
+                self.learner = kind.over_ros(sc, settings, seed, self.batch, ckpt)
             except CheckpointError as e:
                 raise ValueError(f"cannot resume: {e}") from None
             if self.learner.scenario.layout_hash() != sc.layout_hash():
@@ -338,7 +341,7 @@ class TrainerCore:
                 )
             )
         else:
-            self.learner = Learner(sc, settings, seed)
+            self.learner = kind.over_ros(sc, settings, seed, self.batch, None)
         self.expert = warm_start_expert(sc, settings)
         if self.run_lag != settings.trainer_lag:
             out.log.append(
@@ -382,22 +385,21 @@ class TrainerCore:
             )
         )
 
-    def _start_expert(self, sc: Scenario, settings: Settings, ckpt: Path, out: TrainerEffects) -> None:
-        """Start the expert-iteration learner (`trainer.expert`): its weights change once a round.
+    def _start_rounds(self, sc: Scenario, settings: Settings, seed: int, ckpt: Path, out: TrainerEffects) -> None:
+        """Start a learner in rounds (`LearnerKind.rounds`: the expert-iteration learner's
+        `learning.expert_trainer.ExpertTrainer`): its weights change once a round.
 
         Raises:
             StoreError: a run directory that already holds transitions or a checkpoint (the learner's rounds do not
                 resume: they are quick to run again in a new run_dir).
         """
-        from htlm_agent.trainer.expert import ExpertTrainer
-
         assert self.store is not None
         if self.store.count or ckpt.exists():
             raise StoreError(
                 f"{self.dir}: holds transitions or a checkpoint, and the expert-iteration learner does not resume a "
                 "run (its rounds are quick to run again): use a new run_dir"
             )
-        self.rounds_of = self.learner = ExpertTrainer(sc, settings, self.batch)
+        self.rounds_of = self.learner = learner(settings.learner).over_ros(sc, settings, seed, self.batch, None)
         self.schedule = Schedule(
             weights_every=settings.round_batches * sc.horizon,
             round_deadline=self.schedule.round_deadline,
@@ -675,7 +677,7 @@ class TrainerCore:
             rew = np.stack([r["r"] for r in recs], axis=1)
             m2 = np.stack([r["mask2"] for r in recs], axis=1)
             if self.expert is not None and self.learner.settings.warm_start(self.learner.episodes_done):
-                from htlm_agent.experiments.train import imitate_step
+                from htlm_agent.learning.loop import imitate_step
 
                 # the agents acted around the expert's choices from these knowledge states: as `htlm train`
                 self.last_loss = imitate_step(self.learner, self.expert, k)
@@ -718,7 +720,7 @@ class TrainerCore:
 
     def _batch_done(self, rnd: _Round, now: float, out: TrainerEffects) -> None:
         """The last round of a batch: count its episodes, validate and select as `htlm train`, checkpoint when due."""
-        from htlm_agent.experiments.train import validate
+        from htlm_agent.learning.loop import validate
 
         if self.rounds_of is not None:  # the expert: a round's last batch starts its learning
             self.held = self.rounds_of.end_batch(rnd.episode, rnd.size, now)  # held: the round learns (`tick`)

@@ -1,5 +1,5 @@
 """The expert-iteration learner in the trainer node (`ExpertTrainer`): the rounds of `htlm train --learner expert`
-(`htlm_agent.experiments.expert.ExpertRounds`) fed from what the trainer receives over ROS.
+(`htlm_agent.learning.expert.ExpertRounds`) fed from what the trainer receives over ROS.
 
 Every step of the run, `TrainerCore` hands over the agents' transitions of the step (their knowledge states, the
 actions they played and Â of the next step); the world's /htlm/ground_truth records give the true levels of every
@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from htlm_agent.experiments.expert import ExpertRounds, RoundRow, write_rounds
 from htlm_agent.learning.checkpoint import save_checkpoint
+from htlm_agent.learning.expert import ExpertRounds, RoundRow, write_rounds
 from htlm_agent.learning.qnet import pack_weights
 from htlm_agent.learning.settings import Settings
 from htlm_world.episode import batch_index

@@ -8,33 +8,41 @@ each pick the action that minimizes the expected steps to go, one step ahead, ov
 with the teammates before it on their improved choices and those after it on the auction's. An agent runs that
 sequence in its head and keeps its own choice, as it does the auction (one-agent-at-a-time rollout, Bertsekas 2020).
 
-Trained as a run of `htlm train` it is the lookahead learner (docs/model.md, The lookahead learner): its value network
-is the checkpoint, and `team_policy` / `agent_policy` make the policy of a checkpoint of any learner. With the
-learned value of the team's own play it is the expert-iteration learner's teacher (`Teacher`).
+Trained as a run of `htlm train` it is the lookahead learner (docs/model.md, The lookahead learner;
+`learning.learners.lookahead`): its value network is the checkpoint (`value_of`). With the learned value of the team's
+own play it is the expert-iteration learner's teacher (`Teacher`).
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from htlm_agent.baselines.optimal import QMDP_LOAD_COST
-from htlm_agent.learning.checkpoint import Checkpoint
-from htlm_agent.learning.qnet import AgentQ
-from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.checkpoint import Checkpoint, save_checkpoint
+from htlm_agent.learning.run import (
+    RunLog,
+    TrainResult,
+    evaluate_checkpoint,
+    fresh_run_dir,
+    result_json,
+    write_run_files,
+)
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind import knowledge
 from htlm_agent.mind.auction import allocate
-from htlm_agent.mind.context import Context, Policy
-from htlm_agent.mind.policies import AgentPolicy, RowPolicy
-from htlm_agent.mind.reward import RewardTables, confident_levels, reward
+from htlm_agent.mind.context import Context
+from htlm_agent.mind.policies import RowPolicy
+from htlm_agent.mind.reward import LOAD_PRICE, RewardTables, confident_levels, reward
+from htlm_agent.progress import Progress
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
@@ -271,7 +279,7 @@ class LookaheadPolicy:
         value: BaseValue | None = None,
         samples: int = LOOKAHEAD_SAMPLES,
         seed: int = 0,
-        load_price: float = QMDP_LOAD_COST,
+        load_price: float = LOAD_PRICE,
         floor: float | None = None,
     ) -> None:
         """`value`: a fitted `BaseValue` (default: one fitted here with `seed`); `load_price`: the steps a unit of
@@ -397,19 +405,73 @@ def value_of(ck: Checkpoint) -> BaseValue:
     return BaseValue(ck.scenario, ValueSettings.of(ck.settings), ck.seed).load_params(ck.weights[0])
 
 
-def team_policy(ck: Checkpoint) -> Policy:
-    """The team policy of a checkpoint of any learner: the lookahead with its value network, else the agents'
-    Q-networks."""
-    if ck.settings.learner == "lookahead":
-        return LookaheadPolicy(ck.scenario, value_of(ck), seed=ck.seed, load_price=ck.settings.load_price)
-    return QPolicy.from_checkpoint(ck)
+def train_lookahead(
+    scenario: Scenario,
+    settings: Settings,
+    out: Path,
+    progress: bool = True,
+    resume: bool = False,
+    tensorboard: bool = True,
+    evaluate_at_end: bool = True,
+) -> TrainResult:
+    """`learning.run.train` for the lookahead learner (docs/model.md, The lookahead learner): its value network
+    learns from `settings.episodes` simulated episodes in one go; the checkpoint gives every agent a copy, and the
+    final evaluation acts as the agents do, each improving on the auction from its own belief with it."""
+    t_start = time.perf_counter()
+    ckpt_dir = fresh_run_dir(out, resume, "lookahead", "it learns in one go, in seconds")
+    mine = own_rewards(scenario)
+    if mine:  # it weighs load by load_price alone: say so rather than ignore them silently
+        print(
+            f"warning: the lookahead learner does not read the scenario's reward: the own rewards of {mine} change "
+            "nothing it does; `--learner expert` weighs every agent's own R_II and T_RP",
+            file=sys.stderr,
+            flush=True,
+        )
+    write_run_files(out, scenario, settings)
+    value = BaseValue(scenario, ValueSettings.of(settings), settings.seed)
+    bars: list[Progress] = []  # the regression's, from its first update on (after the simulation)
 
+    def show(done: int, loss: float) -> None:
+        if not bars:
+            bars.append(Progress(settings.value_updates, unit="upd", enabled=progress))
+        bars[0].update(done, rmse=f"{math.sqrt(loss):.2f}")
 
-def agent_policy(ck: Checkpoint, agent: int) -> AgentPolicy:
-    """Agent `agent`'s policy in its own process from a checkpoint of any learner (`team_policy`'s column)."""
-    if ck.settings.learner == "lookahead":
-        return AgentLookahead(ck.scenario, team_policy(ck), agent)
-    return AgentQ.from_checkpoint(ck, agent)
+    if progress:
+        print(f"lookahead: simulating {settings.episodes:,} episodes of the auction", file=sys.stderr, flush=True)
+    try:
+        rmse = value.fit(on_update=show)
+    finally:
+        for bar in bars:
+            bar.close()
+    train_time = time.perf_counter() - t_start
+    row = {
+        "episodes": settings.episodes,
+        "wall_s": round(train_time, 3),
+        "episodes_per_s": settings.episodes / max(train_time, 1e-9),
+        "updates": settings.value_updates,
+        "loss": rmse**2,
+    }
+    save_checkpoint(
+        ckpt_dir,
+        scenario,
+        settings,
+        settings.seed,
+        settings.episodes,
+        [value.params()] * scenario.n_agents,
+        info={"value_rmse": rmse},
+    )
+    log = RunLog(out, 0, False, tensorboard)
+    metrics: dict[str, Any] = {}
+    try:
+        log.row(row, settings.episodes)
+        log.close_progress()
+        if evaluate_at_end and settings.eval_episodes > 0:
+            metrics = evaluate_checkpoint(ckpt_dir, out, "htlm-lookahead")
+            log.evaluation(metrics, settings.episodes)
+    finally:
+        log.close()
+    wall = result_json(out, settings.episodes, t_start, train_time, None, metrics, progress)
+    return TrainResult(out, scenario, settings, settings.episodes, wall, train_time, metrics, [row])
 
 
 LOAD_CAP = 0.45

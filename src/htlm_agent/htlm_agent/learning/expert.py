@@ -35,16 +35,25 @@ import numpy as np
 import torch
 
 from htlm_agent.baselines.heuristics import AuctionPolicy, GreedyPolicy
-from htlm_agent.baselines.lookahead import LOAD_CAP, BaseValue, Teacher, ValueSettings, load_rates
-from htlm_agent.experiments.evaluate import evaluate
+from htlm_agent.learning.checkpoint import save_checkpoint
+from htlm_agent.learning.lookahead import LOAD_CAP, BaseValue, Teacher, ValueSettings, load_rates
 from htlm_agent.learning.qnet import init_params
 from htlm_agent.learning.qpolicy import QPolicy
+from htlm_agent.learning.run import (
+    RunLog,
+    TrainResult,
+    evaluate_checkpoint,
+    fresh_run_dir,
+    result_json,
+    write_run_files,
+)
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.tokens import TokenQ
 from htlm_agent.mind.context import Policy
 from htlm_agent.mind.policies import knowledge_context, team_epsilon_greedy
 from htlm_agent.mind.reward import RewardTables
 from htlm_agent.progress import Progress
+from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team
 from htlm_world import seeds
 from htlm_world.metrics import completion_step
@@ -491,3 +500,50 @@ def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> Exp
         bar.close()
         torch.set_num_threads(threads)
     return ExpertRun(ex.best[2], ex.best[1], ex.rows, ex.done)
+
+
+def train_expert_run(
+    scenario: Scenario,
+    settings: Settings,
+    out: Path,
+    progress: bool = True,
+    resume: bool = False,
+    tensorboard: bool = True,
+    evaluate_at_end: bool = True,
+) -> TrainResult:
+    """`learning.run.train` for the expert-iteration learner (docs/model.md, The expert-iteration learner): its rounds
+    (the module docstring), the best round's policy network as the checkpoint (every agent a copy), rounds.csv and
+    rounds.png, one progress.csv row a round, and the final evaluation as the agents act."""
+    t_start = time.perf_counter()
+    ckpt_dir = fresh_run_dir(out, resume, "expert-iteration", "its rounds are quick to run again")
+    write_run_files(out, scenario, settings)
+    run = train_expert(scenario, settings, progress)
+    train_time = time.perf_counter() - t_start
+    write_rounds(out, run.rows, scenario.name, run.best_round)
+    info = {"best_round": run.best_round, "rounds": [asdict(r) for r in run.rows]}
+    save_checkpoint(ckpt_dir, scenario, settings, settings.seed, run.episodes, run.best_weights, info=info)
+    log = RunLog(out, 0, False, tensorboard)
+    history: list[dict[str, float]] = []
+    metrics: dict[str, Any] = {}
+    try:
+        for r in run.rows[1:]:
+            row = {
+                "episodes": r.episodes,
+                "wall_s": r.wall_s,
+                "episodes_per_s": r.episodes / max(r.wall_s, 1e-9),
+                "loss": r.policy_loss,
+                "val_completion": r.val_completion,
+                "val_failure_rate": r.val_failure_rate,
+                "val_unused_fraction": r.val_unused_fraction,
+            }
+            log.row(row, r.episodes)
+            history.append(row)
+        log.close_progress()
+        if evaluate_at_end and settings.eval_episodes > 0:
+            metrics = evaluate_checkpoint(ckpt_dir, out, "htlm-expert")
+            log.evaluation(metrics, run.episodes)
+    finally:
+        log.close()
+    selected = run.rows[run.best_round].episodes
+    wall = result_json(out, run.episodes, t_start, train_time, selected, metrics, progress)
+    return TrainResult(out, scenario, settings, run.episodes, wall, train_time, metrics, history)
