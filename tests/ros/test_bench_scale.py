@@ -13,7 +13,7 @@ import pytest
 
 from support.ros import HTLM, alive_with, next_domain
 
-pytestmark = [pytest.mark.ros]
+pytestmark = [pytest.mark.ros, pytest.mark.slow]  # CI budget: a launch of 5 agents through the benchmark; -m slow
 
 
 def test_the_scale_benchmark_measures_a_team_of_five(tmp_path: Path) -> None:

@@ -102,6 +102,7 @@ def _run_equals_in_process(team: Any, ckpt: Path, seed: int, batch: int, team_wi
     return n
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the lockstep's equivalence; -m slow
 def test_free_running_clock_equals_in_process(ros_team: Any) -> None:
     """The world steps every 100 ms instead of as soon as everyone answered; agents that keep up give the same run
     (at 50 ms an agent on the loaded 2-core CI machine missed a step of the first episode once)."""
@@ -177,6 +178,7 @@ def test_token_networks_with_a_roster_over_ros_equal_in_process(ros_team: Any, t
     assert _checkpoint_run_equals_in_process(team, tmp_path, settings, 6, 4) == 4
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the checkpoint evaluations; -m slow
 def test_the_lookahead_learner_over_ros_equals_in_process(ros_team: Any, tmp_path: Path) -> None:
     """The lookahead learner's checkpoint (a copy of its value network in every agent process) with the roster and a
     dropout: every agent draws its states from a hash of its own knowledge state, so its process draws what the
