@@ -138,6 +138,23 @@ def test_each_agent_acts_on_its_own_row_only() -> None:
     assert np.array_equal(np.where(own >= 0, own, model.idle_action(ctx.prev)), base)
 
 
+@pytest.mark.parametrize("kind", ["greedy", "auction", "qmdp"])
+def test_some_agents_actions_alone_are_their_columns_of_the_team_action(kind: str) -> None:
+    """`act_rows` (what an agent process asks for, its own action only) gives the agents' columns of `act`, for any
+    subset of agents in any order."""
+    sc = builtin()
+    n, p, L = sc.n_agents, sc.n_tasks, sc.levels
+    rng = np.random.default_rng(1)
+    pol = make_baseline(kind, sc)[0]
+    model = Model.build(sc)
+    marg = rng.dirichlet(np.full(L, 0.3), size=(64, n, p))
+    prev = rng.integers(-1, sc.n_actions, size=(64, n))
+    ctx = Context(knowledge.build(marg, prev, sc.n_actions), model.action_mask(prev), marg, prev, 0, np.zeros((64, p)))
+    team = pol.act(ctx)
+    for who in ([0], [n - 1], [3, 1], list(range(n))[::-1]):
+        assert np.array_equal(pol.act_rows(ctx, np.array(who)), team[:, who]), who
+
+
 def test_agent_processes_run_the_team_auction() -> None:
     """The built-in policy of the agent nodes (one RowPolicy per agent, as over ROS) equals the team policy."""
     sc = builtin()

@@ -73,19 +73,23 @@ class GreedyPolicy:
 
     def act(self, ctx: Context) -> IntArray:
         """One action per agent from its own row of the Context."""
-        lv = confident_levels(ctx.marginals, self.threshold)  # (B, N, p)
+        return self.act_rows(ctx, np.arange(self.scenario.n_agents))
+
+    def act_rows(self, ctx: Context, who: IntArray) -> IntArray:
+        """The actions (B, R) of the agents `who` (R,), each from its own row of the Context."""
+        lv = confident_levels(ctx.marginals[:, who], self.threshold[who])  # (B, R, p)
         blk = self.model.blocked(lv)
-        b, n = ctx.prev.shape
-        out = self.model.rest_action(ctx.prev)
-        chosen = np.zeros((b, n), dtype=bool)
-        for i in range(n):
+        b, r = lv.shape[:2]
+        out = self.model.rest_action(ctx.prev[:, who])
+        chosen = np.zeros((b, r), dtype=bool)
+        for k, i in enumerate(who.tolist()):
             for j in self.order[i]:
                 if self.model.agent_caps[i, j] == 0:
                     continue
-                ok = (lv[:, i, j] > 0) & ~blk[:, i, j]
-                take = ok & ~chosen[:, i]
-                out[take, i] = j
-                chosen[:, i] |= take
+                ok = (lv[:, k, j] > 0) & ~blk[:, k, j]
+                take = ok & ~chosen[:, k]
+                out[take, k] = j
+                chosen[:, k] |= take
         return out
 
 
@@ -126,11 +130,15 @@ class AuctionPolicy:
 
     def act(self, ctx: Context) -> IntArray:
         """One action per agent: its own assignment in the auction it runs on its own row of the Context."""
+        return self.act_rows(ctx, np.arange(self.scenario.n_agents))
+
+    def act_rows(self, ctx: Context, who: IntArray) -> IntArray:
+        """The actions (B, R) of the agents `who` (R,): each one's own assignment in the auction it runs on its own
+        row of the Context (only the auctions of `who` are run)."""
         sc = self.scenario
-        lv = confident_levels(ctx.marginals, self.threshold)  # (B, N, p): row i is agent i's belief
-        n = sc.n_agents
-        b, p = lv.shape[0], sc.n_tasks
-        present = knowledge.roster(ctx.knowledge, sc).reshape(b * n, n) if sc.roster else None  # row: its roster
-        # agent i's result in the auction it runs on its own row (allocate's, without the rounds after it)
-        own = own_assignment(self.model, lv.reshape(b * n, p), np.tile(np.arange(n), b), present).reshape(b, n)
-        return np.where(own >= 0, own, self.model.rest_action(ctx.prev)).astype(np.int64)
+        lv = confident_levels(ctx.marginals[:, who], self.threshold[who])  # (B, R, p): row r is agent who[r]'s belief
+        b, r, p = lv.shape[0], who.size, sc.n_tasks
+        present = knowledge.roster(ctx.knowledge[:, who], sc).reshape(b * r, -1) if sc.roster else None
+        # agent who[r]'s result in the auction it runs on its own row (allocate's, without the rounds after it)
+        own = own_assignment(self.model, lv.reshape(b * r, p), np.tile(who, b), present).reshape(b, r)
+        return np.where(own >= 0, own, self.model.rest_action(ctx.prev[:, who])).astype(np.int64)

@@ -412,12 +412,16 @@ class QmdpPolicy:
 
     def act(self, ctx: Context) -> IntArray:
         """One action per agent, each from its own row's marginals."""
+        return self.act_rows(ctx, np.arange(self.sc.n_agents))
+
+    def act_rows(self, ctx: Context, who: IntArray) -> IntArray:
+        """The actions (B, R) of the agents `who` (R,), each from its own row's marginals."""
         sc = self.sc
-        marg = ctx.marginals  # (B, N, p, L)
-        b, n = marg.shape[:2]
-        joint = np.ones((b, n, 1))
+        marg = ctx.marginals[:, who]  # (B, R, p, L)
+        b, r = marg.shape[:2]
+        joint = np.ones((b, r, 1))
         for j in range(sc.n_tasks):  # the product belief over every joint state, in `state_index` order
-            joint = (joint[..., :, None] * marg[:, :, j, None, :]).reshape(b, n, -1)
-        best = (joint @ self.q_t).argmin(axis=2)  # (B, N): each agent's capability vector
-        own = self.parts[best, np.arange(n)[None, :]]
-        return np.where(own >= 0, own, self.model.rest_action(ctx.prev)).astype(np.int64)
+            joint = (joint[..., :, None] * marg[:, :, j, None, :]).reshape(b, r, -1)
+        best = (joint @ self.q_t).argmin(axis=2)  # (B, R): each agent's capability vector
+        own = self.parts[best, who[None, :]]
+        return np.where(own >= 0, own, self.model.rest_action(ctx.prev[:, who])).astype(np.int64)

@@ -46,7 +46,7 @@ from htlm_agent.progress import Progress
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.types import BoolArray, FloatArray, IntArray
+from htlm_world.types import FloatArray, IntArray
 
 
 @dataclass(frozen=True)
@@ -394,10 +394,6 @@ class AgentLookahead(RowPolicy):
     knowledge state."""
 
     policy: LookaheadPolicy
-
-    def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
-        """See AgentPolicy.act."""
-        return self.policy.act_rows(self.context(knowledge, mask), np.array([self.agent]))[:, 0]
 
 
 def value_of(ck: Checkpoint) -> BaseValue:

@@ -27,3 +27,13 @@ class Policy(Protocol):
     def act(self, ctx: Context) -> IntArray:
         """Choose every agent's action."""
         ...
+
+
+class RowsPolicy(Policy, Protocol):
+    """A decentralized team policy that can work out some agents' actions alone: agent i reads only row i of the
+    Context, so an agent process asks for its own column without computing its teammates' (`RowPolicy`)."""
+
+    def act_rows(self, ctx: Context, who: IntArray) -> IntArray:
+        """The actions (B, R) of the agents `who` (R,), each from its own row of the Context (`act` is
+        `act_rows` of every agent)."""
+        ...

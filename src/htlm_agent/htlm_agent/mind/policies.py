@@ -13,7 +13,7 @@ from typing import Protocol
 
 import numpy as np
 
-from htlm_agent.mind.context import Context, Policy
+from htlm_agent.mind.context import Context, RowsPolicy
 from htlm_agent.mind.knowledge import split as split_knowledge
 from htlm_world import seeds
 from htlm_world.scenario import Scenario
@@ -77,10 +77,11 @@ def choose(
 
 
 class RowPolicy:
-    """Agent `agent`'s column of a decentralized team policy (a `team.Policy` whose agent i reads only row i of the
-    Context, such as `GreedyPolicy` and `AuctionPolicy`), fed with that agent's own knowledge state and mask."""
+    """Agent `agent`'s column of a decentralized team policy (a `RowsPolicy`, whose agent i reads only row i of the
+    Context, such as `GreedyPolicy` and `AuctionPolicy`), fed with that agent's own knowledge state and mask: only
+    that agent's action is worked out, so an agent's step does not grow with its teammates' work."""
 
-    def __init__(self, scenario: Scenario, policy: Policy, agent: int) -> None:
+    def __init__(self, scenario: Scenario, policy: RowsPolicy, agent: int) -> None:
         """Wrap `policy` for agent index `agent`."""
         self.scenario = scenario
         self.policy = policy
@@ -95,7 +96,8 @@ class RowPolicy:
 
     def act(self, knowledge: FloatArray, mask: BoolArray) -> IntArray:
         """See AgentPolicy.act: read the agent's marginals and a_o from K = {b, a_o} and ask the team policy."""
-        return np.asarray(self.policy.act(self.context(knowledge, mask))[:, self.agent], dtype=np.int64)
+        who = np.array([self.agent])
+        return np.asarray(self.policy.act_rows(self.context(knowledge, mask), who)[:, 0], dtype=np.int64)
 
 
 def knowledge_context(scenario: Scenario, knowledge: FloatArray, mask: BoolArray) -> Context:

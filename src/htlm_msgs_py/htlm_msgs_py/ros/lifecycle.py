@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import faulthandler
 import gc
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -111,6 +112,10 @@ def flush(node: Node, seconds: float) -> bool:
             return False
     return True
 
+
+CHECK_SECONDS = 0.05
+"""How often a process of several nodes (`run_nodes`) looks at every node's state (finished, fatal) between
+callbacks: each look costs a call per node, and a composed process runs many callbacks a step."""
 
 TEARDOWN_SECONDS = 10.0
 """Longest a node process may take to tear rclpy down after its work is done (`run_node`); usually well under 1 s."""
@@ -266,23 +271,27 @@ def run_nodes(
             executor.remove_node(node)
 
     code = 1
+    checked = -math.inf
     try:
         while True:
             if stop_signal:
                 code = 128 + int(stop_signal[0])
                 break
-            fatal = [n for n in live if n.fatal is not None]
-            if fatal:
-                for n in fatal:
-                    n.get_logger().error(f"fatal in {n.get_name()}: {n.fatal}; stopping every node of this process")
-                code = 2
-                break
-            for n in [n for n in live if n.finished()]:
-                retire(n)
-            if not live:
-                code = 0
-                break
-            executor.spin_once(timeout_sec=0.25)
+            now = time.monotonic()
+            if now - checked >= CHECK_SECONDS:  # every node's state, not after each of the many callbacks
+                checked = now
+                fatal = [n for n in live if n.fatal is not None]
+                if fatal:
+                    for n in fatal:
+                        n.get_logger().error(f"fatal in {n.get_name()}: {n.fatal}; stopping every node of this process")
+                    code = 2
+                    break
+                for n in [n for n in live if n.finished()]:
+                    retire(n)
+                if not live:
+                    code = 0
+                    break
+            executor.spin_once(timeout_sec=CHECK_SECONDS)
     except (KeyboardInterrupt, ExternalShutdownException):
         code = 130
     finally:  # an exception from a callback propagates after this (exit 1, its traceback at the end of the log)
