@@ -155,6 +155,8 @@ def test_agent_update_with_lost_messages_equals_brute_force(case: dict[str, Any]
     caps = model.joint_capability(actions)
     for i in range(n):
         lik = bf.agent_evidence(model, i, actions, obs[:, i], msgs, heard)
+        # what a team too large for the evidence table multiplies out report by report: the same likelihoods
+        np.testing.assert_allclose(bf._agent_evidence_product(model, i, actions, obs[:, i], msgs, heard, None), lik)
         new, bad = bf.update(model, belief[:, i], caps, lik)
         assert bad.shape == (b,)
         for e in range(b):

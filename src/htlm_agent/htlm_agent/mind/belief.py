@@ -237,15 +237,6 @@ def _factor_bands(table: FloatArray, slot: int, gate: int, kinds: int, levels: i
     return Bands.build(tabs, L)
 
 
-def _report_tables(model: Model, receiver: int, cls: int) -> list[FloatArray]:
-    """The likelihood table (L true levels, L reported levels) of every agent's report on a task of accuracy class
-    `cls` as `receiver` weighs it."""
-    return [
-        model.obs[cls, model.sensing[k]] if k == receiver else model.info[cls, model.sensing[k], model.comm[k]]
-        for k in range(model.scenario.n_agents)
-    ]
-
-
 def _evidence_table(model: Model, base: int) -> FloatArray:
     n, L = model.scenario.n_agents, model.scenario.levels
     codes = np.arange(base**n, dtype=np.int64)
@@ -594,24 +585,22 @@ def _agent_evidence_product(
     heard: BoolArray | None,
     t: int | None,
 ) -> FloatArray:
-    """`agent_evidence` multiplied out report by report (for teams too large for the evidence table)."""
+    """`agent_evidence` multiplied out report by report (for teams too large for the evidence table): every report's
+    row of its table gathered at once, and multiplied into its task's likelihood in increasing agent order."""
     sc = model.scenario
-    b = actions.shape[0]
+    b, n = actions.shape
     lik = np.ones((b, sc.n_tasks, sc.levels))
-    rows = np.arange(b)
-    tables = [_report_tables(model, agent, c) for c in range(model.obs.shape[0])]
-    target, target_cls = model.observes(actions, t)
-    for k in range(sc.n_agents):
-        reports = target[:, k] >= 0
-        task = np.where(reports, target[:, k], 0)
-        level = own_observation if k == agent else messages[:, k]
-        if k != agent and heard is not None:
-            reports = reports & heard[:, k]
-        ok = reports & (level >= 0)
-        for c, by_agent in enumerate(tables):
-            sel = ok & (target_cls[:, k] == c)
-            if sel.any():
-                lik[rows[sel], task[sel]] *= by_agent[k][:, level[sel]].T
+    target, target_cls = model.observes(actions, t)  # (B, N)
+    level = np.array(messages, dtype=np.int64)
+    level[:, agent] = own_observation
+    reports = (target >= 0) & (level >= 0)
+    if heard is not None:
+        reports &= np.asarray(heard, dtype=bool) | (np.arange(n) == agent)
+    who, row = np.nonzero(reports.T)  # by agent, then by episode: the order of the products
+    tables = model.info[:, model.sensing, model.comm]  # (C, N, L, L) every teammate's report as I weighs it
+    tables[:, agent] = model.obs[:, model.sensing[agent]]  # the agent's own observation, weighed with O
+    rows = tables[target_cls[row, who], who, :, level[row, who]]  # (M, L)
+    np.multiply.at(lik, (row, target[row, who]), rows)
     return lik
 
 

@@ -127,6 +127,7 @@ class Health:
         self.message = "starting"
         self.pub = node.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS)
         self.started = time.monotonic()
+        self._key_values: dict[str, KeyValue] = {}  # made once per key: a message is costly to make in Python
 
     def decode(self, topic: str, data: bytes | str, schema: Schema, lim: Any = None) -> dict[str, Any] | None:
         """The validated fields of a received record (a serialized std_msgs/String as `subscribe_records` hands
@@ -188,6 +189,16 @@ class Health:
         self.level = DiagnosticStatus.OK
         self.message = message
 
+    def _key_value(self, key: str, value: str) -> KeyValue:
+        """The KeyValue message of a key, made at its first use and given its new value after (publishing
+        serializes a message at once, so the next status may reuse it)."""
+        kv = self._key_values.get(key)
+        if kv is None:
+            kv = self._key_values[key] = KeyValue(key=key, value=value)
+        elif kv.value != value:
+            kv.value = value
+        return kv
+
     def publish(self) -> None:
         """Publish the status and every counter on /diagnostics."""
         st = DiagnosticStatus()
@@ -197,7 +208,7 @@ class Health:
         st.hardware_id = self.hardware_id
         vals = {"uptime_s": f"{time.monotonic() - self.started:.1f}", **self.values}
         vals.update({k: str(v) for k, v in sorted(self.counters.items())})
-        st.values = [KeyValue(key=k, value=v) for k, v in vals.items()]
+        st.values = [self._key_value(k, v) for k, v in vals.items()]
         arr = DiagnosticArray()
         arr.header.stamp = self.node.get_clock().now().to_msg()
         arr.status = [st]
