@@ -6,6 +6,7 @@ import itertools
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, sav
 from htlm_agent.learning.dqn import Learner
 from htlm_agent.learning.dqn_run import train_batch
 from htlm_agent.learning.loop import LaggedNets
-from htlm_agent.learning.optim import StackedAdam
+from htlm_agent.learning.optim import AgentRows
 from htlm_agent.learning.qnet import AgentQ, StackedQ, layer_sizes, masked_argmax, pack_weights, unpack_weights
 from htlm_agent.learning.qpolicy import QPolicy
 from htlm_agent.learning.replay import Replay
@@ -157,25 +158,28 @@ def test_replay_memories_are_per_agent_ring_buffers_with_seeded_sampling() -> No
 # ----- independence of the agents --------------------------------------------------------------------------------
 
 
-def test_stacked_adam_is_one_adam_per_agent() -> None:
+def test_adam_over_agent_rows_is_one_adam_per_agent() -> None:
     torch.manual_seed(0)
     p0 = torch.randn(3, 7)
     stacked = p0.clone()
     grad = torch.zeros_like(stacked)
-    opt = StackedAdam(stacked, grad, lr=0.01)
+    rows = AgentRows(stacked, grad)
+    opt = rows.adam(lr=0.01)
     singles = [torch.nn.Parameter(p0[i].clone()) for i in range(3)]
     adams = [torch.optim.Adam([p], lr=0.01) for p in singles]
     active_steps = [[True, True, True], [True, False, True], [False, False, True], [True, True, True]]
     for step, active in enumerate(active_steps):
         g = torch.randn(3, 7, generator=torch.Generator().manual_seed(step))
-        grad.copy_(g * torch.tensor(active, dtype=torch.float32)[:, None])
-        opt.step(torch.tensor(active))
+        grad.copy_(g)  # an agent that does not train keeps its parameters whatever its gradient row holds
+        rows.select(np.array(active))
+        opt.step()
         for i in range(3):
             if active[i]:
                 singles[i].grad = g[i].clone()
                 adams[i].step()
     for i in range(3):
         assert torch.allclose(stacked[i], singles[i].detach(), atol=1e-6)
+        assert int(opt.state[rows.params[i]]["step"]) == int(adams[i].state[singles[i]]["step"])
 
 
 def test_an_agent_not_ready_to_train_is_untouched_and_agents_share_nothing() -> None:
@@ -304,6 +308,80 @@ def test_resuming_continues_exactly(tmp_path: Path) -> None:
     train_batch(resumed, team, 2)
     assert torch.equal(resumed.net.flat, straight.net.flat)
     assert torch.equal(resumed.target.flat, straight.target.flat)
+
+
+def _rewrite_train_state(ck: Path, change: Any) -> None:
+    """Replace the training state of checkpoint `ck` by `change(state)` (its checksum too)."""
+    import hashlib
+
+    f = ck / "train_state.pt"
+    st = torch.load(f, weights_only=True)
+    torch.save(change(st), f)
+    meta = json.loads((ck / "meta.json").read_text())
+    meta["files"]["train_state.pt"] = hashlib.sha256(f.read_bytes()).hexdigest()
+    (ck / "meta.json").write_text(json.dumps(meta))
+
+
+def _stacked_moments(st: dict[str, Any]) -> dict[str, Any]:
+    """The optimizer state as the paper's learner saved it before it used torch.optim: every agent's first and
+    second moments stacked (N, P), its step count (N,) float64."""
+    adam, flat = st["adam"]["state"], st["target"]
+    n = flat.shape[0]
+    zeros = torch.zeros(flat.shape[1])
+    return {
+        **st,
+        "adam": {
+            "m": torch.stack([adam[i]["exp_avg"] if i in adam else zeros for i in range(n)]),
+            "v": torch.stack([adam[i]["exp_avg_sq"] if i in adam else zeros for i in range(n)]),
+            "t": torch.tensor([float(adam[i]["step"]) if i in adam else 0.0 for i in range(n)], dtype=torch.float64),
+        },
+    }
+
+
+def test_resuming_from_the_optimizer_state_of_earlier_checkpoints_continues_exactly(tmp_path: Path) -> None:
+    sc = builtin()
+    s = TINY.replace(episodes=48, validate_every=0, select_best=False, learning_starts=100)
+    k, mask = np.full(sc.knowledge_size, 0.5), np.ones(sc.n_actions, dtype=bool)
+    team = Team(sc, s.envs, s.seed)
+    straight, half = Learner(sc, s), Learner(sc, s)
+    for lr in (straight, half):  # agent 2 starts training a step before the others: its own step count
+        for _ in range(4):
+            lr.store(2, k, 1, 0.0, k, mask, False)
+    for b in range(3):
+        train_batch(straight, team, b)
+    for b in range(2):
+        train_batch(half, team, b)
+    steps = {i: int(st["step"]) for i, st in half.opt.state_dict()["state"].items()}
+    assert len(steps) == sc.n_agents and steps[2] > steps[0]
+    half.save(tmp_path / "ck")
+    _rewrite_train_state(tmp_path / "ck", _stacked_moments)
+    resumed = Learner.load(tmp_path / "ck")
+    assert {i: int(st["step"]) for i, st in resumed.opt.state_dict()["state"].items()} == steps
+    train_batch(resumed, team, 2)
+    assert torch.equal(resumed.net.flat, straight.net.flat)
+
+
+def test_an_optimizer_state_that_does_not_fit_is_refused_naming_the_file(tmp_path: Path) -> None:
+    sc = builtin()
+    lr = Learner(sc, TINY.replace(learning_starts=1))
+    k, mask = np.full(sc.knowledge_size, 0.5), np.ones(sc.n_actions, dtype=bool)
+    for i in range(sc.n_agents):
+        lr.store(i, k, 1, 0.0, k, mask, False)
+    lr.train_step()
+    lr.save(tmp_path / "ck")
+
+    def short(st: dict[str, Any]) -> dict[str, Any]:
+        moments = _stacked_moments(st)["adam"]
+        return {**st, "adam": {**moments, "m": moments["m"][:, :-1]}}
+
+    def none(st: dict[str, Any]) -> dict[str, Any]:
+        return {key: v for key, v in st.items() if key != "adam"}
+
+    for change in (short, none):
+        d = _copy(tmp_path / "ck", tmp_path / change.__name__)
+        _rewrite_train_state(d, change)
+        with pytest.raises(CheckpointError, match=rf"{d / 'train_state.pt'}: optimizer state does not fit"):
+            Learner.load(d)
 
 
 def test_under_a_trainer_lag_the_agents_act_with_the_networks_of_k_steps_before() -> None:

@@ -2,10 +2,9 @@
 
 Every agent has its own Q-network, target network, optimizer state and replay memory; agents never share
 parameters, gradients or memories. For speed the N networks are stacked (`qnet.StackedQ`) and trained as one batched
-computation: the loss is the sum of the agents' own losses, so every agent's gradient is that of its own loss, and the
-optimizer (`optim.StackedAdam`) keeps a step count per agent, exactly as N separate Adam optimizers would. The online
-and target networks share one tensor and a gradient update is written by hand (`update.TwinNets`: one forward pass of
-both networks, the backward pass of `loss` without autograd), which is what makes the small networks quick to train.
+computation through autograd: the loss is the sum of the agents' own losses, so every agent's gradient is that of its
+own loss, and the optimizer is torch.optim's Adam with every agent's row as its own parameter (`optim.AgentRows`), so
+that each agent keeps its own moments and step count, exactly as N separate Adam optimizers would.
 
 Two ways to feed the learner:
 - in process: `htlm_agent.learning.run.train()` runs B episodes at once in `team.Team` (line 3-10 of
@@ -35,8 +34,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from htlm_agent.learning.optim import StackedAdam, clip_grad_per_agent
+from htlm_agent.learning.checkpoint import TRAIN_STATE, CheckpointError, load_checkpoint, save_checkpoint
+from htlm_agent.learning.optim import AgentRows, clip_grad_per_agent
 from htlm_agent.learning.qnet import (
     QNetwork,
     StackedQ,
@@ -47,11 +46,11 @@ from htlm_agent.learning.qnet import (
     pack_weights,
 )
 from htlm_agent.learning.qpolicy import QPolicy, greedy_actions
-from htlm_agent.learning.replay import Batch, ExpertMemory, Replay
+from htlm_agent.learning.replay import ExpertMemory, Replay
 from htlm_agent.learning.settings import Settings
 from htlm_agent.learning.targets import NStep, advantage_gap, bellman_targets
 from htlm_agent.learning.tokens import TokenQ
-from htlm_agent.learning.update import Minibatches, TwinNets, UpdateBatch, flush_denormals
+from htlm_agent.learning.update import Minibatches, UpdateBatch, flush_denormals
 from htlm_agent.mind.knowledge import AnyFloats, previous
 from htlm_agent.mind.policies import team_epsilon_greedy
 from htlm_world import seeds
@@ -83,23 +82,20 @@ class Learner:
         self.seed = settings.seed if seed is None else int(seed)
         n = scenario.n_agents
         self.sizes = layer_sizes(scenario, settings.hidden)
-        self.twins: TwinNets | None = None
-        self.net: QNetwork
-        self.target: QNetwork
-        self.opt: StackedAdam | torch.optim.Adam
-        if settings.network == "tokens":  # autograd and torch.optim
-            count = 1 if settings.shared else n
-            init = [init_params(scenario, settings, seeds.network_init(self.seed, i)) for i in range(count)]
-            self.net = build_network(scenario, settings, init)
-            self.target = copy_network(self.net)
-            self.target.requires_grad_(False)
-            self.net.grad.zero_()
+        count = 1 if settings.network == "tokens" and settings.shared else n
+        init = [init_params(scenario, settings, seeds.network_init(self.seed, i)) for i in range(count)]
+        self.net: QNetwork = build_network(scenario, settings, init)
+        self.target: QNetwork = copy_network(self.net)
+        self.target.requires_grad_(False)
+        self.net.grad.zero_()
+        self._rows: AgentRows | None = None
+        """The paper's networks: every agent's row of parameters on its own, for its own optimizer state."""
+        self.opt: torch.optim.Adam
+        if isinstance(self.net, StackedQ):
+            self._rows = AgentRows(self.net.flat, self.net.grad)
+            self.opt = self._rows.adam(settings.lr)
+        else:
             self.opt = torch.optim.Adam([self.net.flat], lr=settings.lr)
-        else:  # the paper's MLPs, updated by hand (`update.TwinNets`)
-            self.twins = TwinNets(self.sizes, [seeds.network_init(self.seed, i) for i in range(n)])
-            self.net = self.twins.online
-            self.target = self.twins.target
-            self.opt = StackedAdam(self.net.flat, self.net.grad, settings.lr)
         assert model is None or model.scenario == scenario, "a model of another scenario"
         self.model = model if model is not None else Model.build(scenario)
         self._mask_by_bits = self._masks_by_bits()
@@ -119,6 +115,8 @@ class Learner:
         self._nstep_batch = NStep(settings.n_step, self.gamma, settings.reward_scale)
         self._minibatches: dict[int, Minibatches] = {}  # storage of `update_batches`, by number of minibatches
         self._act_buffers: dict[int, tuple[torch.Tensor, torch.Tensor, list[torch.Tensor], torch.Tensor]] = {}
+        self._outs: dict[int, tuple[list[torch.Tensor], list[torch.Tensor]]] = {}
+        """Every layer's output of the online networks on K' and of the target networks on K and K', by M."""
 
     @property
     def n_agents(self) -> int:
@@ -212,37 +210,6 @@ class Learner:
         need = max(self.settings.learning_starts, 1)
         return np.asarray(self.replay.size >= need)
 
-    def loss(self, batch: Batch, active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Sum over active agents of each agent's mean Huber TD error, and the per-agent losses (N,).
-
-        The definition of the loss, through autograd; `train_step` computes the same loss and its gradient by hand
-        (`update.TwinNets.update`, checked against this in tests/test_learner_update.py)."""
-        s = self.settings
-        k = torch.from_numpy(batch.k)
-        k2 = torch.from_numpy(batch.k2)
-        a = torch.from_numpy(batch.a)
-        r = torch.from_numpy(batch.r)
-        mask2 = torch.from_numpy(batch.mask2) | ~active[:, None, None]  # padding rows of idle learners: any action
-        discount = torch.from_numpy(batch.discount)
-        m = k.shape[1]
-        if s.double_dqn:  # one pass of the online network over K and K'
-            q_both = self.net(torch.cat([k, k2], dim=1))
-            q, q_o = q_both[:, :m], q_both[:, m:].detach()
-        else:
-            q, q_o = self.net(k), None
-        with torch.no_grad():
-            if s.advantage_learning > 0:
-                qt_both = self.target(torch.cat([k, k2], dim=1))
-                qt_k, qt_k2 = qt_both[:, :m], qt_both[:, m:]
-                y = bellman_targets(r, discount, qt_k2, mask2, q_o)
-                y = y - s.advantage_learning * advantage_gap(qt_k, self.knowledge_mask(batch.k), a)
-            else:
-                y = bellman_targets(r, discount, self.target(k2), mask2, q_o)
-        q = q.gather(-1, a[..., None])[..., 0]
-        per_agent = torch.nn.functional.huber_loss(q, y, reduction="none", delta=s.huber_delta).mean(dim=1)
-        per_agent = per_agent * active.to(per_agent.dtype)
-        return per_agent.sum(), per_agent.detach()
-
     def knowledge_mask(self, k: AnyFloats) -> torch.Tensor:
         """Â(a_o) (..., |Ḡ|) of knowledge states (..., K), from the previous assignment they hold."""
         return torch.from_numpy(self._knowledge_mask(k))
@@ -276,8 +243,8 @@ class Learner:
 
     def update_batches(self, ready: BoolArray, count: int = 1) -> list[UpdateBatch]:
         """`count` minibatches of every agent marked in `ready` (others: padding) from its own memory, drawn one
-        after the other as `count` calls of `Replay.sample_records` would, as the tensors of `TwinNets.update` (with
-        Â of K and K' from the memories' `offsets`)."""
+        after the other as `count` calls of `Replay.sample_records` would, as the tensors of `batch_loss` (with
+        Â of K and K' from the memories' `allowed`)."""
         s, sc = self.settings, self.scenario
         n, m, ks = sc.n_agents, s.batch_size, sc.knowledge_size
         replay = self.replay
@@ -290,22 +257,19 @@ class Learner:
         c = replay.cols
         mb.x[:, :, :m] = rec4[..., c["k"]]
         mb.x[:, :, m:] = rec4[..., c["k2"]]
-        mb.a[:, 0] = rec4[..., c["a"]]
-        mb.a[:, 1] = mb.a[:, 0]
-        mb.r[...] = rec4[..., c["r"]]
-        mb.discount[...] = rec4[..., c["discount"]]
-        assert replay.offsets is not None
-        np.take(replay.offsets.reshape(-1, 2, sc.n_actions), slots, axis=0, out=mb.offsets)
+        mb.a[...] = rec4[..., c["a"].start]
+        mb.r[...] = rec4[..., c["r"].start]
+        mb.discount[...] = rec4[..., c["discount"].start]
+        assert replay.allowed is not None
+        np.take(replay.allowed.reshape(-1, 2, sc.n_actions), slots, axis=0, out=mb.allowed)
         if not ready.all():  # padding rows of idle learners: any action
-            mb.offsets.reshape(n, count * m, 2, -1)[~ready, :, 1] = 0.0
+            mb.allowed.reshape(n, count * m, 2, -1)[~ready, :, 1] = True
         mb.weight[:, 0, 0] = np.where(ready, np.float32(1.0 / m), np.float32(0.0))
         return mb.batches
 
     def train_step(self) -> float | None:
         """One gradient update of every agent whose memory holds enough data (line 10 of Algorithm 1); returns the
-        mean loss of those agents, or None when no agent is ready yet.
-
-        The update is `TwinNets.update` (the gradient of `loss`, written without autograd)."""
+        mean loss of those agents, or None when no agent is ready yet."""
         losses = self.train_steps(1)
         return losses[0] if losses else None
 
@@ -319,40 +283,29 @@ class Learner:
             return self._train(ready, count)
 
     def _train(self, ready: BoolArray, count: int) -> list[float]:
-        if self.twins is None:
-            return self._train_autograd(ready, count)
-        s = self.settings
-        active = torch.from_numpy(ready)
-        all_active = bool(ready.all())
-        losses = []
-        for batch in self.update_batches(ready, count):
-            per_agent = self.twins.update(batch, active, all_active, s.advantage_learning, s.huber_delta, s.double_dqn)
-            clip_grad_per_agent(self.net.grad, s.grad_clip)
-            self.opt.step(active)
-            self.updates += ready
-            sync = ready & (self.updates % s.target_sync == 0)
-            if sync.any():
-                self.sync_target(sync)
-            losses.append(float(per_agent.mean() if all_active else per_agent[active].mean()))
-        return losses
-
-    def _train_autograd(self, ready: BoolArray, count: int) -> list[float]:
-        """`count` updates of the token networks: the loss of `batch_loss` through autograd, torch.optim's Adam."""
+        """`count` updates of the agents marked in `ready`: the gradient of the sum of their `batch_loss`es through
+        autograd, clipped per agent, one step of Adam."""
         s = self.settings
         net = self.net
-        assert isinstance(net, TokenQ) and isinstance(self.opt, torch.optim.Adam)
+        if self._rows is not None:
+            self._rows.select(ready)
+        all_ready = bool(ready.all())
         losses = []
         for batch in self.update_batches(ready, count):
             per_agent = self.batch_loss(batch)
             net.grad.zero_()
-            per_agent.sum().backward()  # type: ignore[no-untyped-call]
+            if isinstance(net, StackedQ):
+                net.backward(per_agent.sum())
+            else:
+                per_agent.sum().backward()  # type: ignore[no-untyped-call]
             clip_grad_per_agent(net.grad, s.grad_clip)
             self.opt.step()
             self.updates += ready
             sync = ready & (self.updates % s.target_sync == 0)
             if sync.any():
                 self.sync_target(sync)
-            losses.append(float(per_agent.detach()[torch.from_numpy(ready)].mean()))
+            done = per_agent.detach()
+            losses.append(float(done.mean() if all_ready else done[torch.from_numpy(ready)].mean()))
         return losses
 
     def expert_memory(self) -> ExpertMemory:
@@ -371,7 +324,7 @@ class Learner:
         Q(K, a_E) over Â, m = `IMITATION_MARGIN`, on every agent's knowledge (B, N, K), masks (B, N, |Ḡ|) and
         the baseline's actions (B, N) from the agent's own belief. Returns the loss."""
         net = self.net
-        assert isinstance(net, TokenQ) and isinstance(self.opt, torch.optim.Adam)
+        assert isinstance(net, TokenQ)
         x = torch.from_numpy(np.ascontiguousarray(knowledge.transpose(1, 0, 2), dtype=np.float32))
         allowed = torch.from_numpy(np.ascontiguousarray(mask.transpose(1, 0, 2)))
         a = torch.from_numpy(np.ascontiguousarray(expert.T, dtype=np.int64))[..., None]
@@ -387,24 +340,44 @@ class Learner:
         return float(loss.detach())
 
     def batch_loss(self, b: UpdateBatch) -> torch.Tensor:
-        """Every agent's loss (N,) on a minibatch of `update_batches`: its mean Huber TD error (Double DQN and
-        advantage learning as `Settings` says), 0 for the agents that do not train; the same loss as `loss`."""
+        """Every agent's loss (N,) on a minibatch of `update_batches`, through autograd: its mean Huber TD error
+        (Double DQN and advantage learning as `Settings` says), 0 for the agents that do not train. Agents share
+        nothing, so the gradient of the sum is every agent's own gradient."""
         s = self.settings
-        m = b.r.shape[1]
-        a = b.a_online[..., 0]
-        assert isinstance(self.net, TokenQ) and isinstance(self.target, TokenQ)
-        tok = self.net.spec.features(b.x)  # K then K' of every agent, the tokens of both networks
-        q_all = self.net.score(tok)
-        q_a = q_all[:, :m].gather(-1, a[..., None])[..., 0]
+        m = b.m
+        q_k, q_o, qt = self._q_values(b)
+        q_a = q_k.gather(-1, b.a_col)  # (N, M, 1)
         with torch.no_grad():
-            qt = self.target.score(tok)
-            qt_k, qt_k2 = qt[:, :m], qt[:, m:]
-            q_o = q_all[:, m:].detach() if s.double_dqn else None
-            y = bellman_targets(b.r[..., 0], b.discount[..., 0], qt_k2, b.off2 == 0, q_o)
+            y = bellman_targets(b.r, b.discount, qt[:, m:], b.allowed2, q_o)
             if s.advantage_learning > 0:
-                y = y - s.advantage_learning * advantage_gap(qt_k, b.off == 0, a)
-        hub = torch.nn.functional.huber_loss(q_a, y, reduction="none", delta=s.huber_delta)
-        return (hub * b.weight[..., 0]).sum(dim=1)
+                y.sub_(advantage_gap(qt[:, :m], b.allowed, b.a), alpha=s.advantage_learning)
+        hub = torch.nn.functional.huber_loss(q_a, y[..., None], reduction="none", delta=s.huber_delta)
+        return (hub * b.weight).sum(dim=(1, 2))
+
+    def _q_values(self, b: UpdateBatch) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """Q-values of the online networks on K (N, M, |Ḡ|, with a gradient) and on K' (N, M, |Ḡ|, without; for
+        Double DQN only, else None), and of the target networks on K and K' (N, 2M, |Ḡ|, without)."""
+        m, double = b.m, self.settings.double_dqn
+        if isinstance(self.net, TokenQ):
+            assert isinstance(self.target, TokenQ)
+            tok = self.net.spec.features(b.x)  # K then K' of every agent, the tokens of both networks
+            q_all = self.net.score(tok)
+            with torch.no_grad():
+                qt = self.target.score(tok)
+            return q_all[:, :m], q_all[:, m:].detach() if double else None, qt
+        assert isinstance(self.target, StackedQ)
+        outs = self._outs.get(m)
+        if outs is None:
+            n, sizes = self.n_agents, self.net.sizes
+            outs = self._outs[m] = (
+                [torch.zeros(n, m, f) for f in sizes[1:]],
+                [torch.zeros(n, 2 * m, f) for f in sizes[1:]],
+            )
+        q_k = self.net(b.x[:, :m])  # the gradient flows from K only: the backward pass is over M rows, not 2M
+        with torch.no_grad():
+            q_o = self.net.forward_into(b.x[:, m:], outs[0]) if double else None
+            qt = self.target.forward_into(b.x, outs[1])
+        return q_k, q_o, qt
 
     def sync_target(self, agents: BoolArray) -> None:
         """Copy the online networks of the marked agents into their target networks."""
@@ -441,10 +414,7 @@ class Learner:
             policy_flat: networks (N, P) to publish as the agents' networks instead of the current ones (a selected
                 best); the current ones then go into the training state, from which training resumes.
         """
-        train_state = {
-            "target": self.target.flat.detach().clone(),
-            "adam": self.opt.state() if isinstance(self.opt, StackedAdam) else self.opt.state_dict(),
-        }
+        train_state = {"target": self.target.flat.detach().clone(), "adam": self.opt.state_dict()}
         weights = [self.net.agent_params(i) for i in range(self.n_agents)]
         if policy_flat is not None:
             train_state["online"] = self.net.flat.detach().clone()
@@ -488,10 +458,7 @@ class Learner:
                 lr.target.flat.copy_(ts["target"])
                 if "online" in ts:
                     lr.net.flat.copy_(ts["online"])
-            if isinstance(lr.opt, StackedAdam):
-                lr.opt.load_state(ts["adam"])
-            else:
-                lr.opt.load_state_dict(ts["adam"])
+            lr._load_optimizer(ts.get("adam"), ck.path / TRAIN_STATE)
         else:
             lr.target.flat.copy_(lr.net.flat)
         lr.updates[:] = ck.info.get("updates", [0] * lr.n_agents)
@@ -500,3 +467,30 @@ class Learner:
             rs["rngs"] = ck.info["replay_rngs"]
             lr.replay.load_state(rs)
         return lr
+
+    def _load_optimizer(self, saved: Any, path: Path) -> None:
+        """Restore the optimizer state saved in the checkpoint file `path`: a torch.optim state dict, or (from the
+        paper's learner before it used torch.optim) stacked moments {"m", "v", "t"}, converted. The step size and
+        other hyperparameters stay those of the settings. Raises CheckpointError naming the file when the state does
+        not fit the networks."""
+        params = [p for group in self.opt.param_groups for p in group["params"]]
+        try:
+            if not isinstance(saved, dict):
+                raise ValueError(f"expected a dict, got {type(saved).__name__}")
+            if self._rows is not None and set(saved) == {"m", "v", "t"}:
+                state: dict[Any, Any] = self._rows.adam_state(saved)
+            elif isinstance(saved.get("state"), dict):
+                state = saved["state"]
+            else:
+                raise ValueError(f"neither a torch.optim state dict nor stacked moments (keys {sorted(saved)})")
+            for key, st in state.items():
+                if not (isinstance(key, int) and 0 <= key < len(params)):
+                    raise ValueError(f"state of parameter {key!r}, the optimizer has {len(params)}")
+                for name, want in (("step", ()), ("exp_avg", params[key].shape), ("exp_avg_sq", params[key].shape)):
+                    got = st.get(name) if isinstance(st, dict) else None
+                    if not isinstance(got, torch.Tensor) or got.shape != want:
+                        shape = tuple(got.shape) if isinstance(got, torch.Tensor) else None
+                        raise ValueError(f"parameter {key}: {name} of shape {shape}, the network needs {tuple(want)}")
+            self.opt.load_state_dict({"state": state, "param_groups": self.opt.state_dict()["param_groups"]})
+        except (ValueError, KeyError, TypeError) as e:
+            raise CheckpointError(f"{path}: optimizer state does not fit the networks: {e}") from None

@@ -1,81 +1,61 @@
-"""The optimizer of the stacked per-agent networks: Adam with a step count per agent, and per-agent gradient
-clipping (each agent's row of the stacked parameters is its own network)."""
+"""The optimizer of stacked per-agent networks: torch.optim.Adam with every agent's row as its own parameter, and
+per-agent gradient clipping (each agent's row of the stacked parameters is its own network)."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 import torch
 
+from htlm_world.types import BoolArray
 
-class StackedAdam:
-    """Adam over stacked per-agent parameters (N, P) with a step count per agent: identical to one Adam per agent,
-    and an agent's parameters and moments change only on updates it takes part in.
 
-    The update is torch's fused CPU Adam kernel (`torch._fused_adam_`, what `torch.optim.Adam(fused=True)` runs) over
-    the agents' rows, each row with its own step count: one pass over parameters, gradients and moments.
+class AgentRows:
+    """Every agent's row of stacked parameters (N, P) as its own `torch.nn.Parameter`, for a torch.optim optimizer.
+
+    Parameter i aliases row i of the parameters (a step of the optimizer writes the networks), and its gradient is
+    row i of the stacked gradient when agent i trains, None when it does not. torch.optim keeps a state per parameter
+    and skips parameters without a gradient, so each agent has its own moments and step count, and an agent that
+    does not train on an update keeps its parameters, moments and step count: N separate optimizers, one step.
     """
 
-    def __init__(
-        self,
-        param: torch.Tensor,
-        grad: torch.Tensor,
-        lr: float,
-        betas: tuple[float, float] = (0.9, 0.999),
-        eps: float = 1e-8,
-    ) -> None:
-        """Moments start at zero, step counts at zero; `grad` is where the gradient of `param` lands."""
-        self.param, self.grad = param, grad
-        self.lr, self.betas, self.eps = lr, betas, eps
-        self.m = torch.zeros_like(param)
-        self.v = torch.zeros_like(param)
-        self.t = torch.zeros(param.shape[0], dtype=torch.float64)
-        n = param.shape[0]
-        self._steps = torch.zeros(n, dtype=torch.float32)  # the step counts as the fused kernel reads them
-        self._rows = [
-            [self.param[i], self.grad[i], self.m[i], self.v[i], self._steps[i]] for i in range(n)
-        ]  # every agent's row views
-        self._all = tuple(list(x) for x in zip(*self._rows, strict=True))  # the same, by kind
+    def __init__(self, flat: torch.Tensor, grad: torch.Tensor) -> None:
+        """Rows of `flat` (N, P); `grad` (N, P) is where their gradient lands."""
+        self.params = [torch.nn.Parameter(flat[i], requires_grad=True) for i in range(flat.shape[0])]
+        assert all(p.data_ptr() == flat[i].data_ptr() for i, p in enumerate(self.params)), "rows must alias `flat`"
+        self._grads = [grad[i] for i in range(grad.shape[0])]
 
-    @torch.no_grad()
-    def step(self, active: torch.Tensor) -> None:
-        """Apply the gradient rows of the agents marked in `active` (N,) bool."""
-        act = active.numpy()
-        t = self.t.numpy()  # shares memory with self.t
-        t += act
-        self._steps.copy_(self.t)
-        if act.all():
-            params, grads, ms, vs, steps = self._all
-        else:
-            rows = [r for r, a in zip(self._rows, act.tolist(), strict=True) if a]
-            if not rows:
-                return
-            params, grads, ms, vs, steps = (list(x) for x in zip(*rows, strict=True))
-        b1, b2 = self.betas
-        torch._fused_adam_(
-            params,
-            grads,
-            ms,
-            vs,
-            [],
-            steps,
-            lr=self.lr,
-            beta1=b1,
-            beta2=b2,
-            weight_decay=0.0,
-            eps=self.eps,
-            amsgrad=False,
-            maximize=False,
-        )
+    def select(self, active: BoolArray) -> None:
+        """The agents marked in `active` (N,) bool train on the next steps: their parameters see their gradient rows,
+        the others none."""
+        for p, g, on in zip(self.params, self._grads, active.tolist(), strict=True):
+            p.grad = g if on else None
 
-    def state(self) -> dict[str, torch.Tensor]:
-        """Tensors of the optimizer state."""
-        return {"m": self.m.clone(), "v": self.v.clone(), "t": self.t.clone()}
+    def adam(self, lr: float) -> torch.optim.Adam:
+        """Adam over the rows: the fused CPU implementation (one pass over every agent's row)."""
+        return torch.optim.Adam(self.params, lr=lr, fused=True)
 
-    def load_state(self, st: dict[str, torch.Tensor]) -> None:
-        """Restore `state()`."""
-        self.m.copy_(st["m"])
-        self.v.copy_(st["v"])
-        self.t.copy_(st["t"])
+    def adam_state(self, moments: dict[str, Any]) -> dict[int, dict[str, torch.Tensor]]:
+        """Adam's per-parameter state (`torch.optim.Adam.state_dict()["state"]`) of stacked moments: {"m": (N, P),
+        "v": (N, P), "t": (N,)} (first and second moments and every agent's step count); agents with no step yet
+        get no state, as torch.optim leaves them. Raises ValueError when the shapes do not fit these rows."""
+        m, v, t = (moments.get(key) for key in ("m", "v", "t"))
+        n, p = len(self.params), self.params[0].numel()
+        for name, x, shape in (("m", m, (n, p)), ("v", v, (n, p)), ("t", t, (n,))):
+            if not isinstance(x, torch.Tensor) or tuple(x.shape) != shape:
+                got = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+                raise ValueError(f"optimizer moments {name!r}: expected shape {shape}, got {got}")
+        assert m is not None and v is not None and t is not None
+        return {
+            i: {
+                "step": torch.tensor(float(t[i]), dtype=torch.float32),
+                "exp_avg": m[i].detach().to(torch.float32).clone(),
+                "exp_avg_sq": v[i].detach().to(torch.float32).clone(),
+            }
+            for i in range(n)
+            if float(t[i]) > 0
+        }
 
 
 def clip_grad_per_agent(g: torch.Tensor, max_norm: float) -> torch.Tensor:

@@ -68,24 +68,17 @@ class StackedQ(torch.nn.Module):
     """The Q-networks of N agents: ReLU MLPs whose parameters are the rows of one flat (N, P) tensor.
 
     Row i holds agent i's parameters (per layer the weight (in, out) then the bias (out,), C order). The layers,
-    W_l (N, in, out) and b_l (N, 1, out), are leaf parameters aliasing `flat`, and their gradients alias the rows of
-    `grad` (N, P), so one optimizer step and one gradient clip treat every agent row by row, and a forward pass is one
-    `torch.baddbmm` per layer.
+    W_l (N, in, out) and b_l (N, 1, out), are leaf parameters aliasing `flat`, and autograd accumulates their gradients
+    into views of `grad` (N, P), so one gradient clip and one optimizer step (`optim.AgentRows`) treat every agent row
+    by row, and a forward pass is one `torch.baddbmm` per layer.
     """
 
-    def __init__(
-        self,
-        sizes: Sequence[int],
-        agent_params: Sequence[Sequence[torch.Tensor]],
-        storage: torch.Tensor | None = None,
-    ) -> None:
+    def __init__(self, sizes: Sequence[int], agent_params: Sequence[Sequence[torch.Tensor]]) -> None:
         """Stack per-agent parameter lists (each in `param_shapes(sizes)` order) into one module.
 
         Args:
             sizes: layer sizes (K, hidden..., |Ḡ|).
             agent_params: every agent's parameters.
-            storage: a contiguous float32 (N, P) tensor to hold `flat` (e.g. one half of the learner's joint online
-                and target parameters, see `update.TwinNets`); default: a new one.
         """
         super().__init__()
         self.sizes = tuple(int(s) for s in sizes)
@@ -98,13 +91,7 @@ class StackedQ(torch.nn.Module):
         rows = [
             torch.cat([torch.as_tensor(p, dtype=torch.float32).reshape(-1) for p in params]) for params in agent_params
         ]
-        if storage is None:
-            self.flat = torch.stack(rows).contiguous()
-        else:
-            assert storage.shape == (n, self.offsets[-1]) and storage.dtype == torch.float32 and storage.is_contiguous()
-            self.flat = storage
-            with torch.no_grad():
-                self.flat.copy_(torch.stack(rows))
+        self.flat = torch.stack(rows).contiguous()
         self.grad = torch.zeros_like(self.flat)
         self.weights = torch.nn.ParameterList()
         self.biases = torch.nn.ParameterList()
@@ -126,12 +113,18 @@ class StackedQ(torch.nn.Module):
         """Clear the flat gradient (gradients accumulate into it in place)."""
         self.grad.zero_()
 
+    _layout_noted = False  # autograd gives its note once per process: after the first backward pass, nothing to hide
+
     @staticmethod
     def backward(loss: torch.Tensor) -> None:
-        """loss.backward(), the gradient landing in `grad` of the networks involved."""
+        """loss.backward() of a loss of stacked networks, the gradient landing in `grad` of the networks involved."""
+        if StackedQ._layout_noted:
+            loss.backward()  # type: ignore[no-untyped-call]
+            return
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=LAYOUT_WARNING)
             loss.backward()  # type: ignore[no-untyped-call]
+        StackedQ._layout_noted = True
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         """Clear the flat gradient; the layer gradients stay views of it whatever `set_to_none` says."""
@@ -154,7 +147,7 @@ class StackedQ(torch.nn.Module):
         for li, (w, b) in enumerate(layers):
             x = torch.baddbmm(b, x, w)
             if li < last:
-                x = torch.relu(x)
+                x = x.relu_()  # in place on the product's own output, which its gradient does not read
         return x
 
     def forward_into(self, x: torch.Tensor, outs: Sequence[torch.Tensor]) -> torch.Tensor:
@@ -185,12 +178,12 @@ def masked_argmax(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         mask: (..., |Ḡ|) bool, at least one True per row.
     """
     # torch.argmax returns the first of several maximal values (documented for CPU tensors, where all of this runs)
-    return q.masked_fill(~mask, -math.inf).argmax(dim=-1)
+    return torch.where(mask, q, -math.inf).argmax(dim=-1)
 
 
 def masked_max(q: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """max over the allowed actions: (..., |Ḡ|) -> (...)."""
-    return q.masked_fill(~mask, -math.inf).max(dim=-1).values
+    return torch.where(mask, q, -math.inf).amax(dim=-1)
 
 
 # ----- compact weight bytes ---------------------------------------------------------------------------------------

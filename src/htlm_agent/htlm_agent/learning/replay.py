@@ -53,8 +53,7 @@ class Replay:
             n_actions: |Ḡ|.
             seeds: one sampling seed per agent.
             knowledge_mask: Â(a_o) (..., |Ḡ|) of knowledge states (..., K); when given, the memories also keep, per
-                transition, Â of K and of K' as additive offsets (0 allowed, -inf not; see `offsets`), derived from
-                the records and never saved.
+                transition, Â of K and of K' as masks (see `allowed`), derived from the records and never saved.
         """
         assert capacity >= 1 and len(seeds) == n_agents
         self.n_agents, self.capacity = n_agents, capacity
@@ -75,28 +74,27 @@ class Replay:
         self.rngs = [np.random.default_rng(s) for s in seeds]
         self.agent_rows = np.arange(n_agents)[:, None]
         self.knowledge_mask = knowledge_mask
-        self.offsets: NDArray[np.float32] | None = None
-        """(N, C, 2, |Ḡ|): 0 on Â(K) (row 0) and on Â(K') (row 1) of every stored transition, -inf elsewhere (with
-        `knowledge_mask` only)."""
+        self.allowed: BoolArray | None = None
+        """(N, C, 2, |Ḡ|): Â(K) (row 0) and Â(K') (row 1) of every stored transition (with `knowledge_mask`
+        only)."""
         if knowledge_mask is not None:
-            self.offsets = np.zeros((n_agents, capacity, 2, n_actions), dtype=np.float32)
+            self.allowed = np.zeros((n_agents, capacity, 2, n_actions), dtype=np.bool_)
 
-    def _store_offsets(self, flat: Any, rec: NDArray[np.float32]) -> None:
-        """Derive the offsets of records `rec` (J, D) stored in the slots `flat` (J,) of the flattened memories."""
-        if self.offsets is None or self.knowledge_mask is None:
+    def _store_allowed(self, flat: Any, rec: NDArray[np.float32]) -> None:
+        """Derive Â of K and K' of records `rec` (J, D) stored in the slots `flat` (J,) of the flattened memories."""
+        if self.allowed is None or self.knowledge_mask is None:
             return
         c = self.cols
         allowed = np.stack([self.knowledge_mask(rec[..., c["k"]]), rec[..., c["mask2"]] > 0.5], axis=-2)
-        self.offsets.reshape(-1, 2, self.na)[flat] = np.where(allowed, np.float32(0.0), np.float32(-np.inf))
+        self.allowed.reshape(-1, 2, self.na)[flat] = allowed
 
-    def _offsets_into(self, out: NDArray[np.float32], rec: NDArray[np.float32]) -> None:
-        """Write the offsets (..., 2, |Ḡ|) of records `rec` (..., D) into `out`."""
+    def _allowed_into(self, out: BoolArray, rec: NDArray[np.float32]) -> None:
+        """Write Â of K and K' (..., 2, |Ḡ|) of records `rec` (..., D) into `out`."""
         if self.knowledge_mask is None:
             return
         c = self.cols
-        np.copyto(out[..., 0, :], np.float32(-np.inf))
-        out[..., 0, :][self.knowledge_mask(rec[..., c["k"]])] = 0.0
-        np.copyto(out[..., 1, :], np.where(rec[..., c["mask2"]] > 0.5, np.float32(0.0), np.float32(-np.inf)))
+        out[..., 0, :] = self.knowledge_mask(rec[..., c["k"]])
+        np.greater(rec[..., c["mask2"]], 0.5, out=out[..., 1, :])
 
     def _records(
         self,
@@ -126,7 +124,7 @@ class Replay:
         i = int(self.pos[agent])
         rec = self._records(k, a, r, k2, mask2, discount)
         self.data[agent, i] = rec
-        self._store_offsets(agent * self.capacity + i, rec)
+        self._store_allowed(agent * self.capacity + i, rec)
         self.pos[agent] = (i + 1) % self.capacity
         self.size[agent] = min(self.size[agent] + 1, self.capacity)
 
@@ -142,8 +140,8 @@ class Replay:
         if p + b <= self.capacity and (self.pos == p).all():  # the same run of slots p .. p+B-1 in every memory
             block = self.data[:, p : p + b]  # (N, B, D): the records go straight into place
             self._records(k.swapaxes(0, 1), a.T, r.T, k2.swapaxes(0, 1), mask2.swapaxes(0, 1), disc.T, out=block)
-            if self.offsets is not None:
-                self._offsets_into(self.offsets[:, p : p + b], block)
+            if self.allowed is not None:
+                self._allowed_into(self.allowed[:, p : p + b], block)
             self.pos[:] = (p + b) % self.capacity
             np.minimum(self.size + b, self.capacity, out=self.size)
             return
@@ -152,7 +150,7 @@ class Replay:
         flat = (self.agent_rows * self.capacity + idx).T.reshape(-1)  # (B · N), in the order of rec's rows
         rec = rec.reshape(b * self.n_agents, self.width)
         self.data.reshape(-1, self.width)[flat] = rec
-        self._store_offsets(flat, rec)
+        self._store_allowed(flat, rec)
         self.pos[:] = (self.pos + b) % self.capacity
         np.minimum(self.size + b, self.capacity, out=self.size)
 
@@ -218,7 +216,7 @@ class Replay:
             raise ValueError(f"replay state of shape {data.shape} does not fit memories of {self.data.shape}")
         self.data[:, :n] = data
         slots = (self.agent_rows * self.capacity + np.arange(n)).reshape(-1)
-        self._store_offsets(slots, self.data[:, :n].reshape(-1, self.width))
+        self._store_allowed(slots, self.data[:, :n].reshape(-1, self.width))
         self.size[:] = st["size"]
         self.pos[:] = st["pos"]
         for g, s in zip(self.rngs, st["rngs"], strict=True):

@@ -30,7 +30,7 @@ def bellman_targets(
     else:
         a2 = masked_argmax(q_next_online, mask2)
         nxt = q_next_target.gather(-1, a2[..., None])[..., 0]
-    return r + discount * nxt
+    return torch.addcmul(r, discount, nxt)
 
 
 def advantage_gap(q_target: torch.Tensor, mask: torch.Tensor, a: torch.Tensor) -> torch.Tensor:

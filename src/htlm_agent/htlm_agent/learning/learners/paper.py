@@ -1,5 +1,5 @@
 """The paper's learner (`Settings.learner` `paper`): decentralized deep Q-learning, Algorithm 1, with one MLP per
-agent from its knowledge state to one Q-value per element of Ḡ, updated by hand (`learning.dqn`, `learning.update`).
+agent from its knowledge state to one Q-value per element of Ḡ, stacked and trained as one batch (`learning.dqn`).
 `Settings()` is this learner, which `htlm reproduce`, the benchmarks and the pinned digests use."""
 
 from __future__ import annotations
