@@ -94,6 +94,7 @@ def test_markers_show_the_chosen_episode_as_the_world_logged_it(ros_team: Any, t
     assert min(len(r["marks"]) for r in got[:-1]) < len(got[0]["marks"])  # later updates carry what changed
 
 
+@pytest.mark.slow  # CI budget: the default run keeps the markers of an episode; this one with -m slow
 def test_a_stopped_world_deletes_its_markers(ros_team: Any, tmp_path: Path) -> None:
     team = ros_team(policy="greedy", seed=2, episodes=0)  # until stopped
     out = tmp_path / "markers.json"
