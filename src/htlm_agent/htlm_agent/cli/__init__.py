@@ -5,12 +5,18 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+# numpy's matrix products on one thread unless the environment says otherwise (OpenBLAS reads it when numpy is first
+# imported, after this): a team step's products are small, and a second BLAS thread spinning for a core that another
+# process holds made them several times slower (docs/results/scale.md, One BLAS thread).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 # subcommand -> (module implementing add_arguments(parser) and run(args) -> int, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "optimal": ("htlm_agent.cli.optimal", "expected completion step of the centralized fully observed optimum"),
-    "train": ("htlm_agent.cli.train", "train a team with decentralized deep Q-learning"),
+    "train": ("htlm_agent.cli.train", "train a team (expert iteration unless told otherwise)"),
     "evaluate": ("htlm_agent.cli.evaluate", "evaluate a trained team or a baseline"),
     "importance": ("htlm_agent.cli.importance", "agent importance table (Eqs. 6-9)"),
     "stress": ("htlm_agent.cli.stress", "a trained team or a baseline under events (surges, dropouts)"),

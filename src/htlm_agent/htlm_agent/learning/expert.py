@@ -27,6 +27,7 @@ import csv
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -99,6 +100,14 @@ class RoundRow:
     val_unused_fraction: float
     reassignments: float
     """Moves to another site per episode before completion in validation, the team's."""
+    value_s: float = float("nan")
+    """Seconds of the round's learning spent fitting the value to the play."""
+    teacher_s: float = float("nan")
+    """... working out the teacher's choices."""
+    policy_s: float = float("nan")
+    """... training the policy network."""
+    validate_s: float = float("nan")
+    """... validating it."""
 
 
 def unread_settings(sc: Scenario, settings: Settings) -> list[str]:
@@ -338,10 +347,13 @@ class ExpertRounds:
         played = self.played()
         self._clear()
         rmse = float("nan")  # the first round's value: the auction's on simulated true levels (the lookahead's)
+        t0 = time.perf_counter()
         if r > 1 and len(played.to_go):
             rmse = self.value.regress(played.levels, played.to_go, s.value_updates, seeds.expert_round(s.seed, r, 1))
+        t1 = time.perf_counter()
         teacher = Teacher(self.sc, self.value, s.seed, s.load_weight)
         better, worth = improve(teacher, self.sc, played, seeds.expert_round(s.seed, r, 0))
+        t2 = time.perf_counter()
         labeled = better >= 0
         changed = float((better != played.actions)[labeled].mean()) if labeled.any() else float("nan")
         self.data = [*self.data[-1:], self.student.tokens(played.knowledge, played.mask, worth)]
@@ -349,18 +361,22 @@ class ExpertRounds:
         loss, agree = float("nan"), float("nan")
         if len(tok):
             loss, agree = self.student.learn(tok, allowed, w, s.policy_updates, seeds.expert_round(s.seed, r, 2))
+        t3 = time.perf_counter()
         val = evaluate(self.student.policy(), self.sc, s.validate_episodes, seed=seeds.validation(s.seed))
+        t4 = time.perf_counter()
         c = val["completion"]
         row = RoundRow(
-            r, self.done, round(time.perf_counter() - self.t0, 2), rmse, changed, loss, agree, c["mean"], c["se"],
+            r, self.done, round(t4 - self.t0, 2), rmse, changed, loss, agree, c["mean"], c["se"],
             c["failure_rate"], val["unused_fraction"]["mean"], reassignments(val),
+            round(t1 - t0, 2), round(t2 - t1, 2), round(t3 - t2, 2), round(t4 - t3, 2),
         )  # fmt: skip
         self.rows.append(row)
         if self.progress:
             print(
                 f"expert: round {r}: validation {c['mean']:.2f} ± {c['se']:.2f} steps, failures "
                 f"{c['failure_rate']:.1%} (teacher changed {changed:.1%} of the play, policy agrees with "
-                f"{agree:.1%}; value rmse {rmse:.2f})",
+                f"{agree:.1%}; value rmse {rmse:.2f}; learning took {t4 - t0:.0f} s: value {t1 - t0:.0f}, teacher "
+                f"{t2 - t1:.0f}, policy {t3 - t2:.0f}, validation {t4 - t3:.0f})",
                 file=sys.stderr,
                 flush=True,
             )
@@ -373,10 +389,11 @@ class ExpertRounds:
         return row
 
 
-def play(ex: ExpertRounds, first_batch: int, batches: int) -> None:
+def play(ex: ExpertRounds, first_batch: int, batches: int, on_batch: Callable[[], None] | None = None) -> None:
     """`batches` batches of `envs` training episodes from training batch `first_batch` on (the training streams of
     `seeds`, as the world and the agents draw them over ROS), every agent ε-greedily (`eps_end`) around the round's
-    policy (`ExpertRounds.acting`) from its own knowledge state, fed to `ex` step by step."""
+    policy (`ExpertRounds.acting`) from its own knowledge state, fed to `ex` step by step; `on_batch()` after every
+    batch."""
     sc, s = ex.sc, ex.s
     n, h = sc.n_agents, sc.horizon
     policy = ex.acting()
@@ -397,6 +414,8 @@ def play(ex: ExpertRounds, first_batch: int, batches: int) -> None:
             k, _, info = team.step(a)
             levels.append(info.levels)
         ex.add_batch(np.stack(levels))
+        if on_batch is not None:
+            on_batch()
 
 
 def improve(
@@ -493,8 +512,7 @@ def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> Exp
     try:
         ex.prepare()
         while not ex.finished:
-            play(ex, (ex.round - 1) * ex.per_round, ex.per_round)
-            bar.update(ex.done, round=ex.round)
+            play(ex, (ex.round - 1) * ex.per_round, ex.per_round, lambda: bar.update(ex.done, round=ex.round))
             ex.learn()
     finally:
         bar.close()
