@@ -1,8 +1,12 @@
 """The belief filter of docs/model.md (Eq. 2 of the paper): per-site joint belief over the levels of the site's tasks.
 
-A site's belief is a joint distribution over one level per kind of the scenario (K "slots", in the order of
-`Scenario.kinds`); a kind the site has no task of is a slot certain of level 0 that nothing changes. Vectorized over
-a batch of episodes and the agents of a team: beliefs have shape (B, N, S, L, ..., L) with K level axes.
+A site's belief is a joint distribution over one level per "slot" (K of them, `FilterTables.slots`). When a site may
+hold a task of every kind (the scenario's kinds are no more than the most tasks at one site), slot k is kind k, in
+the order of `Scenario.kinds`, and a kind the site has no task of is a slot certain of level 0 that nothing changes.
+When the scenario has more kinds than any site holds (five kinds, at most three at a site), slot j of a site is its
+j-th task (its kinds in the order the prediction applies them), so a site's belief holds L^3 numbers, not L^5.
+Vectorized over a batch of episodes and the agents of a team: beliefs have shape (B, N, S, L, ..., L) with K level
+axes.
 
 Every number is computed with the same floating-point operations in the same order as the plain formulas (a
 prediction applies each kind's factor of T in turn, the kinds that depend on another first, each the sum over the
@@ -50,7 +54,7 @@ class Band:
 
 @dataclass(frozen=True)
 class Bands:
-    """One kind's factor of T as bands, in the order their terms are added. The L^K entries of a site (row-major
+    """One slot's factor of T as bands, in the order their terms are added. The L^K entries of a site (row-major
     over the slots) are grouped in units of `width` consecutive entries that share their coefficients (entries that
     differ only in slots after both the kind's own and the one it depends on)."""
 
@@ -63,9 +67,10 @@ class Bands:
     ones: int
     """From this unit on, the first band's coefficient is 1.0 for every capability: its terms are copies."""
     table: FloatArray
-    """(C+2, rows) the coefficients of every band's output units, by joint capability (row C+1: no task, 1.0)."""
+    """(codes, rows) the coefficients of every band's output units, by capability code (`FilterTables.slot_caps`:
+    the joint capability 0..C, C+1 for no task (1.0), plus C+2 times the slot's variant at the site)."""
     by_row: FloatArray
-    """`table` transposed, (rows, C+2): what `coefficients` gathers from."""
+    """`table` transposed, (rows, codes): what `coefficients` gathers from."""
 
     @staticmethod
     def build(tabs: list[tuple[int, FloatArray]], levels: int) -> Bands:
@@ -146,14 +151,20 @@ class FilterTables:
 
     levels: int
     """L."""
-    kinds: int
-    """K, the slots of a site's joint belief."""
+    slots: int
+    """K, the level axes of a site's joint belief: the scenario's kinds, or the most tasks at one site when fewer
+    (module docstring)."""
     factors: tuple[tuple[int, Bands], ...]
     """(slot, its factor of T) in the order the prediction applies them: a kind before the kind it depends on
     (whose slot still holds the current level when the dependent's factor reads it)."""
     slot_task: IntArray
     """(K, S) the task of every slot of every site; p (a stand-in: capability C+1, likelihood 1) where the site has
-    no task of that kind."""
+    no task there."""
+    slot_code: IntArray
+    """(K, S) what `slot_caps` adds to a slot's capability at every site: C+2 times the index of the slot's variant
+    there (the kind of its task and the slot that kind depends on), 0 where slot k is kind k."""
+    task_slot: IntArray
+    """(p,) the slot of every task at its site."""
     absent: int
     """The capability index of a slot without a task (C+1): its factor is the identity."""
     stand_in: bool
@@ -182,17 +193,51 @@ class FilterTables:
                 d, g = d + 1, gate[g]
             depth.append(d)
         order = sorted(range(K), key=lambda k: (-depth[k], -k))
-        factors = tuple((k, _factor_bands(model.kind_tables[k], k, gate[k], K, L)) for k in order)
-        slot_task = np.where(model.site_task >= 0, model.site_task, sc.n_tasks).T.copy()
+        S, p, codes = sc.n_sites, sc.n_tasks, sc.capability_max + 2
+        most = max(len(site.tasks) for site in sc.sites)
+        if most >= K:  # slot k is kind k at every site; its factor is the kind's, applied in `order`
+            slots, applied = K, order
+            slot_kind = np.repeat(np.arange(K)[:, None], S, axis=1)  # (K, S)
+            slot_gate = np.repeat(np.asarray(gate, dtype=np.int64)[:, None], S, axis=1)
+        else:  # slot j of a site is its j-th task in `order`: a dependent's slot comes before its gate's
+            slots, applied = most, list(range(most))
+            slot_kind = np.full((most, S), -1, dtype=np.int64)
+            slot_gate = np.full((most, S), -1, dtype=np.int64)
+            for s in range(S):
+                here = [k for k in order if model.site_task[s, k] >= 0]
+                for j, k in enumerate(here):
+                    slot_kind[j, s] = k
+                    slot_gate[j, s] = here.index(gate[k]) if gate[k] in here else -1
+        slot_task = np.full((slots, S), p, dtype=np.int64)
+        slot_code = np.zeros((slots, S), dtype=np.int64)
+        factor_of: dict[int, Bands] = {}
+        for j in range(slots):
+            variants = list(dict.fromkeys(zip(slot_kind[j].tolist(), slot_gate[j].tolist(), strict=True)))
+            variants = [v for v in variants if v[0] >= 0] or [(0, -1)]  # a slot no site fills: the identity
+            for s in range(S):
+                k = int(slot_kind[j, s])
+                if k >= 0:
+                    t = int(model.site_task[s, k])
+                    slot_task[j, s] = t if t >= 0 else p
+                    slot_code[j, s] = variants.index((k, int(slot_gate[j, s]))) * codes
+            factor_of[j] = _factor_bands([(model.kind_tables[k], g) for k, g in variants], j, slots, L)
+        factors = tuple((j, factor_of[j]) for j in applied)
+        task_slot = np.zeros(p, dtype=np.int64)
+        for j in range(slots):
+            for s in range(S):
+                if slot_task[j, s] < p:
+                    task_slot[slot_task[j, s]] = j
         base = L + 1
         powers = base ** np.arange(n, dtype=np.int64)
         size = model.obs.shape[0] * n * base**n * L
         ev = _evidence_table(model, base) if size <= EVIDENCE_TABLE_LIMIT else None
         return FilterTables(
             levels=L,
-            kinds=K,
+            slots=slots,
             factors=factors,
             slot_task=slot_task,
+            slot_code=slot_code,
+            task_slot=task_slot,
             absent=sc.capability_max + 1,
             stand_in=bool((slot_task == sc.n_tasks).any()),
             base=base,
@@ -202,36 +247,43 @@ class FilterTables:
         )
 
     def slot_caps(self, caps: IntArray) -> list[IntArray]:
-        """Every slot's joint capabilities (S, ...) of task-major capabilities (p, ...)."""
+        """Every slot's capability codes (S, ...) of task-major joint capabilities (p, ...): the joint capability on
+        the slot's task (C+1 where it has none), plus the slot's `slot_code` at every site."""
         if self.stand_in:
             caps = np.concatenate([caps, np.full((1,) + caps.shape[1:], self.absent, dtype=caps.dtype)])
-        return [caps[self.slot_task[k]] for k in range(self.kinds)]
+        out = [caps[self.slot_task[k]] for k in range(self.slots)]
+        for k in range(self.slots):
+            if self.slot_code[k].any():
+                out[k] = out[k] + self.slot_code[k].reshape((-1,) + (1,) * (caps.ndim - 1))
+        return out
 
     def slot_likelihoods(self, lik: FloatArray, axis: int) -> list[FloatArray]:
         """Every slot's likelihood of task-major likelihoods: the task axis `axis` of `lik` replaced by the sites
         (S), a slot without a task weighing every level 1."""
         if self.stand_in:
             lik = np.concatenate([lik, np.ones(lik.shape[:axis] + (1,) + lik.shape[axis + 1 :])], axis=axis)
-        return [np.take(lik, self.slot_task[k], axis=axis) for k in range(self.kinds)]
+        return [np.take(lik, self.slot_task[k], axis=axis) for k in range(self.slots)]
 
 
-def _factor_bands(table: FloatArray, slot: int, gate: int, kinds: int, levels: int) -> Bands:
-    """The bands of one kind's factor of T over a site's L^K entries: output entry (.., l', ..) takes the input
-    entries (.., l, ..) of the same other levels with coefficient T[c, g, l, l'], g the level of the slot `gate`
-    (the kind it depends on; -1: none, g = 0). Capability row C+1 is the identity (a site without this task)."""
-    L, K = levels, kinds
-    cmax = table.shape[0]
-    full = np.concatenate([table, np.broadcast_to(np.eye(L), (1,) + table.shape[1:])], axis=0)
+def _factor_bands(variants: list[tuple[FloatArray, int]], slot: int, slots: int, levels: int) -> Bands:
+    """The bands of one slot's factor of T over a site's L^K entries, for each of its variants (a kind's table
+    T[c, g, l, l'] and the slot `gate` holding the level g of the task it depends on; -1: none, g = 0): output entry
+    (.., l', ..) takes the input entries (.., l, ..) of the same other levels with coefficient T[c, g, l, l']. The
+    rows of variant v are the codes v (C+2) + c, c = 0..C+1; row C+1 is the identity (a site without this task)."""
+    L, K = levels, slots
     idx = np.indices((L,) * K).reshape(K, -1)
     out_level = idx[slot]
-    g = idx[gate] if gate >= 0 else np.zeros_like(out_level)
     stride = L ** (K - 1 - slot)
+    fulls = [np.concatenate([t, np.broadcast_to(np.eye(L), (1,) + t.shape[1:])], axis=0) for t, _ in variants]
+    gates = [idx[gate] if gate >= 0 else np.zeros_like(out_level) for _, gate in variants]
+    codes = fulls[0].shape[0]
     tabs = []
     for delta in range(-(L - 1), L):
         in_level = out_level + delta
         ok = (in_level >= 0) & (in_level < L)
-        tab = np.zeros((cmax + 1, out_level.size))
-        tab[:, ok] = full[:, g[ok], in_level[ok], out_level[ok]]
+        tab = np.zeros((codes * len(variants), out_level.size))
+        for v, (full, g) in enumerate(zip(fulls, gates, strict=True)):
+            tab[v * codes : (v + 1) * codes, ok] = full[:, g[ok], in_level[ok], out_level[ok]]
         if (tab != 0.0).any():
             tabs.append((delta * stride, tab))
     return Bands.build(tabs, L)
@@ -310,16 +362,16 @@ def from_sites(x: FloatArray, levels: int, kinds: int) -> Belief:
 
 
 def initial_belief(model: Model, batch: int) -> Belief:
-    """b0: certain of the initial levels (level 0 in the slots of kinds a site has no task of), for every agent
-    of every episode. (Also computes the model's `filter_tables` if not yet done, so that the first step of an
-    episode does not wait for them.)"""
-    filter_tables(model)
+    """b0: certain of the initial levels (level 0 in the slots without a task), for every agent of every episode.
+    (Also computes the model's `filter_tables` if not yet done, so that the first step of an episode does not wait
+    for them.)"""
+    tables = filter_tables(model)
     sc = model.scenario
     L = sc.levels
-    b = np.zeros((batch, sc.n_agents, sc.n_sites) + (L,) * sc.n_kinds)
-    start = sc.initial_levels
+    b = np.zeros((batch, sc.n_agents, sc.n_sites) + (L,) * tables.slots)
+    start = (*sc.initial_levels, 0)  # the stand-in task p: level 0
     for s in range(sc.n_sites):
-        at = tuple(start[j] if j >= 0 else 0 for j in model.site_task[s])
+        at = tuple(start[j] for j in tables.slot_task[:, s])
         b[(slice(None), slice(None), s, *at)] = 1.0
     return b
 
@@ -430,7 +482,7 @@ def update_sites(
         The new site-major beliefs and the (S, ...) mask of sites whose evidence had zero probability (they keep
         the prediction).
     """
-    L, K = tables.levels, tables.kinds
+    L, K = tables.levels, tables.slots
     post, part = work if work is not None else (np.empty_like(x), np.empty_like(x))
     pred = np.empty_like(x) if out is None else out  # the prediction, then the posterior
     predict_sites(tables, x, caps, pred, (post, part))
@@ -474,9 +526,10 @@ def marginals_sites(x: FloatArray, levels: int, kinds: int) -> list[FloatArray]:
 def task_marginals(model: Model, slots: list[FloatArray]) -> FloatArray:
     """The marginals (L, p, ...) of every task, in task order, of every slot's marginals (L, S, ...) (contiguous)."""
     first = slots[0]
-    out: FloatArray = np.empty((first.shape[0], model.task_kind.size) + first.shape[2:])
-    for j, (kind, site) in enumerate(zip(model.task_kind.tolist(), model.task_site.tolist(), strict=True)):
-        out[:, j] = slots[kind][:, site]
+    task_slot = filter_tables(model).task_slot
+    out: FloatArray = np.empty((first.shape[0], task_slot.size) + first.shape[2:])
+    for j, (slot, site) in enumerate(zip(task_slot.tolist(), model.task_site.tolist(), strict=True)):
+        out[:, j] = slots[slot][:, site]
     return out
 
 
@@ -651,7 +704,7 @@ def evidence_sites(
     slots = np.take(tables.by_level, groups[0], axis=1)  # (L, K, S, N, B)
     for codes in groups[1:]:
         slots *= np.take(tables.by_level, codes, axis=1)
-    return [slots[:, k] for k in range(tables.kinds)]
+    return [slots[:, k] for k in range(tables.slots)]
 
 
 def evidence(
@@ -684,8 +737,8 @@ def predict(model: Model, belief: Belief, caps: IntArray) -> Belief:
     sc = model.scenario
     tables = filter_tables(model)
     k = caps.ndim - 1
-    x = predict_sites(tables, to_sites(belief, sc.n_kinds), tables.slot_caps(caps.transpose(k, *range(k))))
-    return np.ascontiguousarray(from_sites(x, sc.levels, sc.n_kinds))
+    x = predict_sites(tables, to_sites(belief, tables.slots), tables.slot_caps(caps.transpose(k, *range(k))))
+    return np.ascontiguousarray(from_sites(x, sc.levels, tables.slots))
 
 
 def update(model: Model, belief: Belief, caps: IntArray, likelihood: FloatArray) -> tuple[Belief, np.ndarray]:
@@ -706,17 +759,17 @@ def update(model: Model, belief: Belief, caps: IntArray, likelihood: FloatArray)
     to_levels = (k + 1, k, *range(k))  # (..., p, L) -> (L, p, ...)
     post, bad = update_sites(
         tables,
-        to_sites(belief, sc.n_kinds),
+        to_sites(belief, tables.slots),
         tables.slot_caps(caps.transpose(k, *range(k))),
         tables.slot_likelihoods(likelihood.transpose(to_levels), axis=1),
     )
-    return np.ascontiguousarray(from_sites(post, sc.levels, sc.n_kinds)), np.asarray(bad.any(axis=0), dtype=np.bool_)
+    return np.ascontiguousarray(from_sites(post, sc.levels, tables.slots)), np.asarray(bad.any(axis=0), dtype=np.bool_)
 
 
 def marginals(model: Model, belief: Belief) -> Marginals:
     """Per-task marginals (..., p, L) in task order (`Scenario.tasks`)."""
-    sc = model.scenario
-    slots = marginals_sites(to_sites(belief, sc.n_kinds), sc.levels, sc.n_kinds)  # each (L, S, ...)
+    sc, k = model.scenario, filter_tables(model).slots
+    slots = marginals_sites(to_sites(belief, k), sc.levels, k)  # each (L, S, ...)
     out = task_marginals(model, slots)  # (L, p, ...)
     k = out.ndim - 2
     return np.ascontiguousarray(out.transpose(*range(2, 2 + k), 1, 0))

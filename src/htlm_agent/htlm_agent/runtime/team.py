@@ -82,7 +82,7 @@ class Team:
         """Site-major beliefs (L^K, S, N, B): the episodes innermost, so that every operation of the filter runs
         over long contiguous rows and the capability coefficients of a step (L^K, S, 1, B) broadcast over agents."""
         sc = self.scenario
-        return np.empty((sc.levels**sc.n_kinds, sc.n_sites, sc.n_agents, self.batch))
+        return np.empty((sc.levels**self.filter.slots, sc.n_sites, sc.n_agents, self.batch))
 
     @property
     def belief(self) -> FloatArray:
@@ -91,7 +91,7 @@ class Team:
         next step. The team keeps two such arrays and writes a step's beliefs into the one its step before last
         left: copy a view to keep it beyond the next step."""
         sc = self.scenario
-        view: FloatArray = bf.from_sites(self.sites, sc.levels, sc.n_kinds).swapaxes(0, 1)
+        view: FloatArray = bf.from_sites(self.sites, sc.levels, self.filter.slots).swapaxes(0, 1)
         return view
 
     def reset(self) -> FloatArray:
@@ -102,7 +102,7 @@ class Team:
         self._fired: BoolArray | None = None
         b0 = bf.initial_belief(self.model, self.batch)
         self.sites = self._new_sites()
-        self.sites[...] = bf.to_sites(b0.swapaxes(0, 1), sc.n_kinds)
+        self.sites[...] = bf.to_sites(b0.swapaxes(0, 1), self.filter.slots)
         self.prev = np.full((self.batch, sc.n_agents), sc.start_assignment, dtype=np.int64)
         self.heard = np.ones((self.batch, sc.n_agents), dtype=bool)
         """(B, N) the teammates whose broadcast arrived at the last step (in process every message arrives: all but
@@ -116,7 +116,7 @@ class Team:
         """Per-task marginals (B, N, p, L) of the beliefs (`belief.marginals`), as a view of level-major (L, p, N, B)
         ones: the reward's passes over levels and tasks then run over long contiguous rows."""
         sc = self.scenario
-        slots = bf.marginals_sites(self.sites, sc.levels, sc.n_kinds)  # each (L, S, N, B)
+        slots = bf.marginals_sites(self.sites, sc.levels, self.filter.slots)  # each (L, S, N, B)
         marg: FloatArray = bf.task_marginals(self.model, slots).transpose(3, 2, 1, 0)
         return marg
 
