@@ -61,6 +61,20 @@ def test_settings_the_teacher_does_not_read_are_warned_about() -> None:
     assert f"agents[3] ({sc.agents[3].name}): reassign_cost -40.0" in warnings and "acts as" in warnings
 
 
+def test_an_own_reward_too_small_to_matter_or_not_read_is_warned_about() -> None:
+    """An agent's own reassignment cost that the teacher tells apart from the team's by less than the policy's
+    targets do is named with what would weigh it more; with the load terms off, the own rewards are named as unread."""
+    s = Settings.for_learner(learner="expert")
+    sc = with_own_reward(builtin(), 3, reassign_cost=-1.5)  # 0.5 x 1/50 = 0.01 steps a move
+    name = sc.agents[3].name
+    warnings = " | ".join(unread_settings(sc, s))
+    assert f"agents[3] ({name}): reassign_cost differs from the team's by 0.010 steps" in warnings
+    assert "--load-weight" in warnings
+    assert unread_settings(with_own_reward(builtin(), 3, reassign_cost=-4.0), s) == []  # 0.06 steps: read
+    off = " | ".join(unread_settings(sc, s.replace(load_weight=0.0)))
+    assert f"the own rewards of {name} are not read" in off
+
+
 def test_soft_targets_share_near_ties_and_ignore_what_was_not_judged() -> None:
     import torch
 

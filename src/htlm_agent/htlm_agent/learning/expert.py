@@ -111,9 +111,10 @@ class RoundRow:
 
 
 def unread_settings(sc: Scenario, settings: Settings) -> list[str]:
-    """What of the scenario's reward this learner does not read, one sentence each (warned about at the start of a
-    run): the teacher counts steps to finish, then R_II and T_RP; `credit`, γ and the level rewards between R_0 and
-    R_4 do not enter."""
+    """What of the scenario's reward this learner does not read or may not act on, one sentence each (warned about
+    at the start of a run): the teacher counts steps to finish, then R_II and T_RP; `credit`, γ and the level rewards
+    between R_0 and R_4 do not enter; an agent's own reassignment cost or idle bonus beyond `LOAD_CAP` acts as the
+    cap, and one that differs from the team's by less than `TEMPERATURE` steps may change little."""
     out: list[str] = []
     tables = RewardTables.build(sc)
     if tables.difference.any():
@@ -126,8 +127,29 @@ def unread_settings(sc: Scenario, settings: Settings) -> list[str]:
         )
     if not math.isclose(sc.gamma, 0.95):
         out.append(f"gamma {sc.gamma!r} is not read: the teacher counts undiscounted steps to finish")
+    own = [i for i in range(sc.n_agents) if sc.agent_reward(i) != sc.reward]
+    if own and (settings.load_weight <= 0 or not tables.load_management):
+        names = ", ".join(sc.agents[i].name for i in own)
+        why = f"load_weight {settings.load_weight!r}" if settings.load_weight <= 0 else "this mode"
+        out.append(f"with {why} the teacher counts completion alone: the own rewards of {names} are not read")
     if settings.load_weight > 0 and tables.load_management:
         rates = load_rates(sc, settings.load_weight)
+        shared = sc.reward
+        for i in own:  # an agent's own setting, told apart from the team's by less than the policy's targets can
+            r, name = sc.agent_reward(i), sc.agents[i].name
+            for field, mine, team in (
+                ("reassign_cost", r.reassign_cost, shared.reassign_cost),
+                ("idle_bonus", r.idle_bonus * r.idle_incentive, shared.idle_bonus * shared.idle_incentive),
+            ):
+                gap = abs(mine - team) * rates[i]
+                if 0 < gap < TEMPERATURE:
+                    out.append(
+                        f"agents[{i}] ({name}): {field} differs from the team's by {gap:.3f} steps a choice in the "
+                        f"teacher's eyes (a unit of reward is worth {rates[i]:.4f} steps with {sc.n_agents} agents), "
+                        f"less than the {TEMPERATURE} steps the policy's targets tell apart: it may change little of "
+                        f"what {name} learns; --load-weight W (over ROS --set load_weight=W) weighs every load "
+                        "term W times"
+                    )
         for i in range(sc.n_agents):
             r = sc.agent_reward(i)
             worth = abs(r.reassign_cost) * rates[i]
