@@ -69,7 +69,7 @@ def test_an_own_reward_too_small_to_matter_or_not_read_is_warned_about() -> None
     name = sc.agents[3].name
     warnings = " | ".join(unread_settings(sc, s))
     assert f"agents[3] ({name}): reassign_cost differs from the team's by 0.010 steps" in warnings
-    assert "--load-weight" in warnings
+    assert "a larger load_weight" in warnings
     assert unread_settings(with_own_reward(builtin(), 3, reassign_cost=-4.0), s) == []  # 0.06 steps: read
     off = " | ".join(unread_settings(sc, s.replace(load_weight=0.0)))
     assert f"the own rewards of {name} are not read" in off

@@ -147,8 +147,8 @@ def unread_settings(sc: Scenario, settings: Settings) -> list[str]:
                         f"agents[{i}] ({name}): {field} differs from the team's by {gap:.3f} steps a choice in the "
                         f"teacher's eyes (a unit of reward is worth {rates[i]:.4f} steps with {sc.n_agents} agents), "
                         f"less than the {TEMPERATURE} steps the policy's targets tell apart: it may change little of "
-                        f"what {name} learns; --load-weight W (over ROS --set load_weight=W) weighs every load "
-                        "term W times"
+                        f"what {name} learns (a larger load_weight weighs every load term more, and can leave "
+                        "missions unfinished: docs/model.md, The expert-iteration learner)"
                     )
         for i in range(sc.n_agents):
             r = sc.agent_reward(i)
