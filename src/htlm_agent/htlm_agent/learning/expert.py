@@ -407,6 +407,14 @@ class ExpertRounds:
             self.finished = r >= s.rounds
         else:
             self.finished = True
+        base = self.rows[0].val_completion
+        if self.finished and self.best[0] >= base:  # said, not hidden: the checkpoint is a network, not the auction
+            print(
+                f"warning: expert learner: no round validated sooner than the {s.warm_baseline} it started from "
+                f"({base:.2f} steps); the run's policy, round {self.best[1]}, validates at {self.best[0]:.2f}",
+                file=sys.stderr,
+                flush=True,
+            )
         self.round += 1
         return row
 
