@@ -56,7 +56,9 @@ def test_presets_start_from_the_learners_own_settings() -> None:
     assert Settings.for_learner(learner="tokens").imitate_episodes == 2048
     assert Settings.for_learner(learner="lookahead").batch_size == 2048
     expert = Settings.for_learner(learner="expert", rounds=2)
-    assert expert.rounds == 2 and expert.trainer_lag == 0 and expert.value_updates == 1500
+    assert expert.rounds == 2 and expert.trainer_lag == 0 and expert.value_updates == 0  # DAgger: round 0's value
+    with pytest.raises(ValueError, match="value_updates"):
+        Settings.for_learner(learner="lookahead", value_updates=0)
     with pytest.raises(TypeError):  # a preset is read only
         LEARNERS["tokens"].preset["hidden"] = (8,)  # type: ignore[index]
 

@@ -1,15 +1,18 @@
 """The expert-iteration learner (`htlm train --learner expert`; docs/model.md, The expert-iteration learner):
-approximate policy iteration in rounds, with the lookahead as the teacher and a token policy network as the student.
+rounds of imitation of the lookahead on the team's own play (DAgger), or approximate policy iteration, with the
+lookahead as the teacher and a token policy network as the student.
 
 Every round:
 
 1. **Play.** The team plays its policy (the auction in the first round, then the last round's policy network, every
    agent ε-greedily with `eps_end` on its own knowledge state) for `episodes / rounds` training episodes; the run
    records every agent's knowledge state, Â and action, and the true levels.
-2. **Evaluate.** A value network (`BaseValue`, the one-hot levels of every task to steps to go) is fitted to the steps
-   the played policy took to finish from every true state it visited (the horizon's remaining steps plus the last
-   value where an episode did not finish), continuing from the last round's network (the first from the lookahead's
-   value of the auction on simulated episodes).
+2. **Evaluate.** The teacher's value network (`BaseValue`, the one-hot levels of every task to steps to go) is the
+   lookahead's value of the auction on simulated episodes, fitted once before round 1. By default it stays so
+   (`value_updates` 0): every round the same lookahead relabels the states the team's own policy visits (DAgger).
+   With `value_updates` > 0 it is fitted, from round 2 on, to the steps the played policy took to finish from every
+   true state it visited (the horizon's remaining steps plus the last value where an episode did not finish),
+   continuing from the last round's network (approximate policy iteration).
 3. **Improve.** The `Teacher` improves every recorded joint action with that value: each agent, from its own belief,
    takes the action that finishes soonest, its own load-management reward weighed second.
 4. **Learn.** The policy network (the token network of `learning.tokens`, one set of weights for the team) learns to
@@ -370,7 +373,7 @@ class ExpertRounds:
         self._clear()
         rmse = float("nan")  # the first round's value: the auction's on simulated true levels (the lookahead's)
         t0 = time.perf_counter()
-        if r > 1 and len(played.to_go):
+        if r > 1 and s.value_updates > 0 and len(played.to_go):
             rmse = self.value.regress(played.levels, played.to_go, s.value_updates, seeds.expert_round(s.seed, r, 1))
         t1 = time.perf_counter()
         teacher = Teacher(self.sc, self.value, s.seed, s.load_weight)

@@ -85,7 +85,9 @@ class Settings:
     episodes: int = 12_288
     """Training episodes in total (lookahead: the simulated episodes its value network learns from)."""
     value_updates: int = 600
-    """lookahead: Adam updates of the value network (minibatches of `batch_size` states)."""
+    """lookahead: Adam updates of the value network (minibatches of `batch_size` states). expert: Adam updates a round,
+    from round 2 on, of the teacher's value on the team's own play (approximate policy iteration); 0, its default,
+    keeps round 0's value, so every round relabels the team's own play with the same lookahead (DAgger)."""
     rounds: int = 4
     """expert: the most rounds of play, evaluation and improvement (`episodes` / `rounds` episodes each); training
     stops at the first round whose policy validates no sooner than the best one so far."""
@@ -138,7 +140,6 @@ class Settings:
             "episodes",
             "envs",
             "updates_per_step",
-            "value_updates",
             "threads",
             "rounds",
             "policy_updates",
@@ -146,6 +147,11 @@ class Settings:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"settings.{name}: {getattr(self, name)!r} must be > 0")
+        if not (self.value_updates > 0 or (self.value_updates == 0 and self.learner == "expert")):
+            raise ValueError(
+                f"settings.value_updates: {self.value_updates!r} must be > 0 (0 only for the expert learner: keep "
+                "round 0's value)"
+            )
         for name in (
             "learning_starts",
             "grad_clip",

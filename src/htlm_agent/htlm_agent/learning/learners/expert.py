@@ -32,12 +32,12 @@ class ExpertLearner(LearnerKind):
             "imitate": "auction",
             "trainer_lag": 0,
             "batch_size": 1024,
-            "value_updates": 1500,
+            "value_updates": 0,
         }
     )
     """The token network's layers for its policy, the auction playing the first round, up to 8,192 episodes of its
-    own play (4 rounds of 2,048), 1,500 updates of the value network a round on what the team played, minibatches of
-    1,024 agent-steps for the policy."""
+    own play (4 rounds of 2,048), round 0's value kept for every round's teacher (DAgger; `value_updates` > 0 fits it
+    on the team's own play instead), minibatches of 1,024 agent-steps for the policy."""
     network = "tokens"
     imitates = True
     rounds = True
