@@ -10,7 +10,7 @@ import sys
 
 # numpy's matrix products on one thread unless the environment says otherwise (OpenBLAS reads it when numpy is first
 # imported, after this): a team step's products are small, and a second BLAS thread spinning for a core that another
-# process holds made them several times slower (docs/results/scale.md, One BLAS thread).
+# process holds made them several times slower (docs/results/scale.md, "... and one BLAS thread").
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 # subcommand -> (module implementing add_arguments(parser) and run(args) -> int, one-line help)
