@@ -342,11 +342,12 @@ class ExpertRounds:
         self.done += lv.shape[1]
 
     def played(self) -> Played:
-        """The round's play: the kept steps, and every open true state with the steps the play took from it to
-        finish (the value's prediction past the horizon where an episode did not finish)."""
+        """The round's play: the kept steps, and (for a value fitted on the play, `value_updates` > 0) every open true
+        state with the steps the play took from it to finish (the value's prediction past the horizon where an
+        episode did not finish)."""
         h = self.sc.horizon
         xs, ys = [], []
-        for lv in self.lvs:
+        for lv in self.lvs if self.s.value_updates > 0 else []:
             comp, failed = completion_step(lv)
             open_ = lv[:h].any(axis=-1)  # (h, B)
             t = np.arange(h)[:, None]

@@ -210,6 +210,7 @@ class FilterTables:
                     slot_gate[j, s] = here.index(gate[k]) if gate[k] in here else -1
         slot_task = np.full((slots, S), p, dtype=np.int64)
         slot_code = np.zeros((slots, S), dtype=np.int64)
+        task_slot = np.zeros(p, dtype=np.int64)
         factor_of: dict[int, Bands] = {}
         for j in range(slots):
             variants = list(dict.fromkeys(zip(slot_kind[j].tolist(), slot_gate[j].tolist(), strict=True)))
@@ -219,14 +220,11 @@ class FilterTables:
                 if k >= 0:
                     t = int(model.site_task[s, k])
                     slot_task[j, s] = t if t >= 0 else p
+                    if t >= 0:
+                        task_slot[t] = j
                     slot_code[j, s] = variants.index((k, int(slot_gate[j, s]))) * codes
             factor_of[j] = _factor_bands([(model.kind_tables[k], g) for k, g in variants], j, slots, L)
         factors = tuple((j, factor_of[j]) for j in applied)
-        task_slot = np.zeros(p, dtype=np.int64)
-        for j in range(slots):
-            for s in range(S):
-                if slot_task[j, s] < p:
-                    task_slot[slot_task[j, s]] = j
         base = L + 1
         powers = base ** np.arange(n, dtype=np.int64)
         size = model.obs.shape[0] * n * base**n * L
