@@ -91,7 +91,7 @@ class Settings:
     rounds: int = 4
     """expert: the most rounds of play, evaluation and improvement (`episodes` / `rounds` episodes each); training
     stops at the first round whose policy validates no sooner than the best one so far."""
-    policy_updates: int = 1500
+    policy_updates: int = 750
     """expert: Adam updates of the policy network per round (minibatches of `batch_size` agent-steps)."""
     load_weight: float = 1.0
     """expert: the weight of the load-management reward R_II + T_RP against completion in the teacher's choice (1: the
