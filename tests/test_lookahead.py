@@ -64,6 +64,29 @@ def test_value_network_matches_the_auctions_exact_value(paper_value: BaseValue) 
     assert np.median(err) < 0.3 and np.sqrt((err**2).mean()) < 0.6, (np.median(err), np.sqrt((err**2).mean()))
 
 
+def test_the_value_table_gives_every_candidates_value_and_follows_the_network(
+    paper_value: BaseValue, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On the paper's operation every joint state's value is looked up in a table worked out once; it gives what
+    the network gives (the path of larger operations, forced here), and a new network gets a new table."""
+    sc = builtin()
+    rng = np.random.default_rng(0)
+    none = rng.integers(0, sc.levels, size=(40, 8, sc.n_tasks)) * (rng.random((40, 8, sc.n_tasks)) < 0.6)
+    work = np.maximum(none - rng.integers(0, 2, size=none.shape), 0)
+    tasks = np.array([0, 2, 3])
+    assert paper_value.table() is not None
+    looked_up = paper_value.after_step(none, work, tasks, floor=1.0)
+    monkeypatch.setattr("htlm_agent.learning.lookahead.TABLE_STATES", 0)
+    assert paper_value.table() is None
+    forward = paper_value.after_step(none, work, tasks, floor=1.0)
+    np.testing.assert_allclose(looked_up, forward, atol=1e-4)
+    assert (looked_up[(none == 0).all(axis=-1), 0] == 0).all() and (looked_up >= 0).all()
+    monkeypatch.undo()
+    other = BaseValue(sc, seed=1).load_params([w * 0.5 for w in paper_value.params()])
+    table = other.table()
+    assert table is not None and not np.allclose(table, paper_value.table())
+
+
 def _certain(ctx_marginals: np.ndarray, levels: np.ndarray) -> np.ndarray:
     out = np.zeros_like(ctx_marginals)
     for e, lv in enumerate(levels):

@@ -74,7 +74,7 @@ LABEL_WORK = 131_072
 """The teacher's work a round, in agent-heads: agent k's choice is worked out by the lookahead's sequence of the k + 1
 agents up to it, so a team step costs the sum of k + 1 over the agents judged (`labeled_heads`). The round's play
 keeps a random share of its team steps for the teacher within this budget (the paper's operation: 8,738 team steps,
-about 15 s; every visited state feeds the value)."""
+about 5 s; every visited state feeds the value)."""
 
 
 def labeled_heads(n: int) -> float:

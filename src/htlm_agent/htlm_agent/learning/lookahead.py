@@ -82,6 +82,11 @@ class ValueSettings:
         )
 
 
+TABLE_STATES = 1 << 18
+"""A value network over at most this many joint states (L^p) is worked out once for all of them and looked up
+(`BaseValue.table`): the lookahead's many draws then cost a gather each, not a forward pass."""
+
+
 LOOKAHEAD_SAMPLES = 64
 """States each agent draws from its belief for every lookahead (the expected steps to go are their mean; every
 candidate action is judged on the same draws and the same transition noise)."""
@@ -143,6 +148,7 @@ class BaseValue:
         for i in range(len(sizes) - 1):
             layers += [torch.nn.Linear(sizes[i], sizes[i + 1]), torch.nn.ReLU()]
         self.net = torch.nn.Sequential(*layers, torch.nn.Linear(sizes[-1], 1))
+        self._table: FloatArray | None = None
 
     def params(self) -> list[NDArray[np.float32]]:
         """The parameters in a checkpoint's order (`qnet.network_shapes` of the lookahead learner): per layer the
@@ -160,6 +166,7 @@ class BaseValue:
             for i, layer in enumerate(linear):
                 layer.weight.copy_(torch.as_tensor(np.asarray(params[2 * i], dtype=np.float32).T))
                 layer.bias.copy_(torch.as_tensor(np.asarray(params[2 * i + 1], dtype=np.float32)))
+        self._table = None
         return self
 
     def encode(self, levels: IntArray) -> torch.Tensor:
@@ -193,6 +200,7 @@ class BaseValue:
         """`updates` Adam updates (a fresh optimizer, `vs.lr`, minibatches of `vs.batch` drawn with `seed`) of the
         mean squared error between the network on the (S, p) `levels` and the steps `to_go` (S,), on one thread so
         that every process gets the same network; returns the last minibatch's root mean squared error."""
+        self._table = None
         x, y = self.encode(levels), torch.from_numpy(np.asarray(to_go, dtype=np.float32))
         gen = torch.Generator().manual_seed(seed)
         opt = torch.optim.Adam(self.net.parameters(), lr=self.vs.lr)
@@ -212,6 +220,18 @@ class BaseValue:
             torch.set_num_threads(threads)
         return float(loss.detach().sqrt())
 
+    def table(self) -> FloatArray | None:
+        """The value of every joint state, at index Σ_j level_j · L^j, when there are at most `TABLE_STATES` of them
+        (None otherwise); worked out again after the network changes (`regress`, `load_params`)."""
+        lv, p = self.sc.levels, self.sc.n_tasks
+        if lv**p > TABLE_STATES:
+            return None
+        if self._table is None:
+            index = np.arange(lv**p)
+            states = (index[:, None] // lv ** np.arange(p)) % lv  # (L^p, p): the digits of every index
+            self._table = self(states)
+        return self._table
+
     def after_step(self, none: IntArray, work: IntArray, tasks: IntArray, floor: float | None = None) -> FloatArray:
         """The values of an agent's candidate next states, from (..., p) next levels without it (`none`) and with it
         on every task (`work`; a task's next level depends on its own capability only): (..., 1 + T), the value of
@@ -223,6 +243,16 @@ class BaseValue:
         lv = self.sc.levels
         shape, p = none.shape[:-1], none.shape[-1]
         none2, work2 = none.reshape(-1, p), work[..., tasks].reshape(-1, tasks.size)
+        table = self.table()
+        if table is not None:  # every candidate's state is the none state with one task's digit replaced
+            power = lv ** np.arange(p)
+            key = none2 @ power
+            keys = np.concatenate([key[:, None], key[:, None] + (work2 - none2[:, tasks]) * power[tasks]], axis=1)
+            got: FloatArray = table[keys]
+            if floor is not None:
+                np.maximum(got, floor, out=got)
+                got[keys == 0] = 0.0
+            return got.reshape(*shape, 1 + tasks.size)
         out = np.zeros((none2.shape[0], 1 + tasks.size))
         with torch.no_grad():
             emb = first.weight.T.contiguous()  # (p·L, H): row j·L + l is task j's term at level l
