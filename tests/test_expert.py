@@ -14,7 +14,7 @@ from htlm_agent.baselines.heuristics import AuctionPolicy
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
 from htlm_agent.learning.expert import soft_targets, unread_settings
 from htlm_agent.learning.learners import team_policy
-from htlm_agent.learning.lookahead import LOAD_CAP, BaseValue, Teacher, load_rates
+from htlm_agent.learning.lookahead import LOAD_CAP, BaseValue, LookaheadPolicy, Teacher, load_rates
 from htlm_agent.learning.settings import Settings
 from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team
@@ -49,6 +49,24 @@ def test_an_agents_own_reassignment_cost_prices_only_its_own_moves(value: BaseVa
     assert load[:, 1, far] == pytest.approx(4.0 * rate[1])
     assert (np.abs(load) <= LOAD_CAP).all()
     assert (Teacher(sc, value, load_weight=0.0).load_steps(ctx.marginals, ctx.prev) == 0).all()
+
+
+def test_the_teacher_looks_again_at_a_task_its_belief_may_hold_done_wrongly(value: BaseValue) -> None:
+    """Every task believed done, agent 1 at 97.4 % for task 1 (the confident level 0 at the paper's 0.97): the
+    lookahead rests everyone, the teacher sends agent 1 to look; at 99.99 % it rests too."""
+    sc = builtin()
+    team = Team(sc, 2, seed=0)
+    ctx = team.context()
+    ctx.marginals[:] = 0.0
+    ctx.marginals[..., 0] = 1.0
+    ctx.marginals[0, 1, 1, :2] = (0.974, 0.026)
+    ctx.marginals[1, 1, 1, :2] = (0.9999, 0.0001)
+    who = np.arange(sc.n_agents)
+    rest = sc.n_tasks  # every action from n_tasks on is an idle location
+    teacher, _ = Teacher(sc, value).improve(ctx, who)
+    assert teacher[0, 1] == 1, teacher[0]
+    assert (teacher[0, who != 1] >= rest).all() and (teacher[1] >= rest).all(), teacher
+    assert (LookaheadPolicy(sc, value).act_rows(ctx, who) >= rest).all()
 
 
 def test_settings_the_teacher_does_not_read_are_warned_about() -> None:

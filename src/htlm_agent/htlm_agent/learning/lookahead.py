@@ -311,11 +311,13 @@ class LookaheadPolicy:
         seed: int = 0,
         load_price: float = LOAD_PRICE,
         floor: float | None = None,
+        unobserved: bool = False,
     ) -> None:
         """`value`: a fitted `BaseValue` (default: one fitted here with `seed`); `load_price`: the steps a unit of
         committed capability is worth (`Settings.load_price`); `floor`: the least value of an open state (the
-        `Teacher`'s 1: a mission not finished takes at least one more step)."""
-        self.floor = floor
+        `Teacher`'s 1: a mission not finished takes at least one more step); `unobserved`: an agent's own choice
+        to rest also costs what a task it believes done may leave open (`UNSEEN_SHARE`, the `Teacher`'s)."""
+        self.floor, self.unobserved = floor, unobserved
         self.sc, self.model, self.samples = sc, Model.build(sc), samples
         if value is None:
             value = BaseValue(sc, seed=seed)
@@ -349,6 +351,20 @@ class LookaheadPolicy:
         out = np.ascontiguousarray(strata.swapaxes(-1, -2))  # (B, R, which, M, p)
         return out[:, :, 0], out[:, :, 1]
 
+    def _unseen(self, marg: FloatArray, conf: IntArray, who: IntArray) -> FloatArray:
+        """(B, R, 1 + p): what each action (resting, then every task) costs each head's own agent in steps beyond
+        the lookahead's (`unobserved`): `UNSEEN_SHARE` of the horizon times the chance that a task it believes done
+        (confident level 0) and brings capability to is open, and stays unseen. Working a task looks at that task;
+        working a task believed open costs nothing (the agent may look later); resting looks at none."""
+        mine = (conf == 0) & (self.model.agent_caps[who, : self.sc.n_tasks] > 0)[None]  # (B, R, p)
+        done = np.where(mine, marg[..., 0], 1.0)  # (B, R, p): at least the threshold where `mine`
+        every = done.prod(axis=-1)  # (B, R)
+        out = np.zeros((*every.shape, 1 + self.sc.n_tasks))
+        out[..., 0] = 1.0 - every
+        out[..., 1:] = np.where(mine, 1.0 - every[..., None] / done, 0.0)
+        cost: FloatArray = UNSEEN_SHARE * self.sc.horizon * np.maximum(out, 0.0)
+        return cost
+
     def act(self, ctx: Context) -> IntArray:
         """One action per agent, each from its own row's marginals and roster."""
         return self.act_rows(ctx, np.arange(self.sc.n_agents))
@@ -365,7 +381,8 @@ class LookaheadPolicy:
         marg = ctx.marginals[:, who]  # (B, R, p, L): row r is agent who[r]'s belief
         b, r = marg.shape[0], who.size
         present = knowledge.roster(ctx.knowledge[:, who], sc)  # (B, R, N): row r, the teammates who[r] counts on
-        plan = allocate(model, confident_levels(marg, self.threshold[who]), present if sc.roster else None)  # (B, R, N)
+        conf = confident_levels(marg, self.threshold[who])  # (B, R, p)
+        plan = allocate(model, conf, present if sc.roster else None)  # (B, R, N)
         # every auctioneer's draws of the joint state from its belief (product of its marginals), and the noise of
         # the step after it, shared by every candidate
         u, noise = self._draws(ctx.knowledge[:, who], who)
@@ -376,6 +393,7 @@ class LookaheadPolicy:
         rest = complete.all(axis=-1) if sc.n_idle > 0 else np.zeros((b, r), dtype=bool)
         plan[rest] = -1
         rest_of = model.rest_action(ctx.prev[:, who])  # (B, R)
+        unseen = self._unseen(marg, conf, who) if self.unobserved else None
         if q_out is not None:  # a resting head: resting is worth 0 steps, the rest is not judged
             q_out[rest, rest_of[rest]] = 0.0
         for k in range(int(who.max()) + 1):  # agent k improves on the plan in the heads of agents k.. (the rest are
@@ -400,6 +418,8 @@ class LookaheadPolicy:
             q[:, np.concatenate([[0], 1 + tasks])] = np.where(complete[bi, ri][..., None], 0.0, 1.0 + v).mean(axis=1)
             q += self.load[k]
             mine = who[ri] == k  # the pairs whose head is agent k's own
+            if unseen is not None:  # what the head's own choice leaves unseen of what it believes done
+                q[mine] += unseen[bi[mine], ri[mine]]
             if own_load is not None:  # the heads' own agents: their own load terms besides the price
                 rows = own_load[bi[mine], ri[mine]]  # (P', |Ḡ|)
                 resting = rows[np.arange(rows.shape[0]), rest_of[bi[mine], ri[mine]]]
@@ -500,6 +520,16 @@ def train_lookahead(
     return TrainResult(out, scenario, settings, settings.episodes, wall, train_time, metrics, [row])
 
 
+UNSEEN_SHARE = 0.1
+"""What leaving a task unseen costs an agent in the `Teacher`'s choice, beyond one step plus the value: this share of
+the horizon times the chance that a task its belief holds done (confident level 0), and that it brings capability
+to, is open. The value is the auction's on the true levels, which finishes such a task; but an idle agent observes
+nothing, a teammate whose belief is the agent's rests too, and a wrong "done" is then never corrected: the team
+leaves the task open to the horizon. Resting leaves every such task unseen; working one of them looks at it and
+leaves the others; working a task believed open leaves none (the agent may look later). A larger share fails less
+and holds less capability in reserve (docs/results/market.md, Looking again at what is believed done)."""
+
+
 LOAD_CAP = 0.45
 """The most steps the load-management reward of one choice counts for in the `Teacher`'s choice, either way: two
 choices' load terms then differ by less than a step, so a choice sure to finish the mission at the next step is
@@ -521,12 +551,13 @@ class Teacher:
     Every agent works out in its own head, from its own belief, the lookahead's sequence (`LookaheadPolicy`) with a
     value of the steps the team's current policy takes to finish, and its own choice in it weighs, besides one step
     plus the value, the steps its own load-management reward is worth (R_II + T_RP of the scenario's reward with
-    the agent's own fields, `load_rates`, at most `LOAD_CAP` either way). Its choice is a function of its own
-    knowledge state, so the policy network it teaches can learn it exactly."""
+    the agent's own fields, `load_rates`, at most `LOAD_CAP` either way), and resting what a task it believes done
+    may leave open (`UNSEEN_SHARE`). Its choice is a function of its own knowledge state, so the policy network it
+    teaches can learn it exactly."""
 
     def __init__(self, sc: Scenario, value: BaseValue, seed: int = 0, load_weight: float = 1.0) -> None:
         """`value`: the steps to go of the policy the team plays; `load_weight`: `Settings.load_weight`."""
-        self.look = LookaheadPolicy(sc, value, seed=seed, floor=1.0)
+        self.look = LookaheadPolicy(sc, value, seed=seed, floor=1.0, unobserved=True)
         self.sc, self.model = sc, self.look.model
         self.tables = RewardTables.build(sc)
         self.rates = load_rates(sc, load_weight)
