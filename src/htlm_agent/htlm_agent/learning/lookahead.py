@@ -316,7 +316,7 @@ class LookaheadPolicy:
         """`value`: a fitted `BaseValue` (default: one fitted here with `seed`); `load_price`: the steps a unit of
         committed capability is worth (`Settings.load_price`); `floor`: the least value of an open state (the
         `Teacher`'s 1: a mission not finished takes at least one more step); `unobserved`: an agent's own choice
-        to rest also costs what a task it believes done may leave open (`UNSEEN_SHARE`, the `Teacher`'s)."""
+        also costs what it leaves unseen of the tasks it believes done (`UNSEEN_SHARE`, the `Teacher`'s)."""
         self.floor, self.unobserved = floor, unobserved
         self.sc, self.model, self.samples = sc, Model.build(sc), samples
         if value is None:
@@ -361,7 +361,7 @@ class LookaheadPolicy:
         every = done.prod(axis=-1)  # (B, R)
         out = np.zeros((*every.shape, 1 + self.sc.n_tasks))
         out[..., 0] = 1.0 - every
-        out[..., 1:] = np.where(mine, 1.0 - every[..., None] / done, 0.0)
+        out[..., 1:] = np.where(mine, 1.0 - every[..., None] / np.maximum(done, 1e-12), 0.0)
         cost: FloatArray = UNSEEN_SHARE * self.sc.horizon * np.maximum(out, 0.0)
         return cost
 
@@ -551,8 +551,8 @@ class Teacher:
     Every agent works out in its own head, from its own belief, the lookahead's sequence (`LookaheadPolicy`) with a
     value of the steps the team's current policy takes to finish, and its own choice in it weighs, besides one step
     plus the value, the steps its own load-management reward is worth (R_II + T_RP of the scenario's reward with
-    the agent's own fields, `load_rates`, at most `LOAD_CAP` either way), and resting what a task it believes done
-    may leave open (`UNSEEN_SHARE`). Its choice is a function of its own knowledge state, so the policy network it
+    the agent's own fields, `load_rates`, at most `LOAD_CAP` either way), and what it leaves unseen of the tasks it
+    believes done (`UNSEEN_SHARE`). Its choice is a function of its own knowledge state, so the policy network it
     teaches can learn it exactly."""
 
     def __init__(self, sc: Scenario, value: BaseValue, seed: int = 0, load_weight: float = 1.0) -> None:
