@@ -311,13 +311,11 @@ class LookaheadPolicy:
         seed: int = 0,
         load_price: float = LOAD_PRICE,
         floor: float | None = None,
-        unobserved: bool = False,
     ) -> None:
         """`value`: a fitted `BaseValue` (default: one fitted here with `seed`); `load_price`: the steps a unit of
         committed capability is worth (`Settings.load_price`); `floor`: the least value of an open state (the
-        `Teacher`'s 1: a mission not finished takes at least one more step); `unobserved`: an agent's own choice
-        also costs what it leaves unseen of the tasks it believes done (`UNSEEN_SHARE`, the `Teacher`'s)."""
-        self.floor, self.unobserved = floor, unobserved
+        `Teacher`'s 1: a mission not finished takes at least one more step)."""
+        self.floor = floor
         self.sc, self.model, self.samples = sc, Model.build(sc), samples
         if value is None:
             value = BaseValue(sc, seed=seed)
@@ -351,20 +349,6 @@ class LookaheadPolicy:
         out = np.ascontiguousarray(strata.swapaxes(-1, -2))  # (B, R, which, M, p)
         return out[:, :, 0], out[:, :, 1]
 
-    def _unseen(self, marg: FloatArray, conf: IntArray, who: IntArray) -> FloatArray:
-        """(B, R, 1 + p): what each action (resting, then every task) costs each head's own agent in steps beyond
-        the lookahead's (`unobserved`): `UNSEEN_SHARE` of the horizon times the chance that a task it believes done
-        (confident level 0) and brings capability to is open, and stays unseen. Working a task looks at that task;
-        working a task believed open costs nothing (the agent may look later); resting looks at none."""
-        mine = (conf == 0) & (self.model.agent_caps[who, : self.sc.n_tasks] > 0)[None]  # (B, R, p)
-        done = np.where(mine, marg[..., 0], 1.0)  # (B, R, p): at least the threshold where `mine`
-        every = done.prod(axis=-1)  # (B, R)
-        out = np.zeros((*every.shape, 1 + self.sc.n_tasks))
-        out[..., 0] = 1.0 - every
-        out[..., 1:] = np.where(mine, 1.0 - every[..., None] / np.maximum(done, 1e-12), 0.0)
-        cost: FloatArray = UNSEEN_SHARE * self.sc.horizon * np.maximum(out, 0.0)
-        return cost
-
     def act(self, ctx: Context) -> IntArray:
         """One action per agent, each from its own row's marginals and roster."""
         return self.act_rows(ctx, np.arange(self.sc.n_agents))
@@ -381,8 +365,7 @@ class LookaheadPolicy:
         marg = ctx.marginals[:, who]  # (B, R, p, L): row r is agent who[r]'s belief
         b, r = marg.shape[0], who.size
         present = knowledge.roster(ctx.knowledge[:, who], sc)  # (B, R, N): row r, the teammates who[r] counts on
-        conf = confident_levels(marg, self.threshold[who])  # (B, R, p)
-        plan = allocate(model, conf, present if sc.roster else None)  # (B, R, N)
+        plan = allocate(model, confident_levels(marg, self.threshold[who]), present if sc.roster else None)  # (B, R, N)
         # every auctioneer's draws of the joint state from its belief (product of its marginals), and the noise of
         # the step after it, shared by every candidate
         u, noise = self._draws(ctx.knowledge[:, who], who)
@@ -393,7 +376,6 @@ class LookaheadPolicy:
         rest = complete.all(axis=-1) if sc.n_idle > 0 else np.zeros((b, r), dtype=bool)
         plan[rest] = -1
         rest_of = model.rest_action(ctx.prev[:, who])  # (B, R)
-        unseen = self._unseen(marg, conf, who) if self.unobserved else None
         if q_out is not None:  # a resting head: resting is worth 0 steps, the rest is not judged
             q_out[rest, rest_of[rest]] = 0.0
         for k in range(int(who.max()) + 1):  # agent k improves on the plan in the heads of agents k.. (the rest are
@@ -418,8 +400,6 @@ class LookaheadPolicy:
             q[:, np.concatenate([[0], 1 + tasks])] = np.where(complete[bi, ri][..., None], 0.0, 1.0 + v).mean(axis=1)
             q += self.load[k]
             mine = who[ri] == k  # the pairs whose head is agent k's own
-            if unseen is not None:  # what the head's own choice leaves unseen of what it believes done
-                q[mine] += unseen[bi[mine], ri[mine]]
             if own_load is not None:  # the heads' own agents: their own load terms besides the price
                 rows = own_load[bi[mine], ri[mine]]  # (P', |Ḡ|)
                 resting = rows[np.arange(rows.shape[0]), rest_of[bi[mine], ri[mine]]]
@@ -557,7 +537,7 @@ class Teacher:
 
     def __init__(self, sc: Scenario, value: BaseValue, seed: int = 0, load_weight: float = 1.0) -> None:
         """`value`: the steps to go of the policy the team plays; `load_weight`: `Settings.load_weight`."""
-        self.look = LookaheadPolicy(sc, value, seed=seed, floor=1.0, unobserved=True)
+        self.look = LookaheadPolicy(sc, value, seed=seed, floor=1.0)
         self.sc, self.model = sc, self.look.model
         self.tables = RewardTables.build(sc)
         self.rates = load_rates(sc, load_weight)
@@ -575,9 +555,26 @@ class Teacher:
             out[:, :, g] = -(parts["idle"] + parts["reassign"]) * self.rates[None, :]
         return np.clip(out, -LOAD_CAP, LOAD_CAP)
 
+    def unseen_steps(self, marg: FloatArray, who: IntArray) -> FloatArray:
+        """(B, R, |Ḡ|): the steps every action of Ḡ costs each of the agents `who` (R,) in what it leaves unseen of
+        the tasks it believes done (confident level 0) and brings capability to, from their marginals (B, R, p, L):
+        `UNSEEN_SHARE` of the horizon times the chance that one of them is open and stays
+        unseen. Working a task looks at that task; working a task believed open costs nothing (the agent may look
+        later); resting looks at none."""
+        p = self.sc.n_tasks
+        conf = confident_levels(marg, self.tables.threshold[who])
+        mine = (conf == 0) & (self.model.agent_caps[who, :p] > 0)[None]  # (B, R, p)
+        done = np.where(mine, marg[..., 0], 1.0)  # (B, R, p): at least the threshold where `mine`
+        every = done.prod(axis=-1)  # (B, R)
+        out = np.empty((*every.shape, self.sc.n_actions))
+        out[..., :p] = np.where(mine, 1.0 - every[..., None] / np.maximum(done, 1e-12), 0.0)
+        out[..., p:] = (1.0 - every)[..., None]
+        cost: FloatArray = UNSEEN_SHARE * self.sc.horizon * np.maximum(out, 0.0)
+        return cost
+
     def improve(self, ctx: Context, who: IntArray) -> tuple[IntArray, FloatArray]:
         """The teacher's choices (B, R) of the agents `who` (R,) at the step of `ctx`, each from its own row, and
         what every action of Ḡ is worth to them (B, R, |Ḡ|), in steps (inf: not judged)."""
-        load = self.load_steps(ctx.marginals, ctx.prev)[:, who]
+        load = self.load_steps(ctx.marginals, ctx.prev)[:, who] + self.unseen_steps(ctx.marginals[:, who], who)
         q = np.full(load.shape, np.inf)
         return self.look.act_rows(ctx, who, load, q), q
