@@ -12,7 +12,7 @@ import pytest
 
 from htlm_agent.baselines.heuristics import AuctionPolicy
 from htlm_agent.learning.checkpoint import CheckpointError, load_checkpoint
-from htlm_agent.learning.expert import soft_targets, unread_settings
+from htlm_agent.learning.expert import OwnEffect, soft_targets, unread_settings
 from htlm_agent.learning.learners import team_policy
 from htlm_agent.learning.lookahead import LOAD_CAP, BaseValue, LookaheadPolicy, Teacher, load_rates
 from htlm_agent.learning.settings import Settings
@@ -91,6 +91,39 @@ def test_an_own_reward_too_small_to_matter_or_not_read_is_warned_about() -> None
     assert unread_settings(with_own_reward(builtin(), 3, reassign_cost=-4.0), s) == []  # 0.06 steps: read
     off = " | ".join(unread_settings(sc, s.replace(load_weight=0.0)))
     assert f"the own rewards of {name} are not read" in off
+
+
+def test_what_an_own_reward_does_to_the_teacher_is_measured_and_a_null_one_warned(value: BaseValue) -> None:
+    """The teacher's worth with the team's reward in an agent's place differs only for the agent with its own reward,
+    and only on the actions its own field prices; over the states the auction visits, a reassignment cost 40 times
+    the team's moves many of its targets, an idle bonus 1 % above the team's next to none, and only that one is
+    warned about."""
+    sc = with_own_reward(with_own_reward(builtin(), 1, reassign_cost=-40.0), 3, idle_bonus=1.01)
+    teacher = Teacher(sc, value)
+    assert teacher.own.tolist() == [False, True, False, True, False]
+    team = Team(sc, 64, seed=0)
+    team.reset()
+    who = np.arange(sc.n_agents)
+    effect = OwnEffect.zero(sc.n_agents)
+    for _ in range(6):
+        ctx = team.context()
+        _, q = teacher.improve(ctx, who)
+        shared = teacher.shared_worth(ctx, who, q)
+        judged = np.isfinite(q)
+        assert (shared[:, [0, 2, 4]][judged[:, [0, 2, 4]]] == q[:, [0, 2, 4]][judged[:, [0, 2, 4]]]).all()
+        rest = teacher.model.rest_action(ctx.prev[:, 1])  # resting where it is: no move for agent 1 to pay for
+        b = np.arange(len(rest))
+        ok = judged[b, 1, rest]
+        assert (shared[b, 1, rest][ok] == q[b, 1, rest][ok]).all()
+        effect.add(who, q, shared)
+        team.step(AuctionPolicy(sc).act(ctx))
+    summary = effect.summary(sc)
+    assert set(summary) == {sc.agents[1].name, sc.agents[3].name}
+    assert summary[sc.agents[1].name]["moved"] > 0.05, summary
+    assert summary[sc.agents[3].name]["moved"] < 0.01, summary
+    warnings = " | ".join(effect.warnings(sc, 1))
+    assert f"agents[3] ({sc.agents[3].name}): its own reward moved" in warnings
+    assert "agents[1]" not in warnings
 
 
 def test_soft_targets_share_near_ties_and_ignore_what_was_not_judged() -> None:

@@ -285,6 +285,8 @@ class ExpertRounds:
         """Training episodes played."""
         self.finished = False
         self.data: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        self.own_effect: list[OwnEffect] = []
+        """Every round's `OwnEffect`."""
         self._clear()
 
     def _clear(self) -> None:
@@ -293,6 +295,15 @@ class ExpertRounds:
         self.acts: list[IntArray] = []
         self.lvs: list[IntArray] = []
         self.keep_rng: np.random.Generator | None = None
+
+    def info(self) -> dict[str, Any]:
+        """What a checkpoint records of the rounds: the best round, every round's row, and what the agents' own
+        rewards did to each round's teacher (`OwnEffect.summary`)."""
+        return {
+            "best_round": self.best[1],
+            "rounds": [asdict(r) for r in self.rows],
+            "own_rewards": [e.summary(self.sc) for e in self.own_effect],
+        }
 
     def baseline(self) -> Policy:
         """The team policy of round 1 (`Settings.warm_baseline`)."""
@@ -378,8 +389,12 @@ class ExpertRounds:
             rmse = self.value.regress(played.levels, played.to_go, s.value_updates, seeds.expert_round(s.seed, r, 1))
         t1 = time.perf_counter()
         teacher = Teacher(self.sc, self.value, s.seed, s.load_weight)
-        better, worth = improve(teacher, self.sc, played, seeds.expert_round(s.seed, r, 0))
+        better, worth, effect = improve(teacher, self.sc, played, seeds.expert_round(s.seed, r, 0))
         t2 = time.perf_counter()
+        self.own_effect.append(effect)
+        if r == 1:
+            for warning in effect.warnings(self.sc, r):
+                print(f"warning: expert learner: {warning}", file=sys.stderr, flush=True)
         labeled = better >= 0
         changed = float((better != played.actions)[labeled].mean()) if labeled.any() else float("nan")
         self.data = [*self.data[-1:], self.student.tokens(played.knowledge, played.mask, worth)]
@@ -406,6 +421,12 @@ class ExpertRounds:
                 file=sys.stderr,
                 flush=True,
             )
+            own = effect.summary(self.sc)
+            if own:
+                told = ", ".join(f"{k} {v['moved']:.1%} ({v['changed']:.1%} of choices)" for k, v in own.items())
+                print(
+                    f"expert: round {r}: the agents' own rewards moved the teacher's targets: {told}", file=sys.stderr
+                )
         if c["mean"] < self.best[0]:  # a failed episode counts as the horizon
             self.best = (c["mean"], r, self.student.weights())
             self.finished = r >= s.rounds
@@ -452,14 +473,77 @@ def play(ex: ExpertRounds, first_batch: int, batches: int, on_batch: Callable[[]
             on_batch()
 
 
+@dataclass
+class OwnEffect:
+    """What every agent's own reward did to the teacher's choices in a round (zero for an agent without one): at
+    each of its judged steps where the teacher weighed more than one action, whether its choice differs from the
+    one it would make with the team's reward, and how far the policy's targets move (total variation)."""
+
+    judged: IntArray  # (N,) such steps
+    flips: IntArray  # (N,) of them where the choice differs
+    shift: FloatArray  # (N,) the sum of their targets' total variation
+
+    @staticmethod
+    def zero(n: int) -> OwnEffect:
+        return OwnEffect(np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n))
+
+    def add(self, who: IntArray, worth: FloatArray, shared: FloatArray) -> None:
+        """The steps of one chunk: what the teacher judged every action worth to the agents `who` (B, R, |Ḡ|), with
+        their own reward and with the team's."""
+        several = np.isfinite(worth).sum(axis=-1) > 1  # (B, R)
+        flips = worth.argmin(axis=-1) != shared.argmin(axis=-1)
+        with torch.no_grad():
+            pa, pb = (soft_targets(torch.from_numpy(np.asarray(w, dtype=np.float64))) for w in (worth, shared))
+            tv = 0.5 * (pa - pb).abs().sum(dim=-1).numpy()
+        self.judged[who] += several.sum(axis=0)
+        self.flips[who] += (flips & several).sum(axis=0)
+        self.shift[who] += np.where(several, tv, 0.0).sum(axis=0)
+
+    def summary(self, sc: Scenario) -> dict[str, dict[str, float]]:
+        """{agent name: {judged, changed (share of its choices), moved (mean share of its targets)}} of every agent
+        with its own reward."""
+        out = {}
+        for i in range(sc.n_agents):
+            if sc.agent_reward(i) != sc.reward:
+                n = max(1, int(self.judged[i]))
+                out[sc.agents[i].name] = {
+                    "judged": int(self.judged[i]),
+                    "changed": round(float(self.flips[i]) / n, 5),
+                    "moved": round(float(self.shift[i]) / n, 5),
+                }
+        return out
+
+    def warnings(self, sc: Scenario, rnd: int) -> list[str]:
+        """One sentence for every agent with its own reward that moved less than `OWN_EFFECT` of its targets."""
+        out = []
+        for i in np.nonzero([sc.agent_reward(i) != sc.reward for i in range(sc.n_agents)])[0]:
+            n = max(1, int(self.judged[i]))
+            moved = self.shift[i] / n
+            if moved < OWN_EFFECT:
+                out.append(
+                    f"agents[{i}] ({sc.agents[i].name}): its own reward moved {moved:.2%} of the teacher's targets "
+                    f"and changed its choice in {self.flips[i] / n:.2%} of its {int(self.judged[i]):,} judged steps of "
+                    f"round {rnd} against the team's reward: it changes little of what {sc.agents[i].name} learns "
+                    "(docs/model.md, The expert-iteration learner)"
+                )
+        return out
+
+
+OWN_EFFECT = 0.01
+"""An agent's own reward that moves less than this share of the policy's targets at its judged steps (the mean total
+variation against the team's reward) is warned about: it changes too little of what the agent learns to see."""
+
+
 def improve(
     teacher: Teacher, sc: Scenario, played: Played, seed: int, chunk: int = 1024
-) -> tuple[IntArray, FloatArray]:
-    """The teacher's choices (S, N) at every kept team step of `played`, -1 for the agents not labeled there, and
-    what every action is worth to them (S, N, |Ḡ|, float32 steps; inf where not judged)."""
+) -> tuple[IntArray, FloatArray, OwnEffect]:
+    """The teacher's choices (S, N) at every kept team step of `played`, -1 for the agents not labeled there, what
+    every action is worth to them (S, N, |Ḡ|, float32 steps; inf where not judged), and what the agents' own rewards
+    did to it."""
     n = sc.n_agents
     out = np.full_like(played.actions, -1)
     worth = np.full((*out.shape, sc.n_actions), np.inf, dtype=np.float32)
+    effect = OwnEffect.zero(n)
     rng = np.random.default_rng(seed)
     for i in range(0, len(out), chunk):
         who = np.arange(n) if n <= LABELED_AGENTS else np.sort(rng.choice(n, LABELED_AGENTS, replace=False))
@@ -468,7 +552,11 @@ def improve(
         a, q = teacher.improve(ctx, who)
         out[i : i + chunk, who] = a
         worth[i : i + chunk, who] = q
-    return out, worth
+        own = who[teacher.own[who]]
+        if own.size:
+            mine = teacher.own[who]
+            effect.add(own, q[:, mine], teacher.shared_worth(ctx, own, q[:, mine]))
+    return out, worth, effect
 
 
 def soft_targets(worth: torch.Tensor) -> torch.Tensor:
@@ -534,6 +622,8 @@ class ExpertRun:
     best_round: int
     rows: list[RoundRow]
     episodes: int
+    info: dict[str, Any]
+    """`ExpertRounds.info`."""
 
 
 def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> ExpertRun:
@@ -551,7 +641,7 @@ def train_expert(sc: Scenario, settings: Settings, progress: bool = True) -> Exp
     finally:
         bar.close()
         torch.set_num_threads(threads)
-    return ExpertRun(ex.best[2], ex.best[1], ex.rows, ex.done)
+    return ExpertRun(ex.best[2], ex.best[1], ex.rows, ex.done, ex.info())
 
 
 def train_expert_run(
@@ -572,8 +662,7 @@ def train_expert_run(
     run = train_expert(scenario, settings, progress)
     train_time = time.perf_counter() - t_start
     write_rounds(out, run.rows, scenario.name, run.best_round)
-    info = {"best_round": run.best_round, "rounds": [asdict(r) for r in run.rows]}
-    save_checkpoint(ckpt_dir, scenario, settings, settings.seed, run.episodes, run.best_weights, info=info)
+    save_checkpoint(ckpt_dir, scenario, settings, settings.seed, run.episodes, run.best_weights, info=run.info)
     log = RunLog(out, 0, False, tensorboard)
     history: list[dict[str, float]] = []
     metrics: dict[str, Any] = {}

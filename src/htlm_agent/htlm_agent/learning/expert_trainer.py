@@ -16,7 +16,6 @@ networks; a step some agent's transitions missed is left out of the teacher's st
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -154,7 +153,7 @@ class ExpertTrainer:
         """The checkpoint of the best round so far (the format of `htlm train --learner expert`), with rounds.csv
         and rounds.png beside it in the run directory."""
         ex = self.rounds
-        info = {**extra, "best_round": ex.best[1], "rounds": [asdict(r) for r in ex.rows]}
+        info = {**extra, **ex.info()}
         if len(ex.rows) > 1:
             write_rounds(directory.parent, ex.rows, self.scenario.name, ex.best[1])
         return save_checkpoint(

@@ -15,6 +15,7 @@ own play it is the expert-iteration learner's teacher (`Teacher`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -541,19 +542,35 @@ class Teacher:
         self.sc, self.model = sc, self.look.model
         self.tables = RewardTables.build(sc)
         self.rates = load_rates(sc, load_weight)
+        shared = dataclasses.replace(sc, agents=tuple(dataclasses.replace(a, reward=None) for a in sc.agents))
+        self.shared_tables = RewardTables.build(shared)
+        self.shared_rates = load_rates(shared, load_weight)
+        self.own = np.array([sc.agent_reward(i) != sc.reward for i in range(sc.n_agents)], dtype=bool)
+        """(N,) the agents whose own reward differs from the team's (`shared_worth`)."""
 
-    def load_steps(self, marg: FloatArray, prev: IntArray) -> FloatArray:
+    def load_steps(self, marg: FloatArray, prev: IntArray, shared: bool = False) -> FloatArray:
         """(B, N, |Ḡ|): the steps every action of Ḡ costs every agent in load-management reward (minus R_II + T_RP
-        times its rate, within ±`LOAD_CAP`), from its marginals now (B, N, p, L) and a_o (B, N); 0 in HT mode."""
+        times its rate, within ±`LOAD_CAP`), from its marginals now (B, N, p, L) and a_o (B, N); 0 in HT mode.
+        `shared`: with the team's reward in place of every agent's own."""
+        tables, rates = (self.shared_tables, self.shared_rates) if shared else (self.tables, self.rates)
         b, n = prev.shape
         out = np.zeros((b, n, self.sc.n_actions))
-        if not self.tables.load_management or not self.rates.any():
+        if not tables.load_management or not rates.any():
             return out
-        prior = marg if self.tables.difference.any() else None
+        prior = marg if tables.difference.any() else None
         for g in range(self.sc.n_actions):
-            _, parts = reward(self.model, self.tables, prev, marg, np.full((b, n), g, dtype=np.int64), prior)
-            out[:, :, g] = -(parts["idle"] + parts["reassign"]) * self.rates[None, :]
+            _, parts = reward(self.model, tables, prev, marg, np.full((b, n), g, dtype=np.int64), prior)
+            out[:, :, g] = -(parts["idle"] + parts["reassign"]) * rates[None, :]
         return np.clip(out, -LOAD_CAP, LOAD_CAP)
+
+    def shared_worth(self, ctx: Context, who: IntArray, worth: FloatArray) -> FloatArray:
+        """What every action of Ḡ would be worth to the agents `who` (R,) had each the team's reward instead of its
+        own, from what `improve` judged it worth (B, R, |Ḡ|): their own load terms swapped for the team's (the
+        sequence before an agent's own choice does not read its own reward, so nothing else moves)."""
+        own = self.load_steps(ctx.marginals, ctx.prev)[:, who]
+        team = self.load_steps(ctx.marginals, ctx.prev, shared=True)[:, who]
+        out: FloatArray = worth - own + team
+        return out
 
     def unseen_steps(self, marg: FloatArray, who: IntArray) -> FloatArray:
         """(B, R, |Ḡ|): the steps every action of Ḡ costs each of the agents `who` (R,) in what it leaves unseen of
