@@ -121,7 +121,8 @@ def test_what_an_own_reward_does_to_the_teacher_is_measured_and_a_null_one_warne
     assert set(summary) == {sc.agents[1].name, sc.agents[3].name}
     assert summary[sc.agents[1].name]["moved"] > 0.05, summary
     assert summary[sc.agents[3].name]["moved"] < 0.01, summary
-    warnings = " | ".join(effect.warnings(sc, 1))
+    assert effect.judged[[1, 3]].min() >= 200
+    warnings = " | ".join(effect.warnings(sc, [1, 3]))
     assert f"agents[3] ({sc.agents[3].name}): its own reward moved" in warnings
     assert "agents[1]" not in warnings
 

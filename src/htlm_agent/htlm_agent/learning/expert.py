@@ -137,22 +137,16 @@ def unread_settings(sc: Scenario, settings: Settings) -> list[str]:
         out.append(f"with {why} the teacher counts completion alone: the own rewards of {names} are not read")
     if settings.load_weight > 0 and tables.load_management:
         rates = load_rates(sc, settings.load_weight)
-        shared = sc.reward
-        for i in own:  # an agent's own setting, told apart from the team's by less than the policy's targets can
-            r, name = sc.agent_reward(i), sc.agents[i].name
-            for field, mine, team in (
-                ("reassign_cost", r.reassign_cost, shared.reassign_cost),
-                ("idle_bonus", r.idle_bonus * r.idle_incentive, shared.idle_bonus * shared.idle_incentive),
-            ):
-                gap = abs(mine - team) * rates[i]
-                if 0 < gap < TEMPERATURE:
-                    out.append(
-                        f"agents[{i}] ({name}): {field} differs from the team's by {gap:.3f} steps a choice in the "
-                        f"teacher's eyes (a unit of reward is worth {rates[i]:.4f} steps with {sc.n_agents} agents), "
-                        f"less than the {TEMPERATURE} steps the policy's targets tell apart: it may change little of "
-                        f"what {name} learns (a larger load_weight weighs every load term more, and can leave "
-                        "missions unfinished: docs/model.md, The expert-iteration learner)"
-                    )
+        for i, gaps in small_own_gaps(sc, settings).items():
+            name = sc.agents[i].name
+            for field, gap in gaps:
+                out.append(
+                    f"agents[{i}] ({name}): {field} differs from the team's by {gap:.3f} steps a choice in the "
+                    f"teacher's eyes (a unit of reward is worth {rates[i]:.4f} steps with {sc.n_agents} agents), "
+                    f"less than the {TEMPERATURE} steps the policy's targets tell apart: it may change little of "
+                    f"what {name} learns (a larger load_weight weighs every load term more, and can leave "
+                    "missions unfinished: docs/model.md, The expert-iteration learner)"
+                )
         for i in range(sc.n_agents):
             r = sc.agent_reward(i)
             worth = abs(r.reassign_cost) * rates[i]
@@ -168,6 +162,26 @@ def unread_settings(sc: Scenario, settings: Settings) -> list[str]:
                     f"agents[{i}] ({sc.agents[i].name}): idle_bonus {r.idle_bonus!r} is worth {bonus:.2f} steps, more "
                     f"than the {LOAD_CAP} a choice's load terms may count for: it acts as {LOAD_CAP / rates[i]:.2f}"
                 )
+    return out
+
+
+def small_own_gaps(sc: Scenario, settings: Settings) -> dict[int, list[tuple[str, float]]]:
+    """{agent: [(field, steps)]}: every agent's own reassignment cost or idle bonus that the teacher tells apart from
+    the team's by less than the policy's targets do (`TEMPERATURE`), in steps a choice (`unread_settings`)."""
+    rates = load_rates(sc, settings.load_weight)
+    shared, out = sc.reward, {}
+    for i in range(sc.n_agents):
+        r = sc.agent_reward(i)
+        gaps = [
+            (field, abs(mine - team) * rates[i])
+            for field, mine, team in (
+                ("reassign_cost", r.reassign_cost, shared.reassign_cost),
+                ("idle_bonus", r.idle_bonus * r.idle_incentive, shared.idle_bonus * shared.idle_incentive),
+            )
+        ]
+        small = [(f, g) for f, g in gaps if 0 < g < TEMPERATURE]
+        if small:
+            out[i] = small
     return out
 
 
@@ -287,6 +301,11 @@ class ExpertRounds:
         self.data: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
         self.own_effect: list[OwnEffect] = []
         """Every round's `OwnEffect`."""
+        self.own_total = OwnEffect.zero(sc.n_agents)
+        warned = small_own_gaps(sc, settings) if settings.load_weight > 0 else {}
+        self.own_untold = {i for i in range(sc.n_agents) if sc.agent_reward(i) != sc.reward and i not in warned}
+        """The agents with their own reward whose effect is still to be told (`OWN_JUDGED`; not those whose own
+        reward `unread_settings` warned about already)."""
         self._clear()
 
     def _clear(self) -> None:
@@ -392,9 +411,11 @@ class ExpertRounds:
         better, worth, effect = improve(teacher, self.sc, played, seeds.expert_round(s.seed, r, 0))
         t2 = time.perf_counter()
         self.own_effect.append(effect)
-        if r == 1:
-            for warning in effect.warnings(self.sc, r):
-                print(f"warning: expert learner: {warning}", file=sys.stderr, flush=True)
+        self.own_total.merge(effect)
+        told = [i for i in self.own_untold if self.own_total.judged[i] >= OWN_JUDGED]
+        self.own_untold -= set(told)
+        for warning in self.own_total.warnings(self.sc, sorted(told)):
+            print(f"warning: expert learner: {warning}", file=sys.stderr, flush=True)
         labeled = better >= 0
         changed = float((better != played.actions)[labeled].mean()) if labeled.any() else float("nan")
         self.data = [*self.data[-1:], self.student.tokens(played.knowledge, played.mask, worth)]
@@ -423,9 +444,12 @@ class ExpertRounds:
             )
             own = effect.summary(self.sc)
             if own:
-                told = ", ".join(f"{k} {v['moved']:.1%} ({v['changed']:.1%} of choices)" for k, v in own.items())
+                each = ", ".join(
+                    f"{k} {v['moved']:.1%} ({v['changed']:.1%} of choices)" if v["judged"] else f"{k} not judged"
+                    for k, v in own.items()
+                )
                 print(
-                    f"expert: round {r}: the agents' own rewards moved the teacher's targets: {told}", file=sys.stderr
+                    f"expert: round {r}: the agents' own rewards moved the teacher's targets: {each}", file=sys.stderr
                 )
         if c["mean"] < self.best[0]:  # a failed episode counts as the horizon
             self.best = (c["mean"], r, self.student.weights())
@@ -513,18 +537,24 @@ class OwnEffect:
                 }
         return out
 
-    def warnings(self, sc: Scenario, rnd: int) -> list[str]:
-        """One sentence for every agent with its own reward that moved less than `OWN_EFFECT` of its targets."""
+    def merge(self, other: OwnEffect) -> None:
+        """Add `other`'s steps to these."""
+        self.judged += other.judged
+        self.flips += other.flips
+        self.shift += other.shift
+
+    def warnings(self, sc: Scenario, agents: list[int]) -> list[str]:
+        """One sentence for every agent of `agents` whose own reward moved less than `OWN_EFFECT` of its targets."""
         out = []
-        for i in np.nonzero([sc.agent_reward(i) != sc.reward for i in range(sc.n_agents)])[0]:
+        for i in agents:
             n = max(1, int(self.judged[i]))
             moved = self.shift[i] / n
             if moved < OWN_EFFECT:
                 out.append(
                     f"agents[{i}] ({sc.agents[i].name}): its own reward moved {moved:.2%} of the teacher's targets "
-                    f"and changed its choice in {self.flips[i] / n:.2%} of its {int(self.judged[i]):,} judged steps of "
-                    f"round {rnd} against the team's reward: it changes little of what {sc.agents[i].name} learns "
-                    "(docs/model.md, The expert-iteration learner)"
+                    f"and changed its choice in {self.flips[i] / n:.2%} of its {int(self.judged[i]):,} judged steps "
+                    f"against the team's reward: it changes little of what {sc.agents[i].name} learns (docs/model.md, "
+                    "The expert-iteration learner)"
                 )
         return out
 
@@ -532,6 +562,9 @@ class OwnEffect:
 OWN_EFFECT = 0.01
 """An agent's own reward that moves less than this share of the policy's targets at its judged steps (the mean total
 variation against the team's reward) is warned about: it changes too little of what the agent learns to see."""
+
+OWN_JUDGED = 200
+"""The judged steps of an agent (over the rounds so far) on which its own reward's effect is told (`OwnEffect`)."""
 
 
 def improve(
