@@ -157,3 +157,19 @@ def test_a_short_run_learns_the_teachers_choices_and_beats_the_auction(tmp_path:
     assert learned["mean"] < auction["mean"] and learned["failure_rate"] <= auction["failure_rate"]
     with pytest.raises(CheckpointError, match="nothing to resume"):
         train(builtin(), s, tmp_path / "run", progress=False, tensorboard=False, resume=True)
+
+
+def test_the_run_keeps_among_rounds_as_soon_as_the_soonest_the_one_with_most_reserve() -> None:
+    """Mission first, load management second: a round within one standard error of the soonest that leaves more
+    capability unused is kept; one beyond it is not, however much it leaves unused."""
+    from htlm_agent.learning.expert import RoundRow, select_round
+
+    def row(r: int, completion: float, se: float, unused: float) -> RoundRow:
+        nan = float("nan")
+        return RoundRow(r, 0, 0.0, nan, nan, nan, nan, completion, se, 0.0, unused, 0.0)
+
+    base = row(0, 12.0, 0.3, 0.93)  # the auction's row is never kept
+    assert select_round([base, row(1, 8.32, 0.04, 0.31), row(2, 8.32, 0.05, 0.74)]) == 2
+    assert select_round([base, row(1, 8.30, 0.04, 0.31), row(2, 8.33, 0.05, 0.74)]) == 2
+    assert select_round([base, row(1, 8.30, 0.04, 0.31), row(2, 8.35, 0.01, 0.90)]) == 1
+    assert select_round([base, row(1, 8.50, 0.04, 0.80), row(2, 8.30, 0.04, 0.70), row(3, 8.40, 0.1, 0.9)]) == 2

@@ -19,9 +19,11 @@ Every round:
    choose the teacher's action from the agent's own knowledge state (cross-entropy over Â, Adam), on this round's
    and the last round's improved choices; it is validated on the run's validation episodes.
 
-Training stops at the first round whose policy validates no sooner than the best so far (or after `rounds`); the best
-round's network is the run's policy. Acting with it is one forward pass of the token network per agent and step,
-whatever the size of the team. The run writes rounds.csv (one row per round) and rounds.png beside the usual files.
+Training stops at the first round whose policy validates no sooner than the soonest so far (or after `rounds`). The
+run's policy is the network of the round `select_round` keeps: among the rounds within one standard error of the
+soonest, the one that leaves the most capability unused (mission first, load management second). Acting with it is
+one forward pass of the token network per agent and step, whatever the size of the team. The run writes rounds.csv
+(one row per round) and rounds.png beside the usual files.
 """
 
 from __future__ import annotations
@@ -294,7 +296,10 @@ class ExpertRounds:
         """The round being played (1-based)."""
         self.rows: list[RoundRow] = []
         self.best: tuple[float, int, list[list[Any]]] = (math.inf, 0, self.student.weights())
-        """(validation completion, round, weights) of the best round so far (round 0: the fresh network)."""
+        """(validation completion, round, weights) of the round the run keeps so far (`select_round`; round 0: the
+        fresh network)."""
+        self.weights: dict[int, list[list[Any]]] = {}
+        """Every round's weights until the rounds are over (`select_round` may choose any of them)."""
         self.done = 0
         """Training episodes played."""
         self.finished = False
@@ -451,11 +456,14 @@ class ExpertRounds:
                 print(
                     f"expert: round {r}: the agents' own rewards moved the teacher's targets: {each}", file=sys.stderr
                 )
-        if c["mean"] < self.best[0]:  # a failed episode counts as the horizon
-            self.best = (c["mean"], r, self.student.weights())
-            self.finished = r >= s.rounds
-        else:
-            self.finished = True
+        soonest = min((x.val_completion for x in self.rows[1:-1]), default=math.inf)
+        self.finished = r >= s.rounds or not c["mean"] < soonest  # a failed episode counts as the horizon
+        self.weights[r] = self.student.weights()
+        keep = select_round(self.rows)
+        if keep != self.best[1]:
+            self.best = (self.rows[keep].val_completion, keep, self.weights[keep])
+        if self.finished:
+            self.weights.clear()
         base = self.rows[0].val_completion
         if self.finished and self.best[0] >= base:  # said, not hidden: the checkpoint is a network, not the auction
             print(
@@ -466,6 +474,16 @@ class ExpertRounds:
             )
         self.round += 1
         return row
+
+
+def select_round(rows: list[RoundRow]) -> int:
+    """The round whose network the run keeps, from the validation rows of rounds 1.. (`rows[0]` is the baseline's):
+    mission first, load management second. Among the rounds whose validation completion is within one standard error
+    of the soonest round's (they validate on the same episodes), the one that leaves the most capability unused."""
+    rounds = rows[1:]
+    best = min(rounds, key=lambda x: x.val_completion)
+    close = [x for x in rounds if x.val_completion <= best.val_completion + best.val_se]
+    return max(close, key=lambda x: (x.val_unused_fraction, -x.val_completion)).round
 
 
 def play(ex: ExpertRounds, first_batch: int, batches: int, on_batch: Callable[[], None] | None = None) -> None:

@@ -842,7 +842,8 @@ def run_team(cfg: LaunchConfig) -> int:
 
 
 def summarize(run_dir: Path) -> dict[str, Any]:
-    """Aggregate the world's episode log (world.jsonl) of a run directory."""
+    """Aggregate the world's episode log (world.jsonl) of a run directory (`reassign_before_mean`: the team's moves
+    to another site before completion, per episode)."""
     f = run_dir / "world.jsonl"
     if not f.exists():
         return {"episodes": 0}
@@ -859,6 +860,7 @@ def summarize(run_dir: Path) -> dict[str, Any]:
         "completion_mean": sum(comp) / len(comp),
         "failure_rate": sum(e["failed"] for e in eps) / len(eps),
         "unused_fraction_mean": sum(e["unused_fraction"] for e in eps) / len(eps),
+        "reassign_before_mean": sum(e.get("reassign_before", 0) for e in eps) / len(eps),
         "absent_agent_steps": sum(sum(a) for a in batches.values()),
         "seconds": sum(batches),
     }
