@@ -160,8 +160,9 @@ def test_a_short_run_learns_the_teachers_choices_and_beats_the_auction(tmp_path:
 
 
 def test_the_run_keeps_among_rounds_as_soon_as_the_soonest_the_one_with_most_reserve() -> None:
-    """Mission first, load management second: a round within one standard error of the soonest that leaves more
-    capability unused is kept; one beyond it is not, however much it leaves unused."""
+    """Mission first, load management second: a round within one standard error of the soonest that leaves at least
+    5 points more of the capability unused is kept; one beyond it is not, however much it leaves unused, nor one
+    that leaves only a little more."""
     from htlm_agent.learning.expert import RoundRow, select_round
 
     def row(r: int, completion: float, se: float, unused: float) -> RoundRow:
@@ -173,3 +174,4 @@ def test_the_run_keeps_among_rounds_as_soon_as_the_soonest_the_one_with_most_res
     assert select_round([base, row(1, 8.30, 0.04, 0.31), row(2, 8.33, 0.05, 0.74)]) == 2
     assert select_round([base, row(1, 8.30, 0.04, 0.31), row(2, 8.35, 0.01, 0.90)]) == 1
     assert select_round([base, row(1, 8.50, 0.04, 0.80), row(2, 8.30, 0.04, 0.70), row(3, 8.40, 0.1, 0.9)]) == 2
+    assert select_round([base, row(1, 8.01, 0.08, 0.64), row(2, 7.678, 0.044, 0.751), row(3, 7.708, 0.04, 0.77)]) == 2

@@ -20,8 +20,8 @@ Every round:
    and the last round's improved choices; it is validated on the run's validation episodes.
 
 Training stops at the first round whose policy validates no sooner than the soonest so far (or after `rounds`). The
-run's policy is the network of the round `select_round` keeps: among the rounds within one standard error of the
-soonest, the one that leaves the most capability unused (mission first, load management second). Acting with it is
+run's policy is the network of the round `select_round` keeps: the soonest, unless a round within one standard error
+of it leaves materially more capability unused (mission first, load management second). Acting with it is
 one forward pass of the token network per agent and step, whatever the size of the team. The run writes rounds.csv
 (one row per round) and rounds.png beside the usual files.
 """
@@ -476,14 +476,20 @@ class ExpertRounds:
         return row
 
 
+RESERVE_GAIN = 0.05
+"""`select_round`: the share of the team's capability a round as soon as the soonest must leave unused beyond it."""
+
+
 def select_round(rows: list[RoundRow]) -> int:
     """The round whose network the run keeps, from the validation rows of rounds 1.. (`rows[0]` is the baseline's):
-    mission first, load management second. Among the rounds whose validation completion is within one standard error
-    of the soonest round's (they validate on the same episodes), the one that leaves the most capability unused."""
+    mission first, load management second. The soonest round, unless a round whose validation completion is within
+    one standard error of it (they validate on the same episodes) leaves at least `RESERVE_GAIN` more of the team's
+    capability unused: then the one of those that leaves the most."""
     rounds = rows[1:]
     best = min(rounds, key=lambda x: x.val_completion)
     close = [x for x in rounds if x.val_completion <= best.val_completion + best.val_se]
-    return max(close, key=lambda x: (x.val_unused_fraction, -x.val_completion)).round
+    most = max(close, key=lambda x: (x.val_unused_fraction, -x.val_completion))
+    return most.round if most.val_unused_fraction >= best.val_unused_fraction + RESERVE_GAIN else best.round
 
 
 def play(ex: ExpertRounds, first_batch: int, batches: int, on_batch: Callable[[], None] | None = None) -> None:
