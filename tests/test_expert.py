@@ -107,8 +107,7 @@ def test_what_an_own_reward_does_to_the_teacher_is_measured_and_a_null_one_warne
     effect = OwnEffect.zero(sc.n_agents)
     for _ in range(6):
         ctx = team.context()
-        _, q = teacher.improve(ctx, who)
-        shared = teacher.shared_worth(ctx, who, q)
+        _, q, shared = teacher.improve_shared(ctx, who)
         judged = np.isfinite(q)
         assert (shared[:, [0, 2, 4]][judged[:, [0, 2, 4]]] == q[:, [0, 2, 4]][judged[:, [0, 2, 4]]]).all()
         rest = teacher.model.rest_action(ctx.prev[:, 1])  # resting where it is: no move for agent 1 to pay for

@@ -342,6 +342,10 @@ class Scenario:
         own = self.agents[i].reward
         return own if own is not None else self.reward
 
+    def has_own_reward(self, i: int) -> bool:
+        """Whether agent i's reward differs from the shared one (its own fields set to other values)."""
+        return self.agent_reward(i) != self.reward
+
     def with_events(self, events: tuple[EventSpec, ...] | list[EventSpec], src: str = "events") -> Scenario:
         """A copy whose episodes have `events`, checked against the operation (errors name `src`)."""
         new = dataclasses.replace(self, events=tuple(events))

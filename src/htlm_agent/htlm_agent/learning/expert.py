@@ -132,7 +132,7 @@ def unread_settings(sc: Scenario, settings: Settings) -> list[str]:
         )
     if not math.isclose(sc.gamma, 0.95):
         out.append(f"gamma {sc.gamma!r} is not read: the teacher counts undiscounted steps to finish")
-    own = [i for i in range(sc.n_agents) if sc.agent_reward(i) != sc.reward]
+    own = [i for i in range(sc.n_agents) if sc.has_own_reward(i)]
     if own and (settings.load_weight <= 0 or not tables.load_management):
         names = ", ".join(sc.agents[i].name for i in own)
         why = f"load_weight {settings.load_weight!r}" if settings.load_weight <= 0 else "this mode"
@@ -308,7 +308,7 @@ class ExpertRounds:
         """Every round's `OwnEffect`."""
         self.own_total = OwnEffect.zero(sc.n_agents)
         warned = small_own_gaps(sc, settings) if settings.load_weight > 0 else {}
-        self.own_untold = {i for i in range(sc.n_agents) if sc.agent_reward(i) != sc.reward and i not in warned}
+        self.own_untold = {i for i in range(sc.n_agents) if sc.has_own_reward(i) and i not in warned}
         """The agents with their own reward whose effect is still to be told (`OWN_JUDGED`; not those whose own
         reward `unread_settings` warned about already)."""
         self._clear()
@@ -460,8 +460,7 @@ class ExpertRounds:
         self.finished = r >= s.rounds or not c["mean"] < soonest  # a failed episode counts as the horizon
         self.weights[r] = self.student.weights()
         keep = select_round(self.rows)
-        if keep != self.best[1]:
-            self.best = (self.rows[keep].val_completion, keep, self.weights[keep])
+        self.best = (self.rows[keep].val_completion, keep, self.weights[keep])
         if self.finished:
             self.weights.clear()
         base = self.rows[0].val_completion
@@ -552,7 +551,7 @@ class OwnEffect:
         with its own reward."""
         out = {}
         for i in range(sc.n_agents):
-            if sc.agent_reward(i) != sc.reward:
+            if sc.has_own_reward(i):
                 n = max(1, int(self.judged[i]))
                 out[sc.agents[i].name] = {
                     "judged": int(self.judged[i]),
@@ -606,13 +605,14 @@ def improve(
         who = np.arange(n) if n <= LABELED_AGENTS else np.sort(rng.choice(n, LABELED_AGENTS, replace=False))
         k = played.knowledge[i : i + chunk].astype(np.float64)
         ctx = knowledge_context(sc, k, played.mask[i : i + chunk])
-        a, q = teacher.improve(ctx, who)
+        mine = teacher.own[who]
+        if mine.any():
+            a, q, shared = teacher.improve_shared(ctx, who)
+            effect.add(who[mine], q[:, mine], shared[:, mine])
+        else:
+            a, q = teacher.improve(ctx, who)
         out[i : i + chunk, who] = a
         worth[i : i + chunk, who] = q
-        own = who[teacher.own[who]]
-        if own.size:
-            mine = teacher.own[who]
-            effect.add(own, q[:, mine], teacher.shared_worth(ctx, own, q[:, mine]))
     return out, worth, effect
 
 

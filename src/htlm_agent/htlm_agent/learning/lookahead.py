@@ -297,7 +297,7 @@ def candidate_tasks(model: Model) -> list[IntArray]:
 
 def own_rewards(sc: Scenario) -> list[str]:
     """The agents of `sc` that carry their own reward fields (`agents[i].reward`)."""
-    return [a.name for a in sc.agents if a.reward is not None and a.reward != sc.reward]
+    return [a.name for i, a in enumerate(sc.agents) if sc.has_own_reward(i)]
 
 
 class LookaheadPolicy:
@@ -545,8 +545,8 @@ class Teacher:
         shared = dataclasses.replace(sc, agents=tuple(dataclasses.replace(a, reward=None) for a in sc.agents))
         self.shared_tables = RewardTables.build(shared)
         self.shared_rates = load_rates(shared, load_weight)
-        self.own = np.array([sc.agent_reward(i) != sc.reward for i in range(sc.n_agents)], dtype=bool)
-        """(N,) the agents whose own reward differs from the team's (`shared_worth`)."""
+        self.own = np.array([sc.has_own_reward(i) for i in range(sc.n_agents)], dtype=bool)
+        """(N,) the agents whose own reward differs from the team's (`improve_shared`)."""
 
     def load_steps(self, marg: FloatArray, prev: IntArray, shared: bool = False) -> FloatArray:
         """(B, N, |Ḡ|): the steps every action of Ḡ costs every agent in load-management reward (minus R_II + T_RP
@@ -562,15 +562,6 @@ class Teacher:
             _, parts = reward(self.model, tables, prev, marg, np.full((b, n), g, dtype=np.int64), prior)
             out[:, :, g] = -(parts["idle"] + parts["reassign"]) * rates[None, :]
         return np.clip(out, -LOAD_CAP, LOAD_CAP)
-
-    def shared_worth(self, ctx: Context, who: IntArray, worth: FloatArray) -> FloatArray:
-        """What every action of Ḡ would be worth to the agents `who` (R,) had each the team's reward instead of its
-        own, from what `improve` judged it worth (B, R, |Ḡ|): their own load terms swapped for the team's (the
-        sequence before an agent's own choice does not read its own reward, so nothing else moves)."""
-        own = self.load_steps(ctx.marginals, ctx.prev)[:, who]
-        team = self.load_steps(ctx.marginals, ctx.prev, shared=True)[:, who]
-        out: FloatArray = worth - own + team
-        return out
 
     def unseen_steps(self, marg: FloatArray, who: IntArray) -> FloatArray:
         """(B, R, |Ḡ|): the steps every action of Ḡ costs each of the agents `who` (R,) in what it leaves unseen of
@@ -592,6 +583,19 @@ class Teacher:
     def improve(self, ctx: Context, who: IntArray) -> tuple[IntArray, FloatArray]:
         """The teacher's choices (B, R) of the agents `who` (R,) at the step of `ctx`, each from its own row, and
         what every action of Ḡ is worth to them (B, R, |Ḡ|), in steps (inf: not judged)."""
-        load = self.load_steps(ctx.marginals, ctx.prev)[:, who] + self.unseen_steps(ctx.marginals[:, who], who)
+        return self._improve(ctx, who, self.load_steps(ctx.marginals, ctx.prev)[:, who])
+
+    def improve_shared(self, ctx: Context, who: IntArray) -> tuple[IntArray, FloatArray, FloatArray]:
+        """`improve`, and what every action of Ḡ would be worth to the agents `who` had each the team's reward instead
+        of its own (B, R, |Ḡ|): their own load terms swapped for the team's (the sequence before an agent's own choice
+        does not read its own reward, so nothing else moves)."""
+        own = self.load_steps(ctx.marginals, ctx.prev)[:, who]
+        a, q = self._improve(ctx, who, own)
+        team = self.load_steps(ctx.marginals, ctx.prev, shared=True)[:, who]
+        return a, q, q - own + team
+
+    def _improve(self, ctx: Context, who: IntArray, own: FloatArray) -> tuple[IntArray, FloatArray]:
+        """`improve` with the agents' own load-management steps `own` (B, R, |Ḡ|)."""
+        load = own + self.unseen_steps(ctx.marginals[:, who], who)
         q = np.full(load.shape, np.inf)
         return self.look.act_rows(ctx, who, load, q), q
