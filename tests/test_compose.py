@@ -135,6 +135,19 @@ def test_the_option_is_read_and_checked(tmp_path: Path) -> None:
         config(["evaluate", "--policy", "greedy", "--run-dir", run, "--agents-per-process", "-1"])
 
 
+def test_with_simulated_robots_the_period_lets_a_robot_reach_any_site_within_a_step(tmp_path: Path) -> None:
+    run = ["--policy", "greedy", "--run-dir", str(tmp_path / "r")]
+    cfg = config(["deploy", "--scenario", "facility-20", "--robots", "sim", *run])
+    assert cfg.period == 7.5 and "7.5 s" in cfg.notes[0] and "zone1 to zone8" in cfg.notes[0]
+    fast = config(["deploy", "--scenario", "facility-20", "--robots", "sim", "--robot-param", "speed=200.0", *run])
+    assert fast.period == 1.2
+    short = config(["deploy", "--scenario", "facility-20", "--robots", "sim", "--period", "0.5", *run])
+    assert short.period == 0.5 and short.notes[0].startswith("warning: --period 0.5 s is shorter than the 7.5 s")
+    assert config(["deploy", "--scenario", "facility-20", "--robots", "sim", "--period", "8", *run]).notes == ()
+    plain = config(["deploy", "--scenario", "facility-20", *run])  # no robots: the free clock's default
+    assert plain.period == launch.FREE_PERIOD and plain.notes == ()
+
+
 def test_the_hosted_agents_are_named_node_equals_file() -> None:
     assert parse_hosted(["htlm_agent1=/a b/p1.yaml", "htlm_agent2=p=2.yaml"]) == [
         ("htlm_agent1", "/a b/p1.yaml"),

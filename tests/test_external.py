@@ -4,6 +4,8 @@ observations, and the robots' cores (driving, arrival, the stand-in operation, s
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -11,8 +13,16 @@ from htlm_agent.mind.deploy import DeployObservations
 from htlm_world.episode import DeployEpisode
 from htlm_world.model import Model
 from htlm_world.protocol import LockstepSettings, WorldProtocol, world_protocol
-from htlm_world.robots import Drive, Sensing, StandInOperation, action_distance, site_distance
-from htlm_world.scenario import builtin
+from htlm_world.robots import (
+    Drive,
+    Sensing,
+    StandInOperation,
+    action_distance,
+    arrival_period,
+    longest_drive,
+    site_distance,
+)
+from htlm_world.scenario import builtin, load
 
 
 def _external(episodes: int = 1) -> WorldProtocol:
@@ -111,6 +121,16 @@ def test_a_robot_drives_to_its_goal_at_its_speed_and_stops_there() -> None:
         d.advance(1.0)
     assert (d.x, d.y) == (30.0, 40.0) and d.advance(1.0) == (0.0, 0.0)
     assert Drive(1.0, 2.0, speed=0.0, goal=(50.0, 0.0)).advance(5.0) == (0.0, 0.0)
+
+
+def test_the_arrival_period_lets_a_robot_drive_the_farthest_way_within_a_step() -> None:
+    sc = load("facility-20")
+    metres, a, b = longest_drive(sc)
+    assert {sc.sites[a].name, sc.sites[b].name} == {"zone1", "zone8"} and metres == pytest.approx(math.hypot(120, 40))
+    period = arrival_period(sc, 20.0)
+    assert metres / 20.0 + 0.5 <= period <= metres / 20.0 * 1.1 + 0.6 and round(period * 10) == period * 10
+    assert arrival_period(sc, 200.0) < period  # faster robots, shorter steps
+    assert arrival_period(sc, 0.0) == 0.5  # a robot that does not move: the margin alone
 
 
 def test_arrival_is_the_distance_to_the_site_of_the_action() -> None:

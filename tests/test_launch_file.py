@@ -73,6 +73,7 @@ def _stand_ins(monkeypatch: pytest.MonkeyPatch) -> None:
         "DeclareLaunchArgument", {"default_value", "description", "choices", "condition"}
     )
     actions.EmitEvent = _checked("EmitEvent", {"event", "condition"})  # type: ignore[attr-defined]
+    actions.LogInfo = _checked("LogInfo", {"msg", "condition"})  # type: ignore[attr-defined]
     actions.OpaqueFunction = _checked("OpaqueFunction", {"function", "args", "kwargs"})  # type: ignore[attr-defined]
     actions.RegisterEventHandler = _checked("RegisterEventHandler", {"condition"})  # type: ignore[attr-defined]
     mods["launch.event_handlers"].OnProcessExit = _checked(  # type: ignore[attr-defined]

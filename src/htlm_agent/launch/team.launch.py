@@ -21,7 +21,7 @@ import shlex
 from typing import Any
 
 from launch import LaunchContext, LaunchDescription
-from launch.actions import DeclareLaunchArgument, EmitEvent, OpaqueFunction, RegisterEventHandler
+from launch.actions import DeclareLaunchArgument, EmitEvent, LogInfo, OpaqueFunction, RegisterEventHandler
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration
@@ -40,7 +40,11 @@ ARGUMENTS = {
     "episodes": ("--episodes", "episodes to run (deploy: 0, until stopped)"),
     "batch": ("--batch", "B, episodes run at once"),
     "seed": ("--seed", "master seed"),
-    "period": ("--period", "step period of the free clock, seconds (external operation)"),
+    "period": (
+        "--period",
+        "step period of the free clock, seconds (external operation; default with robots:=sim: long enough for a "
+        "robot to drive between the two farthest sites within a step)",
+    ),
     "run_dir": ("--run-dir", "run directory (default: runs/launch-MODE__SEED__TIMESTAMP)"),
     "only": ("--only", "comma-separated processes to start on this host"),
     "domain_id": ("--domain-id", "ROS_DOMAIN_ID of every process (default 42)"),
@@ -73,7 +77,7 @@ def team(context: LaunchContext) -> list[Any]:
     names = ["mode", "record", "args", *ARGUMENTS]
     cfg = config(command_line({n: LaunchConfiguration(n).perform(context) for n in names}))
     env = ros_env(cfg)
-    actions: list[Any] = []
+    actions: list[Any] = [LogInfo(msg=f"htlm launch: {line}") for line in cfg.notes]  # the period chosen, a warning
     for spec, params_file in prepare(cfg):
         # a composed process has no node name of its own: its arguments name each hosted agent and its file
         named: dict[str, Any] = {"name": spec.node} if spec.node else {"arguments": spec.arguments(params_file.parent)}

@@ -4,7 +4,8 @@ operation of the simulated robots (docs/ros.md, Connecting your robots).
 The model has no travel: an assignment takes effect in the step it is chosen. With real robots an agent works on
 its task, and observes it, only once its robot is at the task's site (within an arrival radius). The simulated
 robots (`htlm_world.ros.robot_node`) and their stand-in operation (`htlm_world.ros.operation_node`) apply exactly
-that: a robot that has not arrived adds no capability to its task and publishes no observation that step.
+that: a robot that has not arrived adds no capability to its task and publishes no observation that step. A step
+period that lets a robot reach any site within its step (`arrival_period`) is what makes a deployment the model.
 """
 
 from __future__ import annotations
@@ -30,6 +31,33 @@ def site_distance(scenario: Scenario, site: int, x: float, y: float) -> float:
 def action_distance(model: Model, action: int, x: float, y: float) -> float:
     """Distance from (x, y) to the site of `action` (an index of G-bar)."""
     return site_distance(model.scenario, int(model.action_site[action]), x, y)
+
+
+ARRIVAL_MARGIN = 0.5
+"""Seconds a step leaves, beyond the drive, for an agent to hear its teammates and send its goal after the step's
+instant (`arrival_period`)."""
+
+DRIVE_SLACK = 1.1
+"""The longest drive's time is stretched by this factor in `arrival_period` (a robot that accelerates or turns)."""
+
+
+def longest_drive(scenario: Scenario) -> tuple[float, int, int]:
+    """The longest straight drive between two of the scenario's sites: (metres, site a, site b); (0, 0, 0) with one
+    site or every site at the same position."""
+    pos = np.asarray(scenario.site_positions, dtype=float)
+    d = np.hypot(pos[:, None, 0] - pos[None, :, 0], pos[:, None, 1] - pos[None, :, 1])
+    a, b = np.unravel_index(int(d.argmax()), d.shape)
+    return float(d[a, b]), int(a), int(b)
+
+
+def arrival_period(scenario: Scenario, speed: float) -> float:
+    """The shortest step period, seconds (a multiple of 0.1), in which a robot at `speed` m/s reaches any site of the
+    scenario within the step it is sent there, as the model assumes (docs/ros.md, Arrival): the longest drive
+    between two sites times `DRIVE_SLACK`, plus `ARRIVAL_MARGIN`. With no drive to make (or a robot that does not
+    move) just the margin."""
+    metres, _, _ = longest_drive(scenario)
+    drive = metres / speed if speed > 0 and metres > 0 else 0.0
+    return math.ceil((drive * DRIVE_SLACK + ARRIVAL_MARGIN) * 10.0 - 1e-9) / 10.0
 
 
 @dataclass

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from htlm_agent.cli.common import TEAM_HELP
-from htlm_world.scenario import ScenarioError, builtin, load
+from htlm_world.scenario import Scenario, ScenarioError, builtin, load
 
 if TYPE_CHECKING:
     from htlm_agent.ros.launch import LaunchConfig
@@ -36,6 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from htlm_agent.ros.launch import (
         ALONE_UP_TO,
         EXIT_CODES,
+        FREE_PERIOD,
         MAX_RESTARTS,
         RESPAWN_DELAY,
         RESPAWN_DELAY_MAX,
@@ -148,7 +149,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="sim: a simulated robot per agent (follows goal_pose, publishes odometry and observations) and their "
         "stand-in operation; implies --operation external",
     )
-    p.add_argument("--period", type=float, default=0.5, help="step period of the free clock, seconds (external)")
+    p.add_argument(
+        "--period",
+        type=float,
+        default=None,
+        help="step period of the free clock, seconds (external operation; default with --robots sim: long enough for "
+        f"a robot to drive between the two farthest sites within a step, docs/ros.md Arrival; else {FREE_PERIOD:g})",
+    )
     p.add_argument(
         "--robot-param",
         type=_kv,
@@ -241,8 +248,9 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     deployed = args.operation == "external" or args.robots == "sim"
     if deployed and (args.mode == "train" or batch != 1):
         bad.append(f"{args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
-    if args.period <= 0:
-        bad.append(f"--period {args.period!r}: must be > 0")
+    period, notes = step_period(sc, args)
+    if period <= 0:
+        bad.append(f"--period {period!r}: must be > 0")
     if not args.respawn_delay >= 0:
         bad.append(f"--respawn-delay {args.respawn_delay!r}: must be >= 0")
     if args.agents_per_process < 0:
@@ -286,7 +294,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         echo_to_stderr=args.json,  # --json: stdout holds the summary only
         operation=args.operation,
         robots="" if args.robots == "none" else args.robots,
-        period=args.period,
+        period=period,
+        notes=notes,
         robot_params=dict(args.robot_param),
         record=args.record,
         respawn_delay=args.respawn_delay,
@@ -294,6 +303,34 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         agents_per_process=args.agents_per_process,
     )
     return cfg, bad + check_launch(cfg)
+
+
+def step_period(sc: Scenario, args: argparse.Namespace) -> tuple[float, tuple[str, ...]]:
+    """The free clock's step period of a launch and what to say about it: --period when given, else with simulated
+    robots `robots.arrival_period` at their speed (--robot-param speed, else the robot's default), else
+    FREE_PERIOD. With simulated robots, a period too short for a robot to reach every site within its step is warned
+    about: a move then takes several steps, which the model does not know (docs/ros.md, Arrival)."""
+    from htlm_agent.ros.launch import FREE_PERIOD
+    from htlm_world.robots import arrival_period, longest_drive
+    from htlm_world.ros.robot_settings import RobotSettings
+
+    if args.robots != "sim":
+        return (FREE_PERIOD if args.period is None else float(args.period)), ()
+    speed = dict(args.robot_param).get("speed", RobotSettings().speed)
+    if not isinstance(speed, int | float) or isinstance(speed, bool):
+        return (FREE_PERIOD if args.period is None else float(args.period)), ()  # check_launch names the bad value
+    need = arrival_period(sc, float(speed))
+    metres, a, b = longest_drive(sc)
+    drive = f"{metres:.0f} m from {sc.sites[a].name} to {sc.sites[b].name} at {float(speed):g} m/s"
+    if args.period is None:
+        return need, (f"--period {need:g} s: a robot drives the farthest way within a step ({drive})",)
+    if float(args.period) < need:
+        return float(args.period), (
+            f"warning: --period {float(args.period):g} s is shorter than the {need:g} s a robot needs to drive the "
+            f"farthest way within a step ({drive}): a move to a far site takes several steps, which the model and "
+            "every policy trained on it do not know, and teams fail episodes (docs/ros.md, Arrival)",
+        )
+    return float(args.period), ()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -306,6 +343,8 @@ def run(args: argparse.Namespace) -> int:
         for line in bad:
             print(f"htlm launch: {line}", file=sys.stderr)
         return 2
+    for line in cfg.notes:
+        print(f"htlm launch: {line}", file=sys.stderr, flush=True)
     code = run_team(cfg)
     out: dict[str, Any] = {"mode": args.mode, "run_dir": str(run_dir), "exit_code": code, **summarize(run_dir)}
     ckpt = run_dir / "trainer" / "checkpoint"

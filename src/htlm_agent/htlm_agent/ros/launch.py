@@ -45,6 +45,9 @@ EXIT_CODES = {
 }
 """Exit codes of `htlm launch`."""
 
+FREE_PERIOD = 0.5
+"""Step period, seconds, of the free clock of an external operation without simulated robots (`--period`)."""
+
 RESPAWN_DELAY = 1.0
 """Default seconds before a process that died starts again (`--respawn-delay`)."""
 MAX_RESTARTS = 5
@@ -112,8 +115,10 @@ class LaunchConfig:
     robots: str = ""
     """sim: start a simulated robot per agent and their stand-in operation (implies operation external, the free
     clock, and the agents' arrival from the robots' odometry); empty: none."""
-    period: float = 0.5
+    period: float = FREE_PERIOD
     """Step period of the free clock (external operation), seconds."""
+    notes: tuple[str, ...] = ()
+    """What the launch says before it starts (the step period it chose, a warning), one line each."""
     robot_params: dict[str, Any] = field(default_factory=dict)
     """Extra robot_node parameters (every simulated robot)."""
     record: bool = False
