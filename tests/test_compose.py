@@ -26,6 +26,7 @@ from htlm_agent.ros.launch import (
     spawn,
     team_processes,
 )
+from htlm_world.robots import ROBOT_READY
 from htlm_world.scenario import builtin, load
 
 
@@ -157,3 +158,25 @@ def test_the_hosted_agents_are_named_node_equals_file() -> None:
         with pytest.raises(ValueError, match=why):
             parse_hosted(bad)
     assert node_args("htlm_agent1", "p.yaml") == ["--ros-args", "-r", "__node:=htlm_agent1", "--params-file", "p.yaml"]
+
+
+def test_the_robots_start_first_and_the_team_once_they_are_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    cfg = dataclasses.replace(_cfg(tmp_path), robots="sim", operation="external")
+    events: list[str] = []
+
+    def spawn(spec: Any, *_: Any) -> Any:
+        events.append(f"start {spec.name}")
+        return spec.name
+
+    def wait(proc: Any, text: str, timeout: float) -> bool:
+        events.append(f"wait {proc}")
+        assert text == ROBOT_READY and 0 < timeout <= launch.ROBOTS_START
+        return True
+
+    monkeypatch.setattr(launch, "spawn", spawn)
+    monkeypatch.setattr(launch, "_wait_for_line", wait)
+    (cfg.run_dir / "logs").mkdir(parents=True)
+    launch._start_slots(cfg)
+    robots = [f"robot_agent{i}" for i in range(1, 6)]
+    assert events[:5] == [f"start {r}" for r in robots] and events[5:10] == [f"wait {r}" for r in robots]
+    assert {e.split()[1] for e in events[10:]} == {"world", "trainer", "operation", *(f"agent{i}" for i in range(1, 6))}

@@ -33,6 +33,9 @@ def action_distance(model: Model, action: int, x: float, y: float) -> float:
     return site_distance(model.scenario, int(model.action_site[action]), x, y)
 
 
+ROBOT_READY = "ready, waiting for the run"
+"""What a simulated robot logs once it is up (`htlm launch` starts the agents and the world after it)."""
+
 ARRIVAL_MARGIN = 0.5
 """Seconds a step leaves, beyond the drive, for an agent to hear its teammates and send its goal after the step's
 instant (`arrival_period`)."""

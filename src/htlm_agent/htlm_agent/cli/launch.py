@@ -347,6 +347,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"htlm launch: {line}", file=sys.stderr, flush=True)
     code = run_team(cfg)
     out: dict[str, Any] = {"mode": args.mode, "run_dir": str(run_dir), "exit_code": code, **summarize(run_dir)}
+    if cfg.operation == "external" or cfg.robots:
+        out["period"] = cfg.period  # the free clock's, chosen or given
     ckpt = run_dir / "trainer" / "checkpoint"
     eval_episodes = 500 if args.eval_episodes is None else args.eval_episodes
     if args.mode == "train" and code == 0 and (ckpt / "meta.json").exists():

@@ -33,6 +33,7 @@ from htlm_agent.learning.settings import Settings
 from htlm_msgs_py.files import write_atomic
 from htlm_msgs_py.qos import FASTDDS_LOOPBACK_PROFILE, FASTDDS_PROFILE
 from htlm_msgs_py.run_control import run_id_of
+from htlm_world.robots import ROBOT_READY
 from htlm_world.scenario import Scenario
 
 EXIT_CODES = {
@@ -510,16 +511,31 @@ class _Slot:
         return self.spec.name
 
 
+def _start_order(name: str) -> int:
+    """When a process starts: the recorder, then the simulated robots, then the rest of the team."""
+    return 0 if name == "recorder" else 1 if name.startswith("robot_") else 2
+
+
 def _start_slots(cfg: LaunchConfig) -> list[_Slot]:
     logs = cfg.run_dir / "logs"
     env = ros_env(cfg)
-    slots = []
-    # the recorder first, and the team once it is subscribed: a run's first messages are recorded too
-    for spec, pfile in sorted(prepare(cfg), key=lambda sp: sp[0].name != "recorder"):
+    slots: list[_Slot] = []
+    # the recorder first, and the team once it is subscribed: a run's first messages are recorded too; then the
+    # robots, and the agents and the world once the robots are up, as a deployment starts (docs/ros.md): a team's
+    # first steps then do not share the cores with tens of robot processes starting
+    robots: list[Proc] = []
+    for spec, pfile in sorted(prepare(cfg), key=lambda sp: _start_order(sp[0].name)):
+        if robots and _start_order(spec.name) == 2:
+            end = time.monotonic() + ROBOTS_START
+            for proc in robots:
+                _wait_for_line(proc, ROBOT_READY, max(end - time.monotonic(), 0.0))
+            robots = []
         proc = spawn(spec, pfile, logs / f"{spec.name}.log", env)
         slots.append(_Slot(spec, pfile, proc, time.monotonic()))
         if spec.name == "recorder":
             _wait_for_line(proc, RECORDER_READY, RECORDER_START)
+        elif _start_order(spec.name) == 1:
+            robots.append(proc)
     return slots
 
 
@@ -548,6 +564,9 @@ RECORDER_READY = "]: recording "
 """The recorder's log line once it has subscribed to every topic (htlm_agent.ros.record_node)."""
 RECORDER_START = 30.0
 """Longest `start` waits for the recorder before it starts the team anyway, seconds."""
+ROBOTS_START = 120.0
+"""Longest `start` waits for the simulated robots to be up (`ROBOT_READY` in each log) before it starts the agents and
+the world anyway, seconds."""
 
 
 def _wait_for_line(proc: Proc, text: str, timeout: float) -> bool:

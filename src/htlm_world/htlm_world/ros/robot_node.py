@@ -31,7 +31,7 @@ from htlm_msgs_py.ros import (
     subscribe_records,
 )
 from htlm_msgs_py.schema import encode
-from htlm_world.robots import Drive, Sensing, action_distance, map_bounds
+from htlm_world.robots import ROBOT_READY, Drive, Sensing, action_distance, map_bounds
 from htlm_world.ros.follower import RunFollower
 from htlm_world.ros.robot_settings import RobotSettings, start_position, validate_robot_settings
 
@@ -61,6 +61,7 @@ class RobotNode(RunFollower):
         subscribe_records(self, topics.ACTION, EVENTS, self._on_action)
         subscribe_records(self, topics.SEVERITY, EVENTS, self._on_severity)
         self.create_timer(1.0 / s.rate, self._move)
+        self.get_logger().info(f"robot of {self.name}: {ROBOT_READY}")
 
     def on_run(self, rec: dict[str, Any]) -> None:
         """Place the robot at the site of the scenario's start assignment."""
