@@ -20,6 +20,7 @@ from htlm_world.robots import (
     action_distance,
     arrival_period,
     longest_drive,
+    odometry_due,
     site_distance,
 )
 from htlm_world.scenario import builtin, load
@@ -121,6 +122,18 @@ def test_a_robot_drives_to_its_goal_at_its_speed_and_stops_there() -> None:
         d.advance(1.0)
     assert (d.x, d.y) == (30.0, 40.0) and d.advance(1.0) == (0.0, 0.0)
     assert Drive(1.0, 2.0, speed=0.0, goal=(50.0, 0.0)).advance(5.0) == (0.0, 0.0)
+
+
+def test_a_robot_publishes_its_odometry_while_it_drives_and_once_a_second_standing_still() -> None:
+    d, sent, was, times = Drive(0.0, 0.0, speed=10.0, goal=(3.0, 4.0)), -math.inf, False, []
+    for tick in range(60):  # 3 s at 20 Hz: it drives 5 m in 0.5 s, then stands
+        moving = d.advance(0.05) != (0.0, 0.0)
+        if odometry_due(moving, was, tick * 0.05 - sent):
+            sent, was = tick * 0.05, moving
+            times.append(tick)
+    stop = next(i for i in range(len(times)) if times[i + 1] != times[i] + 1)
+    assert 10 <= stop <= 11 and times[: stop + 1] == list(range(stop + 1))  # every update while it drives, and one
+    assert times[stop + 1 :] == [stop + 20, stop + 40] and (d.x, d.y) == (3.0, 4.0)  # after; then once a second
 
 
 def test_the_arrival_period_lets_a_robot_drive_the_farthest_way_within_a_step() -> None:

@@ -36,6 +36,17 @@ def action_distance(model: Model, action: int, x: float, y: float) -> float:
 ROBOT_READY = "ready, waiting for the run"
 """What a simulated robot logs once it is up (`htlm launch` starts the agents and the world after it)."""
 
+STILL_PERIOD = 1.0
+"""Seconds between the odometry messages of a simulated robot that stands still (it publishes at its `rate` while it
+drives, and once more when it stops): fifty robots waiting at their sites cost the team's cores little."""
+
+
+def odometry_due(moving: bool, was_moving: bool, since: float) -> bool:
+    """Whether a simulated robot publishes its odometry at a motion update: while it drives, at the update it stopped
+    at, and once `STILL_PERIOD` passed since it last did (`since`, seconds)."""
+    return moving or was_moving or since >= STILL_PERIOD
+
+
 ARRIVAL_MARGIN = 0.5
 """Seconds a step leaves, beyond the drive, for an agent to hear its teammates and send its goal after the step's
 instant (`arrival_period`)."""

@@ -31,7 +31,7 @@ from htlm_msgs_py.ros import (
     subscribe_records,
 )
 from htlm_msgs_py.schema import encode
-from htlm_world.robots import ROBOT_READY, Drive, Sensing, action_distance, map_bounds
+from htlm_world.robots import ROBOT_READY, Drive, Sensing, action_distance, map_bounds, odometry_due
 from htlm_world.ros.follower import RunFollower
 from htlm_world.ros.robot_settings import RobotSettings, start_position, validate_robot_settings
 
@@ -60,6 +60,8 @@ class RobotNode(RunFollower):
         """When the agent sent the last goal record taken (its wall clock): an older one is a replay."""
         subscribe_records(self, topics.ACTION, EVENTS, self._on_action)
         subscribe_records(self, topics.SEVERITY, EVENTS, self._on_severity)
+        self.odom_sent = -math.inf
+        self.was_moving = False
         self.create_timer(1.0 / s.rate, self._move)
         self.get_logger().info(f"robot of {self.name}: {ROBOT_READY}")
 
@@ -150,6 +152,10 @@ class RobotNode(RunFollower):
         if self.drive is None:
             return
         vx, vy = self.drive.advance(dt)
+        moving = (vx, vy) != (0.0, 0.0)
+        if not odometry_due(moving, self.was_moving, now - self.odom_sent):
+            return
+        self.was_moving, self.odom_sent = moving, now
         msg = Odometry()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = self.settings.frame_id

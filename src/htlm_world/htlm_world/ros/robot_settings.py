@@ -21,7 +21,8 @@ class RobotSettings:
     speed: float = setting(20.0, lo=0.0, hi=1e4)
     """Driving speed, metres per second (0: the robot never leaves its start site)."""
     rate: float = setting(20.0, lo=1.0, hi=1000.0)
-    """Odometry messages (and motion updates) per second."""
+    """Motion updates per second, each with an odometry message while the robot drives (standing still, one a
+    second)."""
     arrival_radius: float = setting(2.0, lo=0.0, hi=1e6)
     """Metres from a site within which the robot is there: it works on its task and observes it."""
     start: str = setting("")
