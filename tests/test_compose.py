@@ -180,3 +180,15 @@ def test_the_robots_start_first_and_the_team_once_they_are_up(tmp_path: Path, mo
     robots = [f"robot_agent{i}" for i in range(1, 6)]
     assert events[:5] == [f"start {r}" for r in robots] and events[5:10] == [f"wait {r}" for r in robots]
     assert {e.split()[1] for e in events[10:]} == {"world", "trainer", "operation", *(f"agent{i}" for i in range(1, 6))}
+
+
+def test_the_world_waits_for_the_agents_as_long_as_the_launchs_processes_take_to_start(tmp_path: Path) -> None:
+    def join(*args: str) -> Any:
+        procs = launch.team_processes(config([*args, "--policy", "greedy", "--run-dir", str(tmp_path / "r")]))
+        (world,) = [p for p in procs if p.name == "world"]
+        return len(procs), world.params["join_timeout"]
+
+    assert join("deploy") == (7, launch.JOIN_TIMEOUT)  # the paper's team: few processes, the least wait
+    n, wait = join("deploy", "--scenario", "city-50", "--robots", "sim")  # 50 robot processes besides the team
+    assert n == 55 and wait == n * launch.JOIN_PER_PROCESS
+    assert join("deploy", "--scenario", "city-50", "--world-param", "join_timeout=10")[1] == 10  # given: kept

@@ -270,7 +270,18 @@ def team_processes(cfg: LaunchConfig) -> list[ProcessSpec]:
         ProcessSpec(name, module, params, respawn, cfg.respawn_delay, cfg.max_restarts)
         for name, module, params in process_specs(cfg)
     ]
-    return compose(specs, per_process(cfg))
+    procs = compose(specs, per_process(cfg))
+    for spec in procs:  # the world waits for the agents as long as this host's processes take to start
+        if spec.name == "world" and "join_timeout" not in cfg.world_params:
+            spec.params["join_timeout"] = max(JOIN_TIMEOUT, JOIN_PER_PROCESS * len(procs))
+    return procs
+
+
+JOIN_TIMEOUT = 60.0
+"""The world's `join_timeout` (seconds it waits for every agent before its first step) for a launch of few processes."""
+JOIN_PER_PROCESS = 3.0
+"""Seconds of the world's `join_timeout` per process the launch starts on this host, beyond JOIN_TIMEOUT: city-50 with
+its 50 simulated robots (54 processes on 2 cores) took 96 s from the world's start until its last agent joined."""
 
 
 AGENT_NODE = "htlm_agent.ros.agent_node"
