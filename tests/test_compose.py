@@ -168,9 +168,9 @@ def test_the_robots_start_first_and_the_team_once_they_are_up(tmp_path: Path, mo
         events.append(f"start {spec.name}")
         return spec.name
 
-    def wait(proc: Any, text: str, timeout: float) -> bool:
+    def wait(proc: Any, text: str, timeout: float, count: int = 1) -> bool:
         events.append(f"wait {proc}")
-        assert text == ROBOT_READY and 0 < timeout <= launch.ROBOTS_START
+        assert text == ROBOT_READY and 0 < timeout <= launch.ROBOTS_START and count == 1
         return True
 
     monkeypatch.setattr(launch, "spawn", spawn)
@@ -189,6 +189,19 @@ def test_the_world_waits_for_the_agents_as_long_as_the_launchs_processes_take_to
         return len(procs), world.params["join_timeout"]
 
     assert join("deploy") == (7, launch.JOIN_TIMEOUT)  # the paper's team: few processes, the least wait
-    n, wait = join("deploy", "--scenario", "city-50", "--robots", "sim")  # 50 robot processes besides the team
-    assert n == 55 and wait == n * launch.JOIN_PER_PROCESS
+    assert join("deploy", "--scenario", "city-50", "--robots", "sim") == (7, launch.JOIN_TIMEOUT)  # all composed
+    n, wait = join("deploy", "--scenario", "city-50", "--robots", "sim", "--agents-per-process", "1")
+    assert n == 103 and wait == n * launch.JOIN_PER_PROCESS  # a process per agent and per robot
     assert join("deploy", "--scenario", "city-50", "--world-param", "join_timeout=10")[1] == 10  # given: kept
+
+
+def test_the_simulated_robots_share_processes_as_the_agents_do(tmp_path: Path) -> None:
+    cfg = config(
+        ["deploy", "--scenario", "facility-20", "--robots", "sim", "--policy", "greedy", "--run-dir", str(tmp_path)]
+    )
+    procs = launch.team_processes(cfg)
+    robots = [p for p in procs if p.module == launch.ROBOTS_NODE]
+    assert [len(p.hosted) for p in robots] == [10, 10] and all(p.name.startswith("robot_") for p in robots)
+    assert [h.name for h in robots[0].hosted] == [f"robot_{a.name}" for a in cfg.scenario.agents[:10]]
+    assert robots[0].arguments(tmp_path)[0] == f"htlm_robot_scout1={tmp_path / 'robot_scout1.yaml'}"
+    assert robots[0].hosted[0].params == {"agent": "scout1"} and robots[0].executable == "robots_node"

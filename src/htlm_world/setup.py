@@ -33,6 +33,7 @@ setup(
         "console_scripts": [
             "world_node = htlm_world.ros.world_node:main",
             "robot_node = htlm_world.ros.robot_node:main",
+            "robots_node = htlm_world.ros.robots_node:main",
             "operation_node = htlm_world.ros.operation_node:main",
         ],
     },

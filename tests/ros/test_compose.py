@@ -124,13 +124,16 @@ def test_a_composed_team_trains_exactly_the_networks_of_htlm_train(ros_team: Any
             assert np.array_equal(np.asarray(x), np.asarray(y)), f"agent {i} tensor {j} differs"
 
 
-def _graph(launcher: Any, where: Path, per: int) -> dict[str, Any]:
+def _graph(launcher: Any, where: Path, per: int, robots: bool = False) -> dict[str, Any]:
     team: Launcher = launcher(
         *("deploy", "--policy", "greedy", "--episodes", "0", "--period", "0.5", "--agents-per-process", str(per)),
+        *(("--robots", "sim") if robots else ()),
         where=where,
     )
     out = where / "graph.json"
-    helper = team.helper("graph", "--out", str(out), "--nodes", ",".join(f"htlm_{a}" for a in AGENTS))
+    nodes = [f"htlm_robot_{a}" for a in AGENTS] if robots else [f"htlm_{a}" for a in AGENTS]
+    params = ["--params", "agent,goal_topic"] if robots else []
+    helper = team.helper("graph", "--out", str(out), "--nodes", ",".join(nodes), *params)
     team.wait_for(lambda: helper.poll() is not None, 120, "the graph helper to see every agent's node")
     assert helper.returncode == 0, (where / "helper-0-graph.log").read_text()
     got: dict[str, Any] = read_json(out)
@@ -152,6 +155,20 @@ def test_on_the_graph_a_composed_agent_is_the_node_its_own_process_would_be(laun
         assert ["/htlm/broadcast", ["std_msgs/msg/String"]] in node["publishers"]
         assert [f"/htlm/{a}/observation", ["std_msgs/msg/String"]] in node["subscriptions"]
         assert [f"/htlm_{a}/get_parameters", ["rcl_interfaces/srv/GetParameters"]] in node["services"]
+    assert composed == alone
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_on_the_graph_a_composed_robot_is_the_node_its_own_process_would_be(launcher: Any, tmp_path: Path) -> None:
+    composed = _graph(launcher, tmp_path / "composed", 3, robots=True)
+    alone = _graph(launcher, tmp_path / "alone", 1, robots=True)
+    assert set(composed) == {f"htlm_robot_{a}" for a in AGENTS}
+    for a in AGENTS:
+        node = composed[f"htlm_robot_{a}"]
+        assert node["parameters"] == {"agent": a, "goal_topic": ""}
+        assert [f"/htlm/{a}/odom", ["nav_msgs/msg/Odometry"]] in node["publishers"]
+        assert [f"/htlm/{a}/goal_pose", ["geometry_msgs/msg/PoseStamped"]] in node["subscriptions"]
     assert composed == alone
 
 

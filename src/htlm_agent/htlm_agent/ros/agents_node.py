@@ -24,66 +24,16 @@ from __future__ import annotations
 
 import sys
 
-import rclpy
-from rclpy.utilities import remove_ros_args
-
 from htlm_agent.ros.agent_node import AgentNode, cleanup
-from htlm_msgs_py.ros import SettingsError, run_nodes
+from htlm_msgs_py.ros.lifecycle import host_nodes, node_args, parse_hosted
 
-USAGE = "usage: agents_node NODE=PARAMETERS_FILE [NODE=PARAMETERS_FILE ...] [--ros-args ...]"
-
-
-def parse_hosted(words: list[str]) -> list[tuple[str, str]]:
-    """(node name, parameters file) of every hosted agent, from the words before `--ros-args`.
-
-    Raises:
-        ValueError: no agent, a word that is not NODE=FILE, or a node named twice.
-    """
-    hosted: list[tuple[str, str]] = []
-    for w in words:
-        node, sep, path = w.partition("=")
-        if not sep or not node or not path:
-            raise ValueError(f"{w!r}: expected NODE=PARAMETERS_FILE")
-        if node in (n for n, _ in hosted):
-            raise ValueError(f"{node}: named twice")
-        hosted.append((node, path))
-    if not hosted:
-        raise ValueError("no agent to host")
-    return hosted
-
-
-def node_args(node: str, params_file: str) -> list[str]:
-    """The ROS arguments of one hosted node: its name and its parameters file."""
-    return ["--ros-args", "-r", f"__node:={node}", "--params-file", params_file]
+__all__ = ["main", "node_args", "parse_hosted"]
 
 
 def main(args: list[str] | None = None) -> int:
     """Entry point of `agents_node` (exit code: 0 every hosted agent done, 1 an exception, 2 bad arguments,
     parameters, policy or checkpoint of any hosted agent, 130/143 SIGINT/SIGTERM)."""
-    argv = sys.argv if args is None else args
-    try:
-        hosted = parse_hosted(remove_ros_args(argv)[1:])
-    except ValueError as e:
-        print(f"agents_node: {e}\n{USAGE}", file=sys.stderr)
-        return 2
-
-    def make_nodes() -> list[AgentNode]:
-        log = rclpy.logging.get_logger("htlm_agents")
-        log.info(f"hosting {len(hosted)} agents in one process: {', '.join(n for n, _ in hosted)}")
-        nodes: list[AgentNode] = []
-        try:
-            for node, path in hosted:
-                try:
-                    nodes.append(AgentNode(node_args(node, path)))
-                except SettingsError as e:
-                    raise SettingsError(f"{node}: {e}") from None
-        except BaseException:
-            for n in nodes:  # the ones already made, so rclpy shuts down cleanly
-                n.destroy_node()
-            raise
-        return nodes
-
-    return run_nodes("agents_node", make_nodes, cleanup, argv)
+    return host_nodes("agents_node", "agent", AgentNode, cleanup, args)
 
 
 if __name__ == "__main__":

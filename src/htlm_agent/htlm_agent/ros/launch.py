@@ -216,8 +216,8 @@ class ProcessSpec:
     """Restarts before the launch gives up (team.launch.py's `respawn_max_retries`; `htlm launch` counts restarts in
     a row)."""
     hosted: tuple[ProcessSpec, ...] = ()
-    """A composed process (`AGENTS_NODE`): the agents it hosts, each the process it would be alone (its node name
-    and parameters file are those of that process); empty: a process of one node."""
+    """A composed process (`AGENTS_NODE`, `ROBOTS_NODE`): the agents or robots it hosts, each the process it would be
+    alone (its node name and parameters file are those of that process); empty: a process of one node."""
 
     @property
     def package(self) -> str:
@@ -270,11 +270,7 @@ def team_processes(cfg: LaunchConfig) -> list[ProcessSpec]:
         ProcessSpec(name, module, params, respawn, cfg.respawn_delay, cfg.max_restarts)
         for name, module, params in process_specs(cfg)
     ]
-    procs = compose(specs, per_process(cfg))
-    for spec in procs:  # the world waits for the agents as long as this host's processes take to start
-        if spec.name == "world" and "join_timeout" not in cfg.world_params:
-            spec.params["join_timeout"] = max(JOIN_TIMEOUT, JOIN_PER_PROCESS * len(procs))
-    return procs
+    return compose(specs, per_process(cfg))
 
 
 JOIN_TIMEOUT = 60.0
@@ -288,6 +284,10 @@ AGENT_NODE = "htlm_agent.ros.agent_node"
 """An agent's own process."""
 AGENTS_NODE = "htlm_agent.ros.agents_node"
 """A process hosting several agents (`htlm launch --agents-per-process`)."""
+ROBOT_NODE = "htlm_world.ros.robot_node"
+"""A simulated robot's own process."""
+ROBOTS_NODE = "htlm_world.ros.robots_node"
+"""A process hosting several simulated robots (grouped as the agents are)."""
 
 ALONE_UP_TO = 8
 """`auto_per_process`: teams of at most this many agents (on this host) run one process per agent."""
@@ -336,22 +336,31 @@ def group_name(agents: list[str]) -> str:
 
 def compose(specs: list[ProcessSpec], per: int) -> list[ProcessSpec]:
     """`specs` with their agents' processes (AGENT_NODE) grouped, in order, into composed processes (AGENTS_NODE) of
-    at most `per` agents each, in the place of the first agent; a group of one stays an agent's own process."""
-    agents = [s for s in specs if s.module == AGENT_NODE]
-    if per <= 1 or len(agents) <= 1:
+    at most `per` agents each, in the place of the first agent, and the simulated robots' (ROBOT_NODE) likewise into
+    ROBOTS_NODE processes; a group of one stays a process of its own."""
+    out = specs
+    for single, many in ((AGENT_NODE, AGENTS_NODE), (ROBOT_NODE, ROBOTS_NODE)):
+        out = _group(out, per, single, many)
+    return out
+
+
+def _group(specs: list[ProcessSpec], per: int, single: str, many: str) -> list[ProcessSpec]:
+    """`compose` for the processes of module `single`, grouped into processes of module `many`."""
+    members = [s for s in specs if s.module == single]
+    if per <= 1 or len(members) <= 1:
         return specs
     out: list[ProcessSpec] = []
     for s in specs:
-        if s.module != AGENT_NODE:
+        if s.module != single:
             out.append(s)
-        elif s is agents[0]:
-            for i in range(0, len(agents), per):
-                group = agents[i : i + per]
+        elif s is members[0]:
+            for i in range(0, len(members), per):
+                group = members[i : i + per]
                 if len(group) == 1:
                     out.append(group[0])
                     continue
                 name = group_name([g.name for g in group])
-                out.append(ProcessSpec(name, AGENTS_NODE, {}, s.respawn, s.respawn_delay, s.max_restarts, tuple(group)))
+                out.append(ProcessSpec(name, many, {}, s.respawn, s.respawn_delay, s.max_restarts, tuple(group)))
     return out
 
 
@@ -447,12 +456,22 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     if cfg.robots == "sim":
         specs.append(("operation", "htlm_world.ros.operation_node", {}))
         for a in sc.agents:
-            specs.append((f"robot_{a.name}", "htlm_world.ros.robot_node", {"agent": a.name, **cfg.robot_params}))
+            specs.append((f"robot_{a.name}", ROBOT_NODE, {"agent": a.name, **cfg.robot_params}))
     if cfg.record:  # the agents are named up front: their topics are recorded from the first message on
         agents = ",".join(a.name for a in sc.agents)
         specs.append(("recorder", RECORD_NODE, {"path": str(run / "recording"), "agents": agents}))
     if cfg.only:
         specs = [s for s in specs if s[0] in cfg.only]
+    if "join_timeout" not in cfg.world_params:  # the world waits as long as this host's processes take to start
+        per = per_process(cfg)
+        singles = [m for _, m, _ in specs if m in (AGENT_NODE, ROBOT_NODE)]
+        procs = len(specs) - len(singles)
+        procs += sum(
+            math.ceil(singles.count(m) / per) if per > 1 else singles.count(m) for m in (AGENT_NODE, ROBOT_NODE)
+        )
+        for name, _, params in specs:
+            if name == "world":
+                params["join_timeout"] = max(JOIN_TIMEOUT, JOIN_PER_PROCESS * procs)
     return specs
 
 
@@ -534,19 +553,19 @@ def _start_slots(cfg: LaunchConfig) -> list[_Slot]:
     # the recorder first, and the team once it is subscribed: a run's first messages are recorded too; then the
     # robots, and the agents and the world once the robots are up, as a deployment starts (docs/ros.md): a team's
     # first steps then do not share the cores with tens of robot processes starting
-    robots: list[Proc] = []
+    robots: list[tuple[Proc, int]] = []
     for spec, pfile in sorted(prepare(cfg), key=lambda sp: _start_order(sp[0].name)):
         if robots and _start_order(spec.name) == 2:
             end = time.monotonic() + ROBOTS_START
-            for proc in robots:
-                _wait_for_line(proc, ROBOT_READY, max(end - time.monotonic(), 0.0))
+            for proc, count in robots:  # every robot a process hosts says it is up
+                _wait_for_line(proc, ROBOT_READY, max(end - time.monotonic(), 0.0), count)
             robots = []
         proc = spawn(spec, pfile, logs / f"{spec.name}.log", env)
         slots.append(_Slot(spec, pfile, proc, time.monotonic()))
         if spec.name == "recorder":
             _wait_for_line(proc, RECORDER_READY, RECORDER_START)
         elif _start_order(spec.name) == 1:
-            robots.append(proc)
+            robots.append((proc, max(len(spec.hosted), 1)))
     return slots
 
 
@@ -580,12 +599,13 @@ ROBOTS_START = 120.0
 the world anyway, seconds."""
 
 
-def _wait_for_line(proc: Proc, text: str, timeout: float) -> bool:
-    """Wait until the process's log holds `text` (True), it exited or `timeout` seconds passed (False)."""
+def _wait_for_line(proc: Proc, text: str, timeout: float, count: int = 1) -> bool:
+    """Wait until the process's log holds `text` `count` times (True), it exited or `timeout` seconds passed
+    (False)."""
     end = time.monotonic() + timeout
     while time.monotonic() < end and proc.popen.poll() is None:
         with contextlib.suppress(OSError):
-            if text in proc.log.read_text(errors="replace"):
+            if proc.log.read_text(errors="replace").count(text) >= count:
                 return True
         time.sleep(0.05)
     return False
@@ -735,10 +755,11 @@ def run_team(cfg: LaunchConfig) -> int:
         slots = _start_slots(cfg)
         env = ros_env(cfg)
         names = ", ".join(s.name for s in slots)
-        composed = [s for s in slots if s.spec.hosted]
-        if composed:
-            hosted = sum(len(s.spec.hosted) for s in composed)
-            names += f" ({hosted} agents in {len(composed)} processes of at most {per_process(cfg)})"
+        for module, what in ((AGENTS_NODE, "agents"), (ROBOTS_NODE, "robots")):
+            composed = [s for s in slots if s.spec.module == module]
+            if composed:
+                hosted = sum(len(s.spec.hosted) for s in composed)
+                names += f" ({hosted} {what} in {len(composed)} processes of at most {per_process(cfg)})"
         print(
             f"htlm launch {cfg.mode}: {names} on ROS_DOMAIN_ID={cfg.domain_id} "
             f"(discovery {cfg.discovery}{', peers ' + cfg.peers if cfg.peers else ''}); logs in {cfg.run_dir / 'logs'}",

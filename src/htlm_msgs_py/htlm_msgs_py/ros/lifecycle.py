@@ -317,3 +317,63 @@ def run_nodes(
                 n.destroy_node()
             rclpy.try_shutdown()
     return code
+
+
+def parse_hosted(words: list[str], what: str = "agent") -> list[tuple[str, str]]:
+    """(node name, parameters file) of every node a composed process hosts, from its words before `--ros-args`
+    (NODE=PARAMETERS_FILE each).
+
+    Raises:
+        ValueError: no node, a word that is not NODE=FILE, or a node named twice.
+    """
+    hosted: list[tuple[str, str]] = []
+    for w in words:
+        node, sep, path = w.partition("=")
+        if not sep or not node or not path:
+            raise ValueError(f"{w!r}: expected NODE=PARAMETERS_FILE")
+        if node in (n for n, _ in hosted):
+            raise ValueError(f"{node}: named twice")
+        hosted.append((node, path))
+    if not hosted:
+        raise ValueError(f"no {what} to host")
+    return hosted
+
+
+def node_args(node: str, params_file: str) -> list[str]:
+    """The ROS arguments of one hosted node: its name and its parameters file."""
+    return ["--ros-args", "-r", f"__node:={node}", "--params-file", params_file]
+
+
+def host_nodes(
+    name: str, what: str, make: Callable[[list[str]], Any], cleanup: Callable[[Any], None], args: list[str] | None
+) -> int:
+    """The `main` of a composed process (`run_nodes`): every NODE=PARAMETERS_FILE word before `--ros-args` becomes
+    one node, `make(its ROS arguments)`, named after `what` it hosts in the log line and the errors."""
+    from rclpy.utilities import remove_ros_args
+
+    argv = sys.argv if args is None else args
+    try:
+        hosted = parse_hosted(remove_ros_args(argv)[1:], what)
+    except ValueError as e:
+        usage = f"usage: {name} NODE=PARAMETERS_FILE [NODE=PARAMETERS_FILE ...] [--ros-args ...]"
+        print(f"{name}: {e}\n{usage}", file=sys.stderr)
+        return 2
+
+    def make_nodes() -> list[Any]:
+        rclpy.logging.get_logger(f"htlm_{what}s").info(
+            f"hosting {len(hosted)} {what}s in one process: {', '.join(n for n, _ in hosted)}"
+        )
+        nodes: list[Any] = []
+        try:
+            for node, path in hosted:
+                try:
+                    nodes.append(make(node_args(node, path)))
+                except SettingsError as e:
+                    raise SettingsError(f"{node}: {e}") from None
+        except BaseException:
+            for n in nodes:  # the ones already made, so rclpy shuts down cleanly
+                n.destroy_node()
+            raise
+        return nodes
+
+    return run_nodes(name, make_nodes, cleanup, argv)

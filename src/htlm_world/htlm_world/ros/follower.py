@@ -32,11 +32,16 @@ class RunFollower(Node):
     """A node that follows the world's run: `scenario`, `model`, `seed`, `run` once announced; `on_run` hook."""
 
     def __init__(
-        self, node_name: str, settings_cls: Any, validate: Callable[[Any], list[str]], health_name: str
+        self,
+        node_name: str,
+        settings_cls: Any,
+        validate: Callable[[Any], list[str]],
+        health_name: str,
+        cli_args: list[str] | None = None,
     ) -> None:
         """Declare the parameters of `settings_cls` (checked by `validate`, which lists their problems), the
-        diagnostics and the scenario reader."""
-        super().__init__(node_name)
+        diagnostics and the scenario reader. `cli_args`: the node's own ROS arguments (a composed process's)."""
+        super().__init__(node_name, cli_args=cli_args)
         self.settings, self.signer = start_node(self, settings_cls, validate)
         self.health = Health(self, health_name, self.signer)
         self.stop_signal = 0

@@ -39,9 +39,10 @@ from htlm_world.ros.robot_settings import RobotSettings, start_position, validat
 class RobotNode(RunFollower):
     """One simulated robot."""
 
-    def __init__(self) -> None:
-        """Parameters, publishers, subscriptions, the motion timer; the robot appears once the run is announced."""
-        super().__init__("htlm_robot", RobotSettings, validate_robot_settings, "htlm: robot")
+    def __init__(self, cli_args: list[str] | None = None) -> None:
+        """Parameters, publishers, subscriptions, the motion timer; the robot appears once the run is announced.
+        `cli_args`: its own ROS arguments when a composed process hosts it (`robots_node`)."""
+        super().__init__("htlm_robot", RobotSettings, validate_robot_settings, "htlm: robot", cli_args)
         s: RobotSettings = self.settings
         self.name = s.agent
         self.health.name = f"htlm: robot {self.name}"
