@@ -314,23 +314,22 @@ def step_period(sc: Scenario, args: argparse.Namespace) -> tuple[float, tuple[st
     from htlm_world.robots import arrival_period, longest_drive
     from htlm_world.ros.robot_settings import RobotSettings
 
-    if args.robots != "sim":
-        return (FREE_PERIOD if args.period is None else float(args.period)), ()
+    given = None if args.period is None else float(args.period)
     speed = dict(args.robot_param).get("speed", RobotSettings().speed)
-    if not isinstance(speed, int | float) or isinstance(speed, bool):
-        return (FREE_PERIOD if args.period is None else float(args.period)), ()  # check_launch names the bad value
+    if args.robots != "sim" or not isinstance(speed, int | float) or isinstance(speed, bool):
+        return (FREE_PERIOD if given is None else given), ()  # a bad speed: check_launch names it
     need = arrival_period(sc, float(speed))
     metres, a, b = longest_drive(sc)
     drive = f"{metres:.0f} m from {sc.sites[a].name} to {sc.sites[b].name} at {float(speed):g} m/s"
-    if args.period is None:
+    if given is None:
         return need, (f"--period {need:g} s: a robot drives the farthest way within a step ({drive})",)
-    if float(args.period) < need:
-        return float(args.period), (
-            f"warning: --period {float(args.period):g} s is shorter than the {need:g} s a robot needs to drive the "
+    if given < need:
+        return given, (
+            f"warning: --period {given:g} s is shorter than the {need:g} s a robot needs to drive the "
             f"farthest way within a step ({drive}): a move to a far site takes several steps, which the model and "
             "every policy trained on it do not know, and teams fail episodes (docs/ros.md, Arrival)",
         )
-    return float(args.period), ()
+    return given, ()
 
 
 def run(args: argparse.Namespace) -> int:

@@ -463,12 +463,7 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     if cfg.only:
         specs = [s for s in specs if s[0] in cfg.only]
     if "join_timeout" not in cfg.world_params:  # the world waits as long as this host's processes take to start
-        per = per_process(cfg)
-        singles = [m for _, m, _ in specs if m in (AGENT_NODE, ROBOT_NODE)]
-        procs = len(specs) - len(singles)
-        procs += sum(
-            math.ceil(singles.count(m) / per) if per > 1 else singles.count(m) for m in (AGENT_NODE, ROBOT_NODE)
-        )
+        procs = len(compose([ProcessSpec(n, m, {}, False) for n, m, _ in specs], per_process(cfg)))
         for name, _, params in specs:
             if name == "world":
                 params["join_timeout"] = max(JOIN_TIMEOUT, JOIN_PER_PROCESS * procs)
@@ -541,9 +536,9 @@ class _Slot:
         return self.spec.name
 
 
-def _start_order(name: str) -> int:
+def _start_order(spec: ProcessSpec) -> int:
     """When a process starts: the recorder, then the simulated robots, then the rest of the team."""
-    return 0 if name == "recorder" else 1 if name.startswith("robot_") else 2
+    return 0 if spec.module == RECORD_NODE else 1 if spec.module in (ROBOT_NODE, ROBOTS_NODE) else 2
 
 
 def _start_slots(cfg: LaunchConfig) -> list[_Slot]:
@@ -554,8 +549,8 @@ def _start_slots(cfg: LaunchConfig) -> list[_Slot]:
     # robots, and the agents and the world once the robots are up, as a deployment starts (docs/ros.md): a team's
     # first steps then do not share the cores with tens of robot processes starting
     robots: list[tuple[Proc, int]] = []
-    for spec, pfile in sorted(prepare(cfg), key=lambda sp: _start_order(sp[0].name)):
-        if robots and _start_order(spec.name) == 2:
+    for spec, pfile in sorted(prepare(cfg), key=lambda sp: _start_order(sp[0])):
+        if robots and _start_order(spec) == 2:
             end = time.monotonic() + ROBOTS_START
             for proc, count in robots:  # every robot a process hosts says it is up
                 _wait_for_line(proc, ROBOT_READY, max(end - time.monotonic(), 0.0), count)
@@ -564,7 +559,7 @@ def _start_slots(cfg: LaunchConfig) -> list[_Slot]:
         slots.append(_Slot(spec, pfile, proc, time.monotonic()))
         if spec.name == "recorder":
             _wait_for_line(proc, RECORDER_READY, RECORDER_START)
-        elif _start_order(spec.name) == 1:
+        elif _start_order(spec) == 1:
             robots.append((proc, max(len(spec.hosted), 1)))
     return slots
 
