@@ -34,20 +34,24 @@ def _ip(*args: str) -> None:
 
 
 class Net:
-    """A bridge and one namespace per process, each with a veth pair and an address on 10.231.<n>.0/24."""
+    """A bridge and one namespace per host (by default one per process of NAMES), each with a veth pair and an
+    address on 10.231.<n>.0/24."""
 
-    def __init__(self, tag: int) -> None:
+    def __init__(self, tag: int, hosts: list[str] = NAMES) -> None:
         self.tag = tag
+        self.hosts = hosts
         self.bridge = f"hbr{tag}"
-        self.ns = {name: f"htlm{tag}n{i}" for i, name in enumerate(NAMES)}
-        self.addr = {name: f"10.231.{tag % 250}.{10 + i}" for i, name in enumerate(NAMES)}
+        self.ns = {name: f"htlm{tag}n{i}" for i, name in enumerate(hosts)}
+        self.addr = {name: f"10.231.{tag % 250}.{10 + i}" for i, name in enumerate(hosts)}
+        self.dev = {name: f"hv{tag}n{i}" for i, name in enumerate(hosts)}
+        """The host's end of its veth pair, inside its namespace."""
 
     def up(self) -> None:
         _ip("link", "add", self.bridge, "type", "bridge")
         _ip("link", "set", self.bridge, "type", "bridge", "mcast_snooping", "0")
         _ip("link", "set", self.bridge, "up")
-        for i, name in enumerate(NAMES):
-            ns, host, inner = self.ns[name], f"hv{self.tag}h{i}", f"hv{self.tag}n{i}"
+        for i, name in enumerate(self.hosts):
+            ns, host, inner = self.ns[name], f"hv{self.tag}h{i}", self.dev[name]
             _ip("netns", "add", ns)
             _ip("link", "add", host, "type", "veth", "peer", "name", inner)
             _ip("link", "set", inner, "netns", ns)
@@ -57,6 +61,15 @@ class Net:
             _ip("-n", ns, "link", "set", inner, "up")
             _ip("-n", ns, "link", "set", "lo", "up")
             _ip("-n", ns, "route", "add", "224.0.0.0/4", "dev", inner)  # multicast discovery over the veth
+
+    def cut(self, host: str) -> None:
+        """Take the host off the network: its link down."""
+        _ip("-n", self.ns[host], "link", "set", self.dev[host], "down")
+
+    def heal(self, host: str) -> None:
+        """Bring the host's link back up, with the multicast route that went down with it."""
+        _ip("-n", self.ns[host], "link", "set", self.dev[host], "up")
+        _ip("-n", self.ns[host], "route", "replace", "224.0.0.0/4", "dev", self.dev[host])
 
     def down(self) -> None:
         for ns in self.ns.values():
@@ -142,12 +155,10 @@ def test_agent_cut_off_the_network_mid_training_is_idle_then_rejoins_and_loses_n
         assert time.monotonic() < end and procs["world"].poll() is None, f"no two batches: {logged()} episodes"
         time.sleep(0.05)
     before = read_store(store).copy()  # whatever the trainer may have acknowledged so far: acks follow the fsync
-    dev = f"hv{net.tag}n{NAMES.index(CUT)}"
     cut_at = logged()
-    _ip("-n", net.ns[CUT], "link", "set", dev, "down")
+    net.cut(CUT)
     time.sleep(CUT_SECONDS)
-    _ip("-n", net.ns[CUT], "link", "set", dev, "up")
-    _ip("-n", net.ns[CUT], "route", "replace", "224.0.0.0/4", "dev", dev)  # the link's routes went with it
+    net.heal(CUT)
     up_at = logged()
     wait_team(procs, run, 100)
 

@@ -59,6 +59,11 @@ POSE_READER = QosSpec("POSE_READER", "best_effort", "volatile", 10)
 """How agents read a robot's pose topic: best effort matches a robot stack's publisher whether it is reliable or
 best effort (sensor data), and only the newest pose matters."""
 
+STATUS_READER = QosSpec("STATUS_READER", "best_effort", "volatile", 10)
+"""How agents and the trainer read /diagnostics for the world's status: best effort, as a lost status is followed
+by the next a second later. A reliable reader acknowledges every status of every node: in a team of N agents about
+N² acknowledgements a second, half the datagrams a 100-agent team sent."""
+
 PROFILES: dict[str, QosSpec] = {
-    q.name: q for q in (STATE, STATE_READER, EVENTS, WEIGHTS, DIAGNOSTICS, ODOMETRY, POSE_READER)
+    q.name: q for q in (STATE, STATE_READER, EVENTS, WEIGHTS, DIAGNOSTICS, ODOMETRY, POSE_READER, STATUS_READER)
 }

@@ -111,6 +111,13 @@ TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(GROUND_TRUTH, "std_msgs/msg/String", "EVENTS", "htlm/ground_truth", "world", "trainer, monitoring"),
     TopicSpec(EPISODE_METRICS, "std_msgs/msg/String", "EVENTS", "htlm/episode_metrics", "world", "trainer"),
     TopicSpec(MARKERS, "visualization_msgs/msg/MarkerArray", "STATE", None, "world", "RViz2, Foxglove"),
-    TopicSpec(DIAGNOSTICS, "diagnostic_msgs/msg/DiagnosticArray", "DIAGNOSTICS", None, "every node", "monitoring"),
+    TopicSpec(
+        DIAGNOSTICS,
+        "diagnostic_msgs/msg/DiagnosticArray",
+        "DIAGNOSTICS",
+        None,
+        "every node",
+        "agents, trainer (the world's status), monitoring",
+    ),
 )
 """The topic table of docs/ros.md."""

@@ -26,6 +26,7 @@ from htlm_msgs_py.files import write_atomic
 from htlm_msgs_py.ros import (
     EVENTS,
     STATE,
+    WORLD_STATUS,
     Health,
     SettingsError,
     String,
@@ -69,7 +70,7 @@ class WorldNode(Node):
         self.lim = limits(sc.n_agents, sc.n_tasks, sc.n_actions, sc.levels, sc.horizon, s.batch, sc.knowledge_size)
         self.run_id = s.run_id or unique_run_id(f"run-{s.seed}-{int(time.time())}")
         self.signer.run = self.run_id  # every record carries it; records of other runs are rejected
-        self.health = Health(self, "htlm: world", self.signer)
+        self.health = Health(self, WORLD_STATUS, self.signer)
         self.stop_signal = 0
         # publishers (QoS profiles from htlm_msgs_py)
         self.pub: dict[str, Any] = {
