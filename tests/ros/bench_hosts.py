@@ -151,7 +151,7 @@ def test_hundred_agents_on_two_hosts(tmp_path: Path) -> None:
         "agent_processes": agent_procs,
         "agents_rss_mb": rss / 1024,
         "agents_pss_mb": pss / 1024,
-        "cut": {"at": cut, "healed": healed},
+        "cut": {"first_episode": first, "at": cut, "healed": healed},
         "episodes": rows,
     }
     OUT.mkdir(parents=True, exist_ok=True)
@@ -180,7 +180,7 @@ def _plot(rows: list[dict[str, float]], cut: float, healed: float, t0: float, ho
     ax2.set_ylabel("absent agent-steps\n(per episode)")
     ax2.set_xlabel("minutes since the first episode")
     ax2.legend(loc="upper left", fontsize=8)
-    ax1.set_title(f"{SCENARIO}: 100 agents on two hosts (network namespaces), deployed, default deadlines")
+    ax1.set_title(f"{SCENARIO}: 100 agents on two hosts, deployed (lockstep, default deadlines)", fontsize=10)
     fig.tight_layout()
     fig.savefig(OUT / "hosts.png", dpi=120)
     plt.close(fig)
