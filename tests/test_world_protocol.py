@@ -247,6 +247,19 @@ def _finish_batch(p: WorldProtocol, now: float) -> WorldEffects:
     return eff
 
 
+def test_an_agent_late_for_a_later_begin_is_warned_about_and_counted() -> None:
+    p = _protocol(episodes=2)
+    p.start(0.0)
+    _everyone_acts(p, 0.0)
+    _finish_batch(p, 1.0)
+    assert p.episode == 1 and p.joining
+    _everyone_acts(p, 1.1, agents=range(N - 1))  # agent 4 misses the begin of episode 1
+    eff = p.tick(1.0 + p.settings.begin_deadline)
+    assert eff.log == [("warning", "episode 1 begin: no first action from agents [4] within the deadline; idle")]
+    assert _records(eff, "step")[0] == _step(1, 1, "step", range(N - 1))
+    assert p.ep is not None and p.ep.absent.tolist() == [0, 0, 0, 0, 1]
+
+
 def test_a_batch_of_4_runs_10_episodes_as_4_4_2() -> None:
     p = _protocol(episodes=10, batch=4)
     eff = p.start(0.0)

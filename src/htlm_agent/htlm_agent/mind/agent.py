@@ -200,7 +200,7 @@ class AgentMind:
         self.pending = None
         self.deferred = None
         self.early = {}
-        self.belief = bf.initial_belief(self.model, size)[:, self.me]  # (B, S, L, ..., L)
+        self.belief = bf.initial_belief(self.model, size, agents=1)[:, 0]  # (B, S, L, ..., L): its own only
         self.marg = bf.marginals(self.model, self.belief)  # (B, p, L)
         self.prev = np.full(size, sc.start_assignment, dtype=np.int64)
         self.known = np.full((size, self.n), sc.start_assignment, dtype=np.int64)

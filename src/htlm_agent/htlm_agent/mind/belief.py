@@ -359,14 +359,16 @@ def from_sites(x: FloatArray, levels: int, kinds: int) -> Belief:
     return grid.transpose(*range(kinds + 1, kinds + 1 + k), kinds, *range(kinds))
 
 
-def initial_belief(model: Model, batch: int) -> Belief:
-    """b0: certain of the initial levels (level 0 in the slots without a task), for every agent of every episode.
-    (Also computes the model's `filter_tables` if not yet done, so that the first step of an episode does not wait
-    for them.)"""
+def initial_belief(model: Model, batch: int, agents: int | None = None) -> Belief:
+    """b0: certain of the initial levels (level 0 in the slots without a task), for every agent of every episode:
+    (batch, agents, S, L, ..., L), `agents` the scenario's unless given (every agent's b0 is the same: an agent
+    alone asks for 1). (Also computes the model's `filter_tables` if not yet done, so that the first step of an
+    episode does not wait for them.)"""
     tables = filter_tables(model)
     sc = model.scenario
     L = sc.levels
-    b = np.zeros((batch, sc.n_agents, sc.n_sites) + (L,) * tables.slots)
+    n = sc.n_agents if agents is None else agents
+    b = np.zeros((batch, n, sc.n_sites) + (L,) * tables.slots)
     start = (*sc.initial_levels, 0)  # the stand-in task p: level 0
     for s in range(sc.n_sites):
         at = tuple(start[j] for j in tables.slot_task[:, s])

@@ -375,8 +375,13 @@ class WorldProtocol(ABC):
         n = self.scenario.n_agents
         self.joining = False
         self.present = set(self.answers)
-        if self.first and len(self.present) < n:
-            out.log.append(("warning", f"starting without agents {sorted(set(range(n)) - self.present)}"))
+        missing = sorted(set(range(n)) - self.present)
+        if self.first and missing:
+            out.log.append(("warning", f"starting without agents {missing}"))
+        elif missing and now - self._absent_warned >= ABSENT_LOG_PERIOD:  # counted absent in step 1
+            self._absent_warned = now
+            text = f"episode {self.episode} begin: no first action from agents {missing} within the deadline; idle"
+            out.log.append(("warning", text))
         self.first = False
         self.clock_at = self.deadline = now  # step 1 goes at once, also on the free clock
         self.waiting = set()
