@@ -50,6 +50,10 @@ def test_a_baseline_too_large_here_is_left_out_with_its_reason() -> None:
     base = baseline_rows(load("warehouse"), 10, seed=0, skipped=skipped)
     assert [r["policy"] for r in base] == ["random", "greedy", "auction", "lookahead (learner)"]  # no optimum
     assert list(skipped) == ["qmdp", "optimal"] and "too large to compute here" in skipped["optimal"]
+    skipped = {}
+    base = baseline_rows(load("facility-20"), 2, seed=0, skipped=skipped)  # 20 agents: the lookahead too
+    assert [r["policy"] for r in base] == ["random", "greedy", "auction"]
+    assert list(skipped) == ["qmdp", "lookahead", "optimal"] and "20 agents" in skipped["lookahead"]
 
 
 def test_report_without_episodes_names_the_file(tmp_path: Path) -> None:
