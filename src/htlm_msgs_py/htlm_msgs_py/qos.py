@@ -62,7 +62,7 @@ best effort (sensor data), and only the newest pose matters."""
 STATUS_READER = QosSpec("STATUS_READER", "best_effort", "volatile", 10)
 """How agents and the trainer read /diagnostics for the world's status: best effort, as a lost status is followed
 by the next a second later. A reliable reader acknowledges every status of every node: in a team of N agents about
-N² acknowledgements a second, half the datagrams a 100-agent team sent."""
+N² acknowledgements a second (a 100-agent team sent 61 % fewer datagrams a step without them)."""
 
 PROFILES: dict[str, QosSpec] = {
     q.name: q for q in (STATE, STATE_READER, EVENTS, WEIGHTS, DIAGNOSTICS, ODOMETRY, POSE_READER, STATUS_READER)
