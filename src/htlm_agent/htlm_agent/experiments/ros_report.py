@@ -88,24 +88,25 @@ def baseline_rows(
 ) -> list[dict[str, Any]]:
     """`BASELINES` (random, greedy, auction, QMDP, the lookahead, the optimum), evaluated in process on `episodes`
     episodes of master seed `seed`.
-    A baseline that cannot be computed here (the optimum of a large scenario) is left out, and why goes into
-    `skipped` by its name."""
+    A baseline that cannot be had here (the optimum of a large scenario; the lookahead above LOOKAHEAD_MAX_AGENTS
+    agents) is left out, and why goes into `skipped` by its name and onto stderr, as each baseline's time does."""
     rows = []
     for name in BASELINES:
+        why = None
         if name == "lookahead" and scenario.n_agents > LOOKAHEAD_MAX_AGENTS:
             why = (
                 f"{scenario.n_agents} agents: its agents act in N² p a step (more than {LOOKAHEAD_MAX_AGENTS} agents: "
                 f"minutes to hours for {episodes} episodes); `htlm evaluate --baseline lookahead` evaluates it"
             )
+        else:
+            try:
+                policy, sc = make_baseline(name, scenario, seed=seed)
+            except ProblemTooLarge as e:
+                why = str(e)
+        if why is not None:
             if skipped is not None:
                 skipped[name] = why
             print(f"htlm launch: {name}: left out, {why}", file=sys.stderr)
-            continue
-        try:
-            policy, sc = make_baseline(name, scenario, seed=seed)
-        except ProblemTooLarge as e:
-            if skipped is not None:
-                skipped[name] = str(e)
             continue
         start = time.monotonic()
         ev = evaluate_run(policy, sc, episodes, seed=seed, policy_name=name)
