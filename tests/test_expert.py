@@ -18,7 +18,7 @@ from htlm_agent.learning.lookahead import LOAD_CAP, BaseValue, LookaheadPolicy, 
 from htlm_agent.learning.settings import Settings
 from htlm_agent.runtime.evaluate import evaluate
 from htlm_agent.runtime.team import Team
-from htlm_world.scenario import Scenario, builtin
+from htlm_world.scenario import Scenario, builtin, load
 
 
 def with_own_reward(sc: Scenario, agent: int, **fields: float) -> Scenario:
@@ -67,6 +67,51 @@ def test_the_teacher_looks_again_at_a_task_its_belief_may_hold_done_wrongly(valu
     assert teacher[0, 1] == 1, teacher[0]
     assert (teacher[0, who != 1] >= rest).all() and (teacher[1] >= rest).all(), teacher
     assert (LookaheadPolicy(sc, value).act_rows(ctx, who) >= rest).all()
+
+
+def test_the_teacher_looks_again_when_none_of_its_draws_is_open(value: BaseValue) -> None:
+    """Every task believed done, agent 1 at 99 % for task 1, in 64 episodes whose knowledge states differ a little
+    (so their 64 draws of the joint state differ): in most of them no draw has task 1 open, where the lookahead
+    judges every choice worth 0 steps; the teacher still weighs what resting leaves unseen, and sends agent 1 to
+    look in every episode."""
+    sc = builtin()
+    team = Team(sc, 64, seed=0)
+    ctx = team.context()
+    ctx.marginals[:] = 0.0
+    ctx.marginals[..., 0] = 1.0
+    ctx.marginals[:, 1, 1, :2] = (0.99, 0.01)
+    ctx.knowledge[:, :, -1] += np.arange(64)[:, None] * 1e-3  # a different hash, so different draws, per episode
+    who = np.arange(sc.n_agents)
+    teacher = Teacher(sc, value)
+    u, _ = teacher.look._draws(ctx.knowledge, who)
+    open_draws = (u[:, 1, :, 1] > 0.99).sum(axis=-1)  # (B,) agent 1's draws with task 1 open
+    assert (open_draws == 0).sum() >= 16, open_draws
+    actions, worth = teacher.improve(ctx, who)
+    assert (actions[:, 1] == 1).all(), actions[:, 1]
+    assert np.isfinite(worth[open_draws == 0, 1, 1]).all()
+
+
+def test_the_teammate_with_most_capability_bears_the_whole_of_a_look_the_others_their_share() -> None:
+    """The warehouse's picking (forklift2 1, picker1 3, picker2 2, worker 2): picker1 bears the whole of looking again
+    at a picking task, every other picker its share of the capability it counts on (forklift2 1/8); with picker1
+    silent (not on the roster) picker2 bears it whole, before the worker (the lower index among equals), and
+    forklift2's share is 1/5. A task nobody else brings capability to is wholly its one agent's."""
+    sc = load("warehouse")
+    teacher = Teacher(sc, BaseValue(sc, seed=0))  # the shares read no value
+    who = np.arange(sc.n_agents)
+    names = [a.name for a in sc.agents]
+    picking, restock = (
+        next(j for j, (_, k) in enumerate(sc.tasks) if sc.kind_names[k] == x) for x in ("picking", "restock")
+    )
+    everyone = np.ones((2, sc.n_agents, sc.n_agents), dtype=bool)
+    everyone[1, :, names.index("picker1")] = False  # episode 1: nobody heard from picker1
+    shares = teacher.look_shares(who, everyone)[:, :, picking]  # (B, N)
+    at = {name: shares[:, i] for i, name in enumerate(names)}
+    assert at["picker1"][0] == 1.0 and at["picker2"][0] == pytest.approx(2 / 8) and at["forklift2"][0] == 1 / 8
+    assert at["picker2"][1] == 1.0 and at["worker"][1] == pytest.approx(2 / 5) and at["forklift2"][1] == 1 / 5
+    assert at["picker1"][1] == 1.0  # itself it always counts on
+    alone = np.zeros_like(everyone)
+    assert (teacher.look_shares(who, alone)[:, names.index("forklift1"), restock] == 1.0).all()
 
 
 def test_settings_the_teacher_does_not_read_are_warned_about() -> None:
@@ -143,7 +188,7 @@ def test_a_short_run_learns_the_teachers_choices_and_beats_the_auction(tmp_path:
     from htlm_agent.learning.run import train
 
     s = Settings.for_learner(
-        learner="expert", episodes=512, rounds=1, policy_updates=400, validate_episodes=100, eval_episodes=0
+        learner="expert", episodes=512, rounds=1, policy_updates=750, validate_episodes=100, eval_episodes=0
     )
     res = train(builtin(), s, tmp_path / "run", progress=False, tensorboard=False)
     rows = list(csv.DictReader((tmp_path / "run" / "rounds.csv").open()))

@@ -47,7 +47,7 @@ from htlm_agent.progress import Progress
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
-from htlm_world.types import FloatArray, IntArray
+from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
 @dataclass(frozen=True)
@@ -331,6 +331,10 @@ class LookaheadPolicy:
         # mission first, load second: QMDP's price of a unit of committed capability (at least one: working counts)
         self.load = load_price * np.maximum(self.brings.sum(axis=-1), 1) * (np.arange(p + 1) > 0)
         self.candidates = candidate_tasks(self.model)
+        self.takes = np.zeros((sc.n_agents, p), dtype=bool)
+        """(N, p) the candidate tasks of every agent (`candidates`)."""
+        for k, tasks in enumerate(self.candidates):
+            self.takes[k, tasks] = True
 
     def _draws(self, knowledge: FloatArray, who: IntArray) -> tuple[FloatArray, FloatArray]:
         """Two (B, R, M, p) arrays of uniforms for the agents `who` with knowledge states (B, R, K), stratified: each
@@ -377,8 +381,7 @@ class LookaheadPolicy:
         rest = complete.all(axis=-1) if sc.n_idle > 0 else np.zeros((b, r), dtype=bool)
         plan[rest] = -1
         rest_of = model.rest_action(ctx.prev[:, who])  # (B, R)
-        if q_out is not None:  # a resting head: resting is worth 0 steps, the rest is not judged
-            q_out[rest, rest_of[rest]] = 0.0
+        settled = self._settled(rest, rest_of, who, own_load, q_out)
         for k in range(int(who.max()) + 1):  # agent k improves on the plan in the heads of agents k.. (the rest are
             bi, ri = np.nonzero((who >= k)[None, :] & ~rest)  # settled): every (episode, head) pair
             if bi.size == 0:
@@ -417,7 +420,37 @@ class LookaheadPolicy:
                 if sc.n_idle:
                     q_out[bm, rm, rest_of[bm, rm]] = q[mine, 0]
         own = plan[:, np.arange(r), who]
+        own = np.where(settled >= 0, settled, own)
         return np.where(own >= 0, own, rest_of).astype(np.int64)
+
+    def _settled(
+        self, rest: BoolArray, rest_of: IntArray, who: IntArray, own_load: FloatArray | None, q_out: FloatArray | None
+    ) -> IntArray:
+        """The choices (B, R) of the heads whose every draw is complete (`rest`; -1 elsewhere): they rest, every
+        candidate worth 0 steps. With `own_load` (the `Teacher`'s) such a head still weighs its own agent's load
+        terms, which price what resting leaves unseen: every candidate task is worth its load price and its own load
+        terms, and so is resting, and the head takes the least (a task, or -1: rest). `q_out` receives those worths
+        (resting's alone, 0 steps, without `own_load`)."""
+        out = np.full(rest.shape, -1, dtype=np.int64)
+        if not rest.any() or (own_load is None and q_out is None):
+            return out
+        bi, ri = np.nonzero(rest)
+        rests = rest_of[bi, ri]
+        if own_load is None:
+            assert q_out is not None
+            q_out[bi, ri, rests] = 0.0
+            return out
+        p, each = self.sc.n_tasks, np.arange(bi.size)
+        rows = own_load[bi, ri]  # (P, |Ḡ|)
+        price = self.load[who[ri]]  # (P, p + 1)
+        worth = np.full(rows.shape, np.inf)
+        worth[:, :p] = np.where(self.takes[who[ri]], price[:, 1:] + rows[:, :p], np.inf)
+        worth[each, rests] = price[:, 0] + rows[each, rests]
+        best = worth.argmin(axis=-1)
+        out[bi, ri] = np.where(best < p, best, -1)
+        if q_out is not None:
+            q_out[bi, ri] = worth
+        return out
 
 
 class AgentLookahead(RowPolicy):
@@ -501,14 +534,17 @@ def train_lookahead(
     return TrainResult(out, scenario, settings, settings.episodes, wall, train_time, metrics, [row])
 
 
-UNSEEN_SHARE = 0.1
-"""What leaving a task unseen costs an agent in the `Teacher`'s choice, beyond one step plus the value: this share of
-the horizon times the chance that a task its belief holds done (confident level 0), and that it brings capability
-to, is open. The value is the auction's on the true levels, which finishes such a task; but an idle agent observes
-nothing, a teammate whose belief is the agent's rests too, and a wrong "done" is then never corrected: the team
-leaves the task open to the horizon. Resting leaves every such task unseen; working one of them looks at it and
-leaves the others; working a task believed open leaves none (the agent may look later). A larger share fails less
-and holds less capability in reserve (docs/results/market.md, Looking again at what is believed done)."""
+UNSEEN_SHARE = 1.0
+"""What leaving a task unseen costs in the `Teacher`'s choice, beyond one step plus the value: this share of the
+horizon times the chance that a task the agent's belief holds done (confident level 0), and that it brings capability
+to, is open, times the agent's part in looking at it (`Teacher.look_shares`). The value is the auction's on the true
+levels, which finishes such a task; but an idle agent observes nothing, a teammate whose belief is the agent's rests
+too, and a wrong "done" is then never corrected: the team leaves the task open to the horizon, and a failed episode
+counts as the horizon in the completion step, hence the whole horizon. Resting leaves every such task unseen; working
+one of them looks at it and leaves the others; working a task believed open leaves none (the agent may look later).
+It is weighed too where none of the agent's drawn states has such a task open (`LookaheadPolicy._settled`). A larger
+share fails less and holds less capability in reserve (docs/results/market.md, Looking again at what is believed
+done)."""
 
 
 LOAD_CAP = 0.45
@@ -563,22 +599,40 @@ class Teacher:
             out[:, :, g] = -(parts["idle"] + parts["reassign"]) * rates[None, :]
         return np.clip(out, -LOAD_CAP, LOAD_CAP)
 
-    def unseen_steps(self, marg: FloatArray, who: IntArray) -> FloatArray:
+    def unseen_steps(self, marg: FloatArray, who: IntArray, present: BoolArray) -> FloatArray:
         """(B, R, |Ḡ|): the steps every action of Ḡ costs each of the agents `who` (R,) in what it leaves unseen of
-        the tasks it believes done (confident level 0) and brings capability to, from their marginals (B, R, p, L):
-        `UNSEEN_SHARE` of the horizon times the chance that one of them is open and stays
-        unseen. Working a task looks at that task; working a task believed open costs nothing (the agent may look
-        later); resting looks at none."""
+        the tasks it believes done (confident level 0) and brings capability to, from their marginals (B, R, p, L)
+        and the teammates each counts on (B, R, N): for each such task, `UNSEEN_SHARE` of the horizon times the
+        chance that the task is open, times the agent's part in looking at it (`look_shares`). Resting leaves every
+        such task unseen; working one of them looks at it and leaves the others; working a task believed open costs
+        nothing (the agent may look later)."""
         p = self.sc.n_tasks
         conf = confident_levels(marg, self.tables.threshold[who])
         mine = (conf == 0) & (self.model.agent_caps[who, :p] > 0)[None]  # (B, R, p)
-        done = np.where(mine, marg[..., 0], 1.0)  # (B, R, p): at least the threshold where `mine`
-        every = done.prod(axis=-1)  # (B, R)
-        out = np.empty((*every.shape, self.sc.n_actions))
-        out[..., :p] = np.where(mine, 1.0 - every[..., None] / np.maximum(done, 1e-12), 0.0)
-        out[..., p:] = (1.0 - every)[..., None]
+        miss = np.where(mine, (1.0 - marg[..., 0]) * self.look_shares(who, present), 0.0)  # (B, R, p)
+        every = miss.sum(axis=-1, keepdims=True)  # (B, R, 1)
+        out = np.empty((*every.shape[:-1], self.sc.n_actions))
+        out[..., :p] = np.where(mine, every - miss, 0.0)
+        out[..., p:] = every
         cost: FloatArray = UNSEEN_SHARE * self.sc.horizon * np.maximum(out, 0.0)
         return cost
+
+    def look_shares(self, who: IntArray, present: BoolArray) -> FloatArray:
+        """(B, R, p): each agent's part in looking again at each task, among the teammates it counts on (B, R, N;
+        itself always): the whole of it for the one that brings the most capability to the task (the lowest index
+        among equals), its share of their capability for the others. Every capable agent paying the whole made
+        larger teams check done work all the time (facility-20: half the capability unused instead of three
+        quarters); the one the auction would send paying alone left wrong "done"s to the agent whose own look had
+        made them (docs/results/market.md, Looking again at what is believed done)."""
+        p, n = self.sc.n_tasks, self.sc.n_agents
+        caps = self.model.agent_caps[:, :p].astype(np.float64)  # (N, p)
+        counted = present.copy()
+        counted[:, np.arange(who.size), who] = True
+        brought = counted[..., None] * caps[None, None]  # (B, R, N, p)
+        first = (brought + (n - np.arange(n))[None, None, :, None] * 1e-9).argmax(axis=2) == who[None, :, None]
+        total = brought.sum(axis=2)  # (B, R, p)
+        out: FloatArray = np.where(first, 1.0, caps[who][None] / np.maximum(total, 1e-12))
+        return out
 
     def improve(self, ctx: Context, who: IntArray) -> tuple[IntArray, FloatArray]:
         """The teacher's choices (B, R) of the agents `who` (R,) at the step of `ctx`, each from its own row, and
@@ -596,6 +650,7 @@ class Teacher:
 
     def _improve(self, ctx: Context, who: IntArray, own: FloatArray) -> tuple[IntArray, FloatArray]:
         """`improve` with the agents' own load-management steps `own` (B, R, |Ḡ|)."""
-        load = own + self.unseen_steps(ctx.marginals[:, who], who)
+        present = knowledge.roster(ctx.knowledge[:, who], self.sc)
+        load = own + self.unseen_steps(ctx.marginals[:, who], who, present)
         q = np.full(load.shape, np.inf)
         return self.look.act_rows(ctx, who, load, q), q
