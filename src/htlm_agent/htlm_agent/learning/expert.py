@@ -19,8 +19,9 @@ Every round:
    choose the teacher's action from the agent's own knowledge state (cross-entropy over Â, Adam), on this round's
    and the last round's improved choices; it is validated on the run's validation episodes.
 
-Training stops at the first round whose policy validates no sooner than the soonest so far (or after `rounds`). The
-run's policy is the network of the round `select_round` keeps: the soonest, unless a round within one standard error
+Training stops at the first round that does not help (or after `rounds`): whose policy validates no sooner than the
+soonest so far and is not the one `select_round` would keep. The run's policy is the network of the round
+`select_round` keeps: the soonest, unless a round within one standard error
 of it leaves materially more capability unused (mission first, load management second). Acting with it is
 one forward pass of the token network per agent and step, whatever the size of the team. The run writes rounds.csv
 (one row per round) and rounds.png beside the usual files.
@@ -456,8 +457,7 @@ class ExpertRounds:
                 print(
                     f"expert: round {r}: the agents' own rewards moved the teacher's targets: {each}", file=sys.stderr
                 )
-        soonest = min((x.val_completion for x in self.rows[1:-1]), default=math.inf)
-        self.finished = r >= s.rounds or not c["mean"] < soonest  # a failed episode counts as the horizon
+        self.finished = r >= s.rounds or not helps(self.rows)
         self.weights[r] = self.student.weights()
         keep = select_round(self.rows)
         self.best = (self.rows[keep].val_completion, keep, self.weights[keep])
@@ -489,6 +489,15 @@ def select_round(rows: list[RoundRow]) -> int:
     close = [x for x in rounds if x.val_completion <= best.val_completion + best.val_se]
     most = max(close, key=lambda x: (x.val_unused_fraction, -x.val_completion))
     return most.round if most.val_unused_fraction >= best.val_unused_fraction + RESERVE_GAIN else best.round
+
+
+def helps(rows: list[RoundRow]) -> bool:
+    """Whether the last of the validation rows `rows` (`rows[0]` the baseline's) helps, so that another round may: it
+    validates sooner than every round before it (a failed episode counts as the horizon), or it is the round
+    `select_round` keeps (as soon within a standard error and leaving more capability unused)."""
+    last = rows[-1]
+    soonest = min((x.val_completion for x in rows[1:-1]), default=math.inf)
+    return last.val_completion < soonest or select_round(rows) == last.round
 
 
 def play(ex: ExpertRounds, first_batch: int, batches: int, on_batch: Callable[[], None] | None = None) -> None:

@@ -90,7 +90,8 @@ class Settings:
     keeps round 0's value, so every round relabels the team's own play with the same lookahead (DAgger)."""
     rounds: int = 4
     """expert: the most rounds of play, evaluation and improvement (`episodes` / `rounds` episodes each); training
-    stops at the first round whose policy validates no sooner than the best one so far."""
+    stops at the first round whose policy validates no sooner than the soonest so far, unless it is the round the run
+    keeps (one as soon within a standard error that leaves more capability unused: `expert.select_round`)."""
     policy_updates: int = 750
     """expert: Adam updates of the policy network per round (minibatches of `batch_size` agent-steps)."""
     load_weight: float = 1.0
