@@ -7,6 +7,7 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from htlm_agent.experiments.ros_report import ReportError, baseline_rows, learned_row, table, write_report
@@ -72,3 +73,24 @@ def test_launch_refuses_what_training_over_ros_cannot_do(tmp_path: Path, capsys:
     assert main(["launch", "evaluate", "--policy", "greedy", "--batch", "3", "--first-episode", "4"]) == 2
     assert "--batch 3" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()  # nothing started
+
+
+def test_the_baselines_run_the_episodes_of_the_launchs_batches() -> None:
+    """In batches of 8, batch c is the episodes a launch with `--batch 8` runs as its batch c (`Team` of episode c):
+    the baselines of a launch's report stand on the learned team's episodes, not on those of one batch of 20."""
+    from htlm_agent.baselines.heuristics import GreedyPolicy
+    from htlm_agent.runtime.evaluate import run_episodes
+    from htlm_agent.runtime.team import Team, rollout
+    from htlm_world.metrics import completion_step
+
+    sc = builtin()
+    ro = run_episodes(GreedyPolicy(sc), sc, 20, seed=3, batch=8)
+    second = rollout(Team(sc, 8, 3, episode=1), GreedyPolicy(sc))
+    assert (ro.levels[:, 8:16] == second.levels).all() and ro.levels.shape[1] == 20
+    assert (ro.levels != run_episodes(GreedyPolicy(sc), sc, 20, seed=3).levels).any()
+    greedy = baseline_rows(sc, 20, seed=3, batch=8)[1]
+    assert greedy["policy"] == "greedy"
+    comp, failed = completion_step(ro.levels)
+    assert greedy["completion_mean"] == pytest.approx(np.where(failed, sc.horizon, comp).mean(), abs=1e-3)
+    with pytest.raises(ValueError, match=r"batch must be in 1\.\.1024, got 0"):
+        run_episodes(GreedyPolicy(sc), sc, 20, batch=0)

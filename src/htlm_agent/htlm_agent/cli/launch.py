@@ -371,7 +371,7 @@ def run(args: argparse.Namespace) -> int:
             out["evaluation"] = {"exit_code": code, **summarize(ecfg.run_dir)}
             if code == 0:
                 trained = int(json.loads((ckpt / "meta.json").read_text()).get("episodes_done", episodes))
-                out["result"] = _report(sc, args.seed, trained, eval_episodes, run_dir, ecfg.run_dir)
+                out["result"] = _report(sc, args.seed, trained, eval_episodes, run_dir, ecfg.run_dir, ecfg.batch)
     if args.json:
         print(json.dumps(out))
     else:
@@ -379,9 +379,11 @@ def run(args: argparse.Namespace) -> int:
     return code
 
 
-def _report(sc: Any, seed: int, train_episodes: int, episodes: int, run_dir: Path, eval_dir: Path) -> dict[str, Any]:
-    """The learned team (evaluated over ROS) beside the baselines (`ros_report.BASELINES`):
-    run_dir/result.{csv,json,png}."""
+def _report(
+    sc: Any, seed: int, train_episodes: int, episodes: int, run_dir: Path, eval_dir: Path, batch: int
+) -> dict[str, Any]:
+    """The learned team (evaluated over ROS in batches of `batch`) beside the baselines (`ros_report.BASELINES`) on
+    the same episodes: run_dir/result.{csv,json,png}."""
     from htlm_agent.experiments.ros_report import baseline_rows, learned_row, write_report
 
     print(f"htlm launch: evaluating the baselines in process on {episodes} episodes (seed {seed})", file=sys.stderr)
@@ -390,7 +392,10 @@ def _report(sc: Any, seed: int, train_episodes: int, episodes: int, run_dir: Pat
         learner = json.loads((run_dir / "trainer" / "settings.json").read_text())["learner"]
     except (OSError, ValueError, KeyError):
         learner = "?"
-    rows = [learned_row(eval_dir / "world.jsonl", f"learned ({learner})"), *baseline_rows(sc, episodes, seed, skipped)]
+    rows = [
+        learned_row(eval_dir / "world.jsonl", f"learned ({learner})"),
+        *baseline_rows(sc, episodes, seed, skipped, batch),
+    ]
     info = {
         "team": sc.team or sc.name,
         "seed": seed,

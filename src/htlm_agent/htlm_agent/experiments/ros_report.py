@@ -20,7 +20,7 @@ import numpy as np
 
 from htlm_agent.baselines.optimal import ProblemTooLarge
 from htlm_agent.experiments.baselines import make_baseline
-from htlm_agent.runtime.evaluate import evaluate_run
+from htlm_agent.runtime.evaluate import MAX_BATCH, evaluate_run
 from htlm_world.metrics import mean_se
 from htlm_world.scenario import Scenario
 
@@ -84,10 +84,11 @@ def learned_row(world_log: Path, name: str = "learned") -> dict[str, Any]:
 
 
 def baseline_rows(
-    scenario: Scenario, episodes: int, seed: int, skipped: dict[str, str] | None = None
+    scenario: Scenario, episodes: int, seed: int, skipped: dict[str, str] | None = None, batch: int = MAX_BATCH
 ) -> list[dict[str, Any]]:
     """`BASELINES` (random, greedy, auction, QMDP, the lookahead, the optimum), evaluated in process on `episodes`
-    episodes of master seed `seed`.
+    episodes of master seed `seed`, in batches of `batch` (those of the team evaluated over ROS: the same
+    episodes).
     A baseline that cannot be had here (the optimum of a large scenario; the lookahead above LOOKAHEAD_MAX_AGENTS
     agents) is left out, and why goes into `skipped` by its name and onto stderr, as each baseline's time does."""
     rows = []
@@ -109,7 +110,7 @@ def baseline_rows(
             print(f"htlm launch: {name}: left out, {why}", file=sys.stderr)
             continue
         start = time.monotonic()
-        ev = evaluate_run(policy, sc, episodes, seed=seed, policy_name=name)
+        ev = evaluate_run(policy, sc, episodes, seed=seed, policy_name=name, batch=batch)
         em = ev.episodes
         rows.append(_row(LABELS.get(name, name), "in process", em.completion, em.failed, em.unused_fraction))
         print(f"htlm launch: {name}: {episodes} episodes in {time.monotonic() - start:.1f} s", file=sys.stderr)

@@ -60,18 +60,22 @@ def run_episodes(
     episodes: int,
     seed: int = 0,
     inactive: tuple[int, ...] = (),
+    batch: int = MAX_BATCH,
 ) -> Rollouts:
-    """Run `episodes` episodes of `policy` in batches of at most MAX_BATCH: true levels, actions, observations,
-    whether every agent believes, after the last step, that every task is at level 0 (confident levels of the
-    reward) and the seconds of each batch."""
+    """Run `episodes` episodes of `policy` in batches of at most `batch` (batch c from the episode index c, as batch c
+    of a launch with `--batch` `batch` runs its episodes over ROS): true levels, actions, observations, whether every
+    agent believes, after the last step, that every task is at level 0 (confident levels of the reward) and the
+    seconds of each batch."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes!r}")
+    if not 1 <= batch <= MAX_BATCH:
+        raise ValueError(f"batch must be in 1..{MAX_BATCH}, got {batch!r}")
     levels, actions, observations, believed, seconds = [], [], [], [], []
     events: list[tuple[int, int, int]] = []
     chunk = 0
     left = episodes
     while left > 0:
-        b = min(left, MAX_BATCH)
+        b = min(left, batch)
         t0 = time.perf_counter()
         team = Team(scenario, b, seed, episode=chunk, inactive=inactive)
         tr = rollout(team, policy)
@@ -166,6 +170,7 @@ def evaluate_run(
     seed: int = 0,
     inactive: tuple[int, ...] = (),
     policy_name: str = "",
+    batch: int = MAX_BATCH,
 ) -> Evaluation:
     """Evaluate `policy` (greedy, as it acts) over `episodes` episodes: metrics and per-episode data.
 
@@ -176,8 +181,9 @@ def evaluate_run(
         seed: master seed of the evaluation episodes.
         inactive: agent indices forced to idle whatever they decide (no retraining).
         policy_name: label for reports.
+        batch: episodes simulated at once (`run_episodes`).
     """
-    ro = run_episodes(policy, scenario, episodes, seed, inactive)
+    ro = run_episodes(policy, scenario, episodes, seed, inactive, batch)
     em = episode_metrics(scenario, ro.levels, ro.actions)
     metrics = summarize(scenario, em, seed, inactive, policy_name or type(policy).__name__, ro.believed_complete)
     return Evaluation(metrics, em, ro.actions, scenario, ro.believed_complete, ro)
