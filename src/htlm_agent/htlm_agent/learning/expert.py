@@ -645,8 +645,8 @@ def reassignments(metrics: dict[str, Any]) -> float:
 
 def write_rounds(out: Path, rows: list[RoundRow], name: str, best: int) -> None:
     """rounds.csv and rounds.png of a run on operation `name`: every round's validation completion (± se), the
-    chosen round `best` ringed; its failures, how much of the play the teacher changed and how much the network
-    learned."""
+    chosen round `best` ringed; its failures, how much of the play the teacher changed, how much the network
+    learned and how much of the team's capability it leaves unused."""
     with (out / "rounds.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(asdict(rows[0])))
         w.writeheader()
@@ -657,7 +657,7 @@ def write_rounds(out: Path, rows: list[RoundRow], name: str, best: int) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.4))
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 4.0))
     x = [r.round for r in rows]
     ax1.errorbar(x, [r.val_completion for r in rows], yerr=[r.val_se for r in rows], marker="o", capsize=3)
     ax1.plot([best], [rows[best].val_completion], "o", ms=14, mfc="none", mec="C3", label="the run's policy")
@@ -669,10 +669,12 @@ def write_rounds(out: Path, rows: list[RoundRow], name: str, best: int) -> None:
     ax2.plot(x, [100 * r.val_failure_rate for r in rows], marker="o", label="failed episodes")
     ax2.plot(x, [100 * r.changed for r in rows], marker="s", label="played choices the teacher changed")
     ax2.plot(x, [100 * r.agreement for r in rows], marker="^", label="teacher's best choices the policy makes")
+    ax2.plot(x, [100 * r.val_unused_fraction for r in rows], marker="D", label="capability unused")
     ax2.set_xlabel("round")
     ax2.set_ylabel("%")
     ax2.set_xticks(x)
-    ax2.legend(fontsize=8)
+    ax2.set_ylim(-3, 103)
+    ax2.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2)
     ax2.grid(alpha=0.3)
     fig.suptitle(f"expert iteration on {name}: one point per round", fontsize=10)
     fig.tight_layout()
