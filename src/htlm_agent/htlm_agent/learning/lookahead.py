@@ -543,8 +543,8 @@ too, and a wrong "done" is then never corrected: the team leaves the task open t
 counts as the horizon in the completion step, hence the whole horizon. Resting leaves every such task unseen; working
 one of them looks at it and leaves the others; working a task believed open leaves none (the agent may look later).
 It is weighed too where none of the agent's drawn states has such a task open (`LookaheadPolicy._settled`). A larger
-share fails less and holds less capability in reserve (docs/results/market.md, Looking again at what is believed
-done)."""
+share fails less and holds less capability in reserve (docs/results/market.md, Looking again, where no draw is
+open)."""
 
 
 LOAD_CAP = 0.45
@@ -623,7 +623,8 @@ class Teacher:
         among equals), its share of their capability for the others. Every capable agent paying the whole made
         larger teams check done work all the time (facility-20: half the capability unused instead of three
         quarters); the one the auction would send paying alone left wrong "done"s to the agent whose own look had
-        made them (docs/results/market.md, Looking again at what is believed done)."""
+        made them (docs/results/market.md, Looking again at what is believed done, and Looking again, where no draw
+        is open)."""
         p, n = self.sc.n_tasks, self.sc.n_agents
         caps = self.model.agent_caps[:, :p].astype(np.float64)  # (N, p)
         counted = present.copy()
