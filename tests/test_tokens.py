@@ -148,8 +148,8 @@ def test_difference_credit_pays_an_agent_only_for_what_its_own_work_adds() -> No
 
 
 def test_a_trained_network_acts_on_a_changed_team_and_operation() -> None:
-    """The transfer of docs/results/CHANGELOG.md (2026-11-27): one agent lost, one added, capabilities changed, a site added; the
-    shared network built for each from the same weights acts within Â."""
+    """The transfer of docs/results/CHANGELOG.md (2026-11-27): one agent lost, one added, capabilities changed, a site
+    added; the shared network built for each from the same weights acts within Â."""
     sc = builtin().replace(roster=True)
     params = [t.numpy() for t in init_params(sc, TOKENS, 5)]
     changed = changed_operations(sc)
