@@ -111,8 +111,13 @@ KINDS_3 = "kinds:\n  - {name: a}\n  - {name: b, depends_on: c}\n  - {name: c, de
 
 BAD_FILES = [
     # (file text, field path, bad value as it must appear in the message)
-    ("horizon: 10\nspeed: 3\n", "speed", "unknown key"),
-    (AGENTS_2 + "  - {name: b, fire: 1, rescue: 1, speed: 2}\n", "agents[1].capabilities.speed", "no kind uses"),
+    ("horizon: 10\nvelocity: 3\n", "velocity", "unknown key"),
+    (AGENTS_2 + "  - {name: b, fire: 1, rescue: 1, velocity: 2}\n", "agents[1].capabilities.velocity", "no kind uses"),
+    ("speed: 2\n", "step_seconds", "no step length"),
+    ("step_seconds: 5\n", "agents[0].speed", "has no speed"),
+    ("step_seconds: 5\nspeed: -1\n", "speed", "must be above 0"),
+    ("step_seconds: -5\n", "step_seconds", "must be >= 0"),
+    ("step_seconds: 5\nspeed: 1\nmode: ht\n", "step_seconds", "needs idle locations"),
     ("reward: {bonus: 2}\n", "reward.bonus", "unknown key"),
     ("horizon: ten\n", "horizon", "'ten'"),
     ("horizon: 10.5\n", "horizon", "10.5"),

@@ -16,6 +16,7 @@ from htlm_world.metrics import episode_metrics
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.simulator import sample_world_step
+from htlm_world.travel import TravelState, working_actions
 from htlm_world.types import IntArray
 
 TRAINER_LAG = 1
@@ -85,6 +86,8 @@ class WorldEpisode:
         self.levels: IntArray = np.tile(np.array(scenario.initial_levels, dtype=np.int64), (size, 1))  # (B, p)
         self.prev: IntArray = np.full((size, n), scenario.start_assignment, dtype=np.int64)
         self.t = 0
+        self.travel = TravelState(scenario, size) if scenario.travel else None
+        """Where every agent is (`htlm_world.travel`); None without travel."""
         self.absent = np.zeros(n, dtype=np.int64)
         self.level_log: list[IntArray] = [self.levels.copy()]
         self.action_log: list[IntArray] = []
@@ -122,7 +125,10 @@ class WorldEpisode:
         out: np.ndarray = np.asarray(self.events.out.all(axis=0))
         actions, acted = self.joint({k: a for k, a in chosen.items() if not out[k]}, absent=out)
         actions = self.events.force(self.model, actions, self.prev)
-        nxt, obs, _caps = sample_world_step(self.model, levels, actions, self.rng, self.t + 1)
+        applied = actions
+        if self.travel is not None:  # an agent on its way works on nothing and observes nothing
+            applied = working_actions(actions, self.travel.step(actions))
+        nxt, obs, _caps = sample_world_step(self.model, levels, applied, self.rng, self.t + 1)
         if len(acted) < self.scenario.n_agents:
             obs[:, [k for k in range(self.scenario.n_agents) if k not in acted]] = -1
         if self.model.standby_class >= 0:

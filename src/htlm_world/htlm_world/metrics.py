@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from htlm_world.scenario import Scenario
+from htlm_world.travel import TravelState
 from htlm_world.types import FloatArray, IntArray
 
 
@@ -43,6 +44,8 @@ class EpisodeMetrics:
     agent_unused: FloatArray  # (B, N) unused capability of each agent per step
     agent_idle_before: IntArray  # (B, N)
     agent_reassign_before: IntArray  # (B, N)
+    agent_metres: FloatArray | None = None  # (B, N) metres each agent drove (travel only: docs/model.md, Travel)
+    agent_driving: IntArray | None = None  # (B, N) steps each agent spent on its way (travel only)
 
 
 def episode_metrics(sc: Scenario, levels: IntArray, actions: IntArray) -> EpisodeMetrics:
@@ -65,6 +68,7 @@ def episode_metrics(sc: Scenario, levels: IntArray, actions: IntArray) -> Episod
     moved = (prev >= 0) & (actions >= 0) & (sites[np.maximum(prev, 0)] != sites[np.maximum(actions, 0)])
     agent_idle = (idle & before).sum(axis=0)
     agent_moves = (moved & before).sum(axis=0)
+    metres, driving = drives(sc, actions) if sc.travel else (None, None)
     return EpisodeMetrics(
         completion=comp,
         failed=failed,
@@ -76,7 +80,19 @@ def episode_metrics(sc: Scenario, levels: IntArray, actions: IntArray) -> Episod
         agent_unused=agent_unused,
         agent_idle_before=agent_idle,
         agent_reassign_before=agent_moves,
+        agent_metres=metres,
+        agent_driving=driving,
     )
+
+
+def drives(sc: Scenario, actions: IntArray) -> tuple[FloatArray, IntArray]:
+    """Metres driven (B, N) and steps spent on the way (B, N) by every agent over (h, B, N) joint assignments, the
+    drives of `htlm_world.travel` replayed."""
+    state = TravelState(sc, actions.shape[1])
+    on_way = np.zeros(actions.shape[1:], dtype=np.int64)
+    for a in actions:
+        on_way += ~state.step(a)
+    return state.driven.copy(), on_way
 
 
 def _open_share(idle: np.ndarray, total_cap: FloatArray, before: np.ndarray) -> FloatArray:

@@ -137,9 +137,13 @@ class AgentSpec:
     """Communication capability: a message stays intact with probability tau (docs/model.md, Information I)."""
     reward: RewardParams | None = None
     """This agent's own reward parameters; None shares the scenario's."""
+    speed: float | None = None
+    """Metres per second this agent drives at between sites (docs/model.md, Travel); None: the scenario's `speed`."""
 
     def __hash__(self) -> int:
-        return hash((self.name, tuple(sorted(self.capabilities.items())), self.sensing, self.comm, self.reward))
+        return hash(
+            (self.name, tuple(sorted(self.capabilities.items())), self.sensing, self.comm, self.reward, self.speed)
+        )
 
     def capability(self, name: str) -> int:
         """The agent's level of capability `name` (0 when it has none)."""
@@ -222,6 +226,11 @@ class Scenario:
     """The knowledge state also holds where the teammates were at the last step, by their last known assignments:
     for every task the capability they brought to it, for every idle location how many idled there (not in the
     paper: docs/model.md, Knowledge state)."""
+    step_seconds: float = 0.0
+    """Length of a step in seconds, with which the agents' speeds turn distances into drive steps (docs/model.md,
+    Travel); 0: no travel, an assignment takes effect in the step it is chosen (the paper)."""
+    speed: float | None = None
+    """Metres per second of every agent without a speed of its own (with `step_seconds`)."""
     agents: tuple[AgentSpec, ...] = ()
     """The team."""
     team: str = ""
@@ -331,10 +340,24 @@ class Scenario:
         return self.n_tasks if self.initial_assignment < 0 else self.initial_assignment
 
     @property
+    def travel(self) -> bool:
+        """Whether agents take time to drive between sites (`step_seconds` > 0; docs/model.md, Travel)."""
+        return self.step_seconds > 0.0
+
+    def agent_speed(self, i: int) -> float:
+        """Agent i's speed in metres per second (its own, else the scenario's; 0 when neither is given)."""
+        own = self.agents[i].speed
+        if own is not None:
+            return own
+        return self.speed if self.speed is not None else 0.0
+
+    @property
     def knowledge_size(self) -> int:
         """Length of the Q-network input: p*L marginals + one-hot previous assignment over G-bar (+ the roster of
-        N teammates heard from, with `roster`; + the teammates' last assignments over G-bar, with `teammates`)."""
+        N teammates heard from, with `roster`; + the teammates' last assignments over G-bar, with `teammates`; + every
+        agent's place and steps to arrival, 2N, with `travel`)."""
         extra = (self.n_agents if self.roster else 0) + (self.n_actions if self.teammates else 0)
+        extra += 2 * self.n_agents if self.travel else 0
         return self.n_tasks * self.levels + self.n_actions + extra
 
     def agent_reward(self, i: int) -> RewardParams:
@@ -405,7 +428,8 @@ class Scenario:
             "n_agents": self.n_agents,
             "knowledge": ["marginals(p,L)", "onehot(prev,|G|)"]
             + (["roster(N)"] if self.roster else [])
-            + (["teammates(|G|)"] if self.teammates else []),
+            + (["teammates(|G|)"] if self.teammates else [])
+            + (["travel(2N)"] if self.travel else []),
         }
         return hashlib.sha256(json.dumps(layout, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -704,6 +728,7 @@ def validate(sc: Scenario, src: str) -> None:
                 f"{kind.uses!r} above 0), yet sites hold tasks of it"
             )
     _validate_reward(sc.reward, sc.levels, src, "reward")
+    _validate_travel(sc, src)
     _validate_events(sc, src, "events", sc.events, placeholder=False)
     if sc.initial_assignment >= sc.n_actions or sc.initial_assignment < -1:
         raise ScenarioError(
@@ -787,6 +812,34 @@ def _validate_sites(sc: Scenario, src: str) -> None:
                 raise ScenarioError(f"{src}: sites[{s}].tasks.{kind}: {lv!r}: {kind!r} is not a kind (kinds: {kinds})")
             if not 0 <= lv < sc.levels:
                 raise ScenarioError(f"{src}: sites[{s}].tasks.{kind}: {lv!r} is out of range 0..{sc.levels - 1}")
+
+
+def _validate_travel(sc: Scenario, src: str) -> None:
+    """Speeds and the step length: positive where given; with a step length every agent has a speed, and speeds are
+    refused without one (they would change nothing); no travel in HT mode (its agents have no idle location)."""
+    if sc.step_seconds < 0:
+        raise ScenarioError(f"{src}: step_seconds: {sc.step_seconds!r} must be >= 0 (0: no travel)")
+    if sc.speed is not None and sc.speed <= 0:
+        raise ScenarioError(f"{src}: speed: {sc.speed!r} must be above 0 (metres per second)")
+    for i, a in enumerate(sc.agents):
+        if a.speed is not None and a.speed <= 0:
+            raise ScenarioError(f"{src}: agents[{i}].speed: {a.speed!r} must be above 0 (metres per second)")
+    given = sc.speed is not None or any(a.speed is not None for a in sc.agents)
+    if not sc.travel:
+        if given:
+            raise ScenarioError(
+                f"{src}: step_seconds: {sc.step_seconds!r}: speeds are given but no step length; set step_seconds "
+                "(the seconds of one step) for drives to take steps"
+            )
+        return
+    if sc.mode == "ht":
+        raise ScenarioError(f"{src}: step_seconds: {sc.step_seconds!r}: travel needs idle locations (mode: htlm)")
+    for i, a in enumerate(sc.agents):
+        if sc.agent_speed(i) <= 0:
+            raise ScenarioError(
+                f"{src}: agents[{i}].speed: {a.name} has no speed and the scenario no `speed` for it, yet "
+                f"step_seconds is {sc.step_seconds!r}"
+            )
 
 
 def _validate_reward(r: RewardParams, levels: int, src: str, where: str) -> None:

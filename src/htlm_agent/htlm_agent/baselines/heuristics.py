@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from htlm_agent.mind import knowledge
-from htlm_agent.mind.auction import allocate, own_assignment
+from htlm_agent.mind.auction import allocate, own_assignment, team_steps, travel_steps
 from htlm_agent.mind.context import Context
 from htlm_agent.mind.reward import RewardTables, confident_levels
 from htlm_world import seeds
@@ -55,8 +55,9 @@ class GreedyPolicy:
 
     Agent i has a home site (i mod S). From its confident levels (the reward's b_th), it works on the first task,
     in the order home site first, a site's tasks in the order of the scenario's kinds, that is believed unfinished,
-    that it has capability for, and that can progress (`Model.blocked`). With nothing to do it idles at
-    its current site (HT mode: it stays on its previous task).
+    that it has capability for, and that can progress (`Model.blocked`). With travel (docs/model.md, Travel) it
+    takes the nearest such task instead: the fewest steps until it could work there, from its place and arrival,
+    ties in that order. With nothing to do it idles at its current site (HT mode: it stays on its previous task).
     """
 
     def __init__(self, scenario: Scenario) -> None:
@@ -70,6 +71,10 @@ class GreedyPolicy:
             home = i % s
             sites = [home] + [x for x in range(s) if x != home]
             self.order.append([int(j) for site in sites for j in self.model.site_task[site] if j >= 0])
+        # (N, p) each task's place in each agent's order
+        self.rank = np.zeros((scenario.n_agents, scenario.n_tasks), dtype=np.int64)
+        for i, order in enumerate(self.order):
+            self.rank[i, order] = np.arange(len(order))
 
     def act(self, ctx: Context) -> IntArray:
         """One action per agent from its own row of the Context."""
@@ -81,6 +86,15 @@ class GreedyPolicy:
         blk = self.model.blocked(lv)
         b, r = lv.shape[:2]
         out = self.model.rest_action(ctx.prev[:, who])
+        if self.scenario.travel:  # the nearest: fewest steps until it could work there, then its order
+            sc = self.scenario
+            reach = travel_steps(sc, ctx.knowledge[:, who], who)  # (B, R, p)
+            key = reach * sc.n_tasks + self.rank[who][None]
+            ok = (lv > 0) & ~blk & (self.model.agent_caps[who, : sc.n_tasks] > 0)[None]
+            key = np.where(ok, key, np.iinfo(np.int64).max)
+            best = key.argmin(axis=-1)
+            found = ok.any(axis=-1)
+            return np.where(found, best, out).astype(np.int64)
         chosen = np.zeros((b, r), dtype=bool)
         for k, i in enumerate(who.tolist()):
             for j in self.order[i]:
@@ -139,6 +153,12 @@ class AuctionPolicy:
         lv = confident_levels(ctx.marginals[:, who], self.threshold[who])  # (B, R, p): row r is agent who[r]'s belief
         b, r, p = lv.shape[0], who.size, sc.n_tasks
         present = knowledge.roster(ctx.knowledge[:, who], sc).reshape(b * r, -1) if sc.roster else None
+        if sc.travel:  # bids on the finish time, the drive included: every auctioneer's whole auction
+            drive = team_steps(sc, ctx.knowledge[:, who])  # (B, R, N, p)
+            pres = None if present is None else present.reshape(b, r, -1)
+            plan = allocate(self.model, lv, pres, drive)  # (B, R, N)
+            own = plan[:, np.arange(r), who]
+            return np.where(own >= 0, own, self.model.rest_action(ctx.prev[:, who])).astype(np.int64)
         # agent who[r]'s result in the auction it runs on its own row (allocate's, without the rounds after it)
         own = own_assignment(self.model, lv.reshape(b * r, p), np.tile(who, b), present).reshape(b, r)
         return np.where(own >= 0, own, self.model.rest_action(ctx.prev[:, who])).astype(np.int64)

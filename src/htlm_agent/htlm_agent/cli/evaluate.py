@@ -97,6 +97,15 @@ def format_metrics(m: dict[str, Any]) -> str:
         f"{m['unused_capability']['se']:.3f} (fraction {m['unused_fraction']['mean']:.1%})",
         f"team idle count before completion {m['idle_before_completion']['mean']:.2f} · team reassignment count "
         f"before completion {m['reassign_before_completion']['mean']:.2f}",
+        *(
+            [
+                f"mission time {tr['mission_seconds']['mean']:.0f} ± {tr['mission_seconds']['se']:.0f} s (steps of "
+                f"{tr['step_seconds']:g} s) · driven per agent {tr['metres_per_agent']['mean']:.0f} m · on the way "
+                f"{tr['driving_share']['mean']:.1%} of the steps"
+            ]
+            if (tr := m.get("travel"))
+            else []
+        ),
         f"{'agent':<10} {'capabilities':<{width}} {'unused':>8} {'fraction':>8} {'idle<=c':>8} {'reassign<=c':>11}",
     ]
     for a, caps in zip(m["agents"], shown, strict=True):

@@ -39,7 +39,7 @@ from htlm_agent.learning.run import (
 )
 from htlm_agent.learning.settings import Settings
 from htlm_agent.mind import knowledge
-from htlm_agent.mind.auction import allocate
+from htlm_agent.mind.auction import allocate, team_steps
 from htlm_agent.mind.context import Context
 from htlm_agent.mind.policies import RowPolicy
 from htlm_agent.mind.reward import LOAD_PRICE, RewardTables, confident_levels, reward
@@ -47,6 +47,7 @@ from htlm_agent.progress import Progress
 from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
+from htlm_world.travel import TravelState, arrival_steps, working_actions
 from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
@@ -96,7 +97,8 @@ candidate action is judged on the same draws and the same transition noise)."""
 def base_rollouts(sc: Scenario, vs: ValueSettings, seed: int = 0) -> tuple[IntArray, FloatArray]:
     """Joint states (S, p) reached by the auction run on the true levels (every agent knowing them, the whole team
     present) and the steps each took until every level was 0, capped at the horizon; states already complete are
-    left out (their value is 0 by definition)."""
+    left out (their value is 0 by definition). With travel the auction bids finish times and its agents drive
+    (`htlm_world.travel`), so the steps count the drives, over the places the auction's play takes the team to."""
     rng = seeds.base_rollouts(seed)
     model = Model.build(sc)
     p, levels, n, h = sc.n_tasks, sc.levels, sc.n_agents, sc.horizon
@@ -108,11 +110,17 @@ def base_rollouts(sc: Scenario, vs: ValueSettings, seed: int = 0) -> tuple[IntAr
     prefix = np.where(rand, 0, rng.integers(0, vs.perturb_steps + 1, size=r))
     horizon2 = 2 * h
     states = np.zeros((horizon2, r, p), dtype=np.int64)
+    moving = TravelState(sc, r) if sc.travel else None  # with travel: the drives of the auction's choices
     for t in range(horizon2):
         states[t] = s
-        own = allocate(model, s[:, None, :])[:, 0, :]  # (R, N): the auction on the true levels
+        drive = None
+        if moving is not None:
+            drive = arrival_steps(sc, moving.goal, moving.eta())[..., model.task_site][:, None]  # (R, 1, N, p)
+        own = allocate(model, s[:, None, :], None, drive)[:, 0, :]  # (R, N): the auction on the true levels
         perturbed = (t < prefix)[:, None] & (rng.random((r, n)) < 0.3)
         a = np.where(perturbed, rng.integers(-1, p, size=(r, n)), own)
+        if moving is not None:  # an agent on its way works on nothing
+            a = working_actions(a, moving.step(a))
         s = model.sample_transition(s, model.joint_capability(a), rng.random((r, p)))
     complete = (states == 0).all(axis=-1)  # (2h, R)
     next_done = np.full(r, 10**6)
@@ -370,7 +378,10 @@ class LookaheadPolicy:
         marg = ctx.marginals[:, who]  # (B, R, p, L): row r is agent who[r]'s belief
         b, r = marg.shape[0], who.size
         present = knowledge.roster(ctx.knowledge[:, who], sc)  # (B, R, N): row r, the teammates who[r] counts on
-        plan = allocate(model, confident_levels(marg, self.threshold[who]), present if sc.roster else None)  # (B, R, N)
+        # with travel: the steps until every agent could work on every task, as each head reckons them (B, R, N, p)
+        drive = team_steps(sc, ctx.knowledge[:, who]) if sc.travel else None
+        conf = confident_levels(marg, self.threshold[who])
+        plan = allocate(model, conf, present if sc.roster else None, drive)  # (B, R, N)
         # every auctioneer's draws of the joint state from its belief (product of its marginals), and the noise of
         # the step after it, shared by every candidate
         u, noise = self._draws(ctx.knowledge[:, who], who)
@@ -388,6 +399,9 @@ class LookaheadPolicy:
                 continue
             mine = plan[bi, ri]  # (P, N)
             brought = self.brings[np.arange(n), np.where(mine >= 0, mine + 1, 0)]  # (P, N, p)
+            if drive is not None:  # a teammate on its way to its task brings nothing in the step
+                away = drive[bi, ri][np.arange(bi.size)[:, None], np.arange(n), np.maximum(mine, 0)] > 0  # (P, N)
+                brought = np.where((away & (mine >= 0))[..., None], 0, brought)
             others = brought.sum(axis=1) - brought[:, k]  # (P, p)
             # a task's next level depends on its own capability only: every candidate's next state is the one
             # without agent k, with the level of its task taken from the next levels with agent k on every task
@@ -400,6 +414,9 @@ class LookaheadPolicy:
             )  # (P, 2, M, p)
             tasks = self.candidates[k]
             v = self.value.after_step(nxt[:, 0], nxt[:, 1], tasks, self.floor)  # (P, M, 1 + T)
+            if drive is not None:  # a task d steps away: its work, d steps late, and never worse than not going
+                d = drive[bi, ri, k][:, tasks][:, None, :]  # (P, 1, T)
+                v[..., 1:] = np.where(d > 0, np.minimum(v[..., :1], v[..., 1:] + d), v[..., 1:])
             q = np.full((bi.size, p + 1), np.inf)
             q[:, np.concatenate([[0], 1 + tasks])] = np.where(complete[bi, ri][..., None], 0.0, 1.0 + v).mean(axis=1)
             q += self.load[k]

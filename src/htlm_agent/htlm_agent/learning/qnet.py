@@ -252,7 +252,7 @@ QNetwork = StackedQ | TokenQ
 def network_shapes(scenario: Scenario, settings: Any) -> list[tuple[int, ...]]:
     """Shapes of one agent's parameters for the learner of `settings` (a `learning.settings.Settings`)."""
     if settings.network == "tokens":
-        return token_shapes(scenario.levels, settings.hidden)
+        return token_shapes(scenario.levels, settings.hidden, scenario.travel)
     if settings.network == "value":  # the value network: one-hot levels of every task -> steps to go
         return param_shapes((scenario.n_tasks * scenario.levels, *[int(h) for h in settings.hidden], 1))
     return param_shapes(layer_sizes(scenario, settings.hidden))
@@ -261,7 +261,7 @@ def network_shapes(scenario: Scenario, settings: Any) -> list[tuple[int, ...]]:
 def init_params(scenario: Scenario, settings: Any, seed: int) -> list[torch.Tensor]:
     """Fresh parameters of one agent's network for the learner of `settings`."""
     if settings.network == "tokens":
-        return init_token_params(scenario.levels, settings.hidden, seed)
+        return init_token_params(scenario.levels, settings.hidden, seed, scenario.travel)
     return init_agent_params(layer_sizes(scenario, settings.hidden), seed)
 
 

@@ -32,9 +32,10 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from htlm_agent.mind.auction import own_assignment
+from htlm_agent.mind.auction import allocate, own_assignment, team_steps
 from htlm_world.model import Model, p_drop_table
 from htlm_world.scenario import Scenario
+from htlm_world.types import IntArray
 
 F32 = NDArray[np.float32]
 
@@ -55,25 +56,34 @@ def flatten(params: Sequence[NDArray[np.float32]], size: int) -> torch.Tensor:
     return torch.from_numpy(row)
 
 
-def token_features(levels: int) -> int:
-    """F, the size of a token for a scenario with `levels` levels: the marginals and the named features below."""
-    return levels + 20 + GLOBAL_FEATURES
+TRAVEL_FEATURES = 2
+"""Features a token carries with travel (`Scenario.travel`): the steps until the agent could work there, and until
+the nearest teammate able to work on it could (see `TokenSpec.features`)."""
+
+REACH_SCALE = 10.0
+"""Steps of travel that make a reach feature 1."""
 
 
-def token_shapes(levels: int, hidden: Sequence[int]) -> list[tuple[int, ...]]:
+def token_features(levels: int, travel: bool = False) -> int:
+    """F, the size of a token for a scenario with `levels` levels: the marginals and the named features below (and
+    with travel its `TRAVEL_FEATURES`)."""
+    return levels + 20 + GLOBAL_FEATURES + (TRAVEL_FEATURES if travel else 0)
+
+
+def token_shapes(levels: int, hidden: Sequence[int], travel: bool = False) -> list[tuple[int, ...]]:
     """Shapes of one network's parameters, in (W, b) pairs: the token encoder F -> H1 -> H1, the head
     (3·H1 -> H2 -> 1)."""
-    f = token_features(levels)
+    f = token_features(levels, travel)
     h1 = int(hidden[0])
     h2 = int(hidden[1]) if len(hidden) > 1 else h1
     return [(f, h1), (h1,), (h1, h1), (h1,), (3 * h1, h2), (h2,), (h2, 1), (1,)]
 
 
-def init_token_params(levels: int, hidden: Sequence[int], seed: int) -> list[torch.Tensor]:
+def init_token_params(levels: int, hidden: Sequence[int], seed: int, travel: bool = False) -> list[torch.Tensor]:
     """Fresh parameters (uniform ±1/√fan_in, as torch.nn.Linear) from a generator seeded with `seed`."""
     g = torch.Generator().manual_seed(seed)
     out: list[torch.Tensor] = []
-    for w_shape, b_shape in zip(*[iter(token_shapes(levels, hidden))] * 2, strict=True):
+    for w_shape, b_shape in zip(*[iter(token_shapes(levels, hidden, travel))] * 2, strict=True):
         bound = 1.0 / math.sqrt(w_shape[0])
         out.append((torch.rand(w_shape, generator=g) * 2.0 - 1.0) * bound)
         out.append((torch.rand(b_shape, generator=g) * 2.0 - 1.0) * bound)
@@ -112,8 +122,9 @@ class TokenSpec:
         self.ahead_caps = torch.tensor(caps[None] * ahead / cmax, dtype=torch.float32)  # (A, N_team, p)
         self.roster = sc.roster
         self.teammates = sc.teammates
+        self.travel = sc.travel
         self.n_team = sc.n_agents
-        self.mates_from = sc.knowledge_size - sc.n_actions
+        self.mates_from = p * L + sc.n_actions + (sc.n_agents if sc.roster else 0)
         self.own_total = torch.tensor(own.sum(axis=1) / (cmax * max(1, sc.n_kinds)), dtype=torch.float32)  # (A,)
         rewards = [sc.agent_reward(i) for i in self.agents]
         self.threshold = torch.tensor([r.belief_threshold for r in rewards], dtype=torch.float32)  # (A,)
@@ -144,15 +155,23 @@ class TokenSpec:
         self.site_count = torch.tensor(site_of.sum(axis=1))
         self.model = model
 
-    def advice(self, conf: torch.Tensor, prev_site: torch.Tensor, roster: torch.Tensor | None) -> torch.Tensor:
+    def advice(
+        self, conf: torch.Tensor, prev_site: torch.Tensor, roster: torch.Tensor | None, drive: IntArray | None = None
+    ) -> torch.Tensor:
         """(A, M, |Ḡ|) one-hot of the auction's choice for each agent, run on its own confident levels (A, M, p)
-        and roster (A, M, N) (`mind.auction.allocate`): its task, or the idle location at the site of a_o when it
-        gets none."""
+        and roster (A, M, N) (`mind.auction.allocate`; with travel, `drive` (A, M, N, p): the finish-time auction):
+        its task, or the idle location at the site of a_o when it gets none."""
         a_n, m, p = conf.shape
         lv = conf.to(torch.int64).numpy().reshape(a_n * m, p)
         present = None if roster is None else roster.numpy().reshape(a_n * m, -1) > 0.5
         who = np.repeat(np.array(self.agents, dtype=np.int64), m)
-        own = torch.from_numpy(own_assignment(self.model, lv, who, present).reshape(a_n, m))
+        if drive is not None:
+            pres = None if present is None else present[:, None, :]
+            plan = allocate(self.model, lv[:, None, :], pres, drive.reshape(a_n * m, 1, *drive.shape[2:]))[:, 0]
+            mine = plan[np.arange(a_n * m), who]
+        else:
+            mine = own_assignment(self.model, lv, who, present)
+        own = torch.from_numpy(mine.reshape(a_n, m))
         site = prev_site.round().to(torch.int64).clamp(0, max(self.q - 1, 0))
         choice = torch.where(own >= 0, own, self.p + site) if self.q else own.clamp(min=0)
         return torch.nn.functional.one_hot(choice, self.n_actions).to(torch.float32)
@@ -201,7 +220,8 @@ class TokenSpec:
             mates = torch.zeros(a_n, m, self.n_actions)
         mates_cap = mates[..., :p]  # (A, M, p) the teammates' capability on each task, over capability_max
         uncovered = (conf - mates_cap * self.scenario.capability_max).clamp(min=0.0) / (L - 1)
-        advised = self.advice(conf, prev_site, roster)  # (A, M, |Ḡ|)
+        drive = team_steps(self.scenario, x.detach().numpy()) if self.travel else None  # (A, M, N, p)
+        advised = self.advice(conf, prev_site, roster, drive)  # (A, M, |Ḡ|)
         if roster is None:
             others = self.others_cap[:, None, :].expand(a_n, m, p)
             ahead = self.ahead_cap[:, None, :].expand(a_n, m, p)
@@ -288,7 +308,33 @@ class TokenSpec:
             )
             tokens.append(torch.cat([torch.zeros(a_n, m, q, L), idle], dim=-1))
         tok = torch.cat(tokens, dim=2)  # (A, M, |Ḡ|, F - 4)
+        if drive is not None:
+            tok = torch.cat([tok, self.reach(drive, roster)], dim=-1)
         return torch.cat([tok, glob[:, :, None, :].expand(a_n, m, tok.shape[2], GLOBAL_FEATURES)], dim=-1)
+
+    def reach(self, drive: IntArray, roster: torch.Tensor | None) -> torch.Tensor:
+        """The travel features (A, M, |Ḡ|, 2) from the steps until every agent could work on every task (A, M, N,
+        p): for a task, the steps until the agent could work on it and until the nearest teammate able to (and heard
+        from, with the roster) could; for an idle location at site s, the steps until the agent is there, and 0.
+        Each over `REACH_SCALE`."""
+        p, q = self.p, self.q
+        a_n, m, n = drive.shape[:3]
+        who = np.array(self.agents, dtype=np.int64)
+        own = drive[np.arange(a_n), :, who]  # (A, M, p)
+        able = self.model.agent_caps[:, :p] > 0  # (N, p)
+        mates = np.broadcast_to(able, (a_n, m, n, p)).copy()
+        mates[np.arange(a_n), :, who] = False
+        if roster is not None:
+            mates &= roster.numpy()[..., None] > 0.5
+        far = 4 * self.scenario.horizon
+        nearest = np.where(mates, drive, far).min(axis=2)  # (A, M, p)
+        task = np.stack([own, nearest], axis=-1).astype(np.float32)
+        out = [task]
+        if q:  # resting is only at the site of a_o, where the agent is or is heading: its arrival there
+            idle = np.zeros((a_n, m, q, 2), dtype=np.float32)
+            idle[..., 0] = own.min(axis=-1)[..., None]
+            out.append(idle)
+        return torch.from_numpy(np.minimum(np.concatenate(out, axis=2), far) / REACH_SCALE)
 
 
 class TokenQ(torch.nn.Module):
@@ -310,7 +356,7 @@ class TokenQ(torch.nn.Module):
         self.n_agents = len(agents)
         self.shared = shared
         self.hidden = tuple(int(h) for h in hidden)
-        self.shapes = token_shapes(scenario.levels, hidden)
+        self.shapes = token_shapes(scenario.levels, hidden, scenario.travel)
         self.sizes = (scenario.knowledge_size, *self.hidden, scenario.n_actions)
         self.offsets = np.cumsum([0] + [int(np.prod(s)) for s in self.shapes]).tolist()
         rows = [torch.cat([torch.as_tensor(t, dtype=torch.float32).reshape(-1) for t in ps]) for ps in agent_params]

@@ -27,6 +27,7 @@ from htlm_world import seeds
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.simulator import sample_channel
+from htlm_world.travel import TravelState, working_actions
 from htlm_world.types import BoolArray, FloatArray, IntArray
 
 # ----- the agent's mind -------------------------------------------------------------------------------------------
@@ -125,6 +126,8 @@ class AgentMind:
         self.t = 0
         self.pending: _Pending | None = None
         self.early: dict[int, tuple[int, IntArray, IntArray]] = {}
+        self.travel: TravelState | None = None
+        """Where the team is (`htlm_world.travel`), from the assignments the agent heard; None without travel."""
         self.impossible = 0
         self.missed_steps = 0
         self.timeouts = 0
@@ -145,7 +148,10 @@ class AgentMind:
         """Knowledge states K = {b, a_o} (B, K)."""
         roster = self.heard if self.scenario.roster else None
         mates = knowledge.teammates_of(self.model, self.known)[:, self.me] if self.scenario.teammates else None
-        return knowledge.build(self.marg, self.prev, self.scenario.n_actions, roster, mates)
+        places = None
+        if self.travel is not None:  # the team's places and arrivals, from the assignments it heard
+            places = knowledge.places_of(self.travel.goal, self.travel.eta())
+        return knowledge.build(self.marg, self.prev, self.scenario.n_actions, roster, mates, places)
 
     def mask(self) -> BoolArray:
         """Â(a_o) (B, |G|)."""
@@ -205,6 +211,7 @@ class AgentMind:
         self.prev = np.full(size, sc.start_assignment, dtype=np.int64)
         self.known = np.full((size, self.n), sc.start_assignment, dtype=np.int64)
         self.heard = np.ones((size, self.n), dtype=bool)  # the roster: whose broadcast arrived at the last step
+        self.travel = TravelState(sc, size) if sc.travel else None
         b = episode // self.batch
         if self.mode == "train":
             self.chan = seeds.train_channel(self.seed, self.me, b)
@@ -328,6 +335,10 @@ class AgentMind:
             p.obs = np.asarray(levels, dtype=np.int64)
             if tasks is not None:
                 chose_task = (p.action >= 0) & (p.action < self.scenario.n_tasks)
+                if self.travel is not None:  # on its way to its task, an agent works on none and is not kept out
+                    joint = np.broadcast_to(self.known, (self.size, self.n)).copy()
+                    joint[:, self.me] = p.action
+                    chose_task &= self.travel.arrives(joint)[:, self.me]
                 p.action = np.where(chose_task & (np.asarray(tasks) < 0), self.idle_action(), p.action)
             if not worked:
                 p.effective = np.asarray(self.model.idle_action(p.action), dtype=np.int64)
@@ -438,8 +449,11 @@ class AgentMind:
             messages[:, j] = lj
             heard[:, j] = True
         joint[:, me] = action if p.effective is None else p.effective
-        lik = bf.agent_evidence(self.model, me, joint, obs, messages, heard, p.t)
-        caps = self.model.joint_capability(joint)
+        applied = joint
+        if self.travel is not None:  # an agent on its way works on nothing and observes nothing
+            applied = working_actions(joint, self.travel.step(joint))
+        lik = bf.agent_evidence(self.model, me, applied, obs, messages, heard, p.t)
+        caps = self.model.joint_capability(applied)
         prior = (
             np.broadcast_to(self.marg[:, None], (size, n, *self.marg.shape[1:]))
             if self.tables.difference.any()

@@ -6,11 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from htlm_agent.mind import knowledge
 from htlm_world.model import Model
-from htlm_world.types import BoolArray, IntArray
+from htlm_world.scenario import Scenario
+from htlm_world.travel import arrival_steps
+from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
-def allocate(model: Model, lv: IntArray, present: BoolArray | None = None) -> IntArray:
+def allocate(model: Model, lv: IntArray, present: BoolArray | None = None, drive: IntArray | None = None) -> IntArray:
     """The auction of every auctioneer: (B, M, p) confident levels (auctioneer m's belief) -> (B, M, N) the task
     every agent k gets in auctioneer m's auction, -1 for none. `present` (B, M, N): the teammates auctioneer m
     counts on (its roster, `Scenario.roster`); the others get no task and leave their work to the rest (default:
@@ -19,7 +22,10 @@ def allocate(model: Model, lv: IntArray, present: BoolArray | None = None) -> In
     A task j is open while its confident level l_j > 0, it is not `blocked`, and the capability assigned to it so far
     does not cover l_j; every agent without a task bids its useful capability min(c_kj, need) on every open task it
     has capability for; the highest bid wins (ties: larger need, larger capability, lower agent, lower task), and the
-    rounds repeat until nobody bids. Vectorized over the B episodes and the M auctioneers.
+    rounds repeat until nobody bids. With travel, `drive` (B, M, N, p): the steps until agent k could work on task j
+    as auctioneer m reckons them (`team_steps`); every bid is then the finish time, the drive plus the need over the
+    useful capability rounded up, and the soonest wins (ties as above: the quickest-finish rule of fleet
+    dispatchers). Vectorized over the B episodes and the M auctioneers.
     """
     sc = model.scenario
     b, m, p = lv.shape
@@ -30,10 +36,14 @@ def allocate(model: Model, lv: IntArray, present: BoolArray | None = None) -> In
     assigned = np.full((b, m, n), -1, dtype=np.int64)
     bidders = np.ones((b, m, n), dtype=bool) if present is None else np.broadcast_to(present, (b, m, n))
     rows = np.arange(b)[:, None], np.arange(m)[None, :]
+    finish_cap = 4 * sc.horizon  # finish times beyond it rank alike
     for _ in range(n):  # each round assigns at most one agent per auction
         useful = np.minimum(caps, need[:, :, None, :])  # (B, M, N, p)
         # one integer per bid, ordered by useful capability, then need, then capability
         key = (useful * L + need[:, :, None, :]) * (cmax + 1) + caps
+        if drive is not None:  # the soonest finish first, then as above
+            finish = drive + -(-need[:, :, None, :] // np.maximum(useful, 1))
+            key = (finish_cap - np.minimum(finish, finish_cap)) * (L * L * (cmax + 1)) + key
         key = np.where((useful > 0) & ((assigned < 0) & bidders)[..., None], key, -1).reshape(b, m, n * p)
         win = key.argmax(axis=-1)  # the first maximum: lower agent, then lower task
         ok = np.take_along_axis(key, win[..., None], axis=-1)[..., 0] >= 0  # (B, M)
@@ -87,4 +97,21 @@ def own_assignment(model: Model, lv: IntArray, agent: IntArray, present: BoolArr
         rows, k, j = rows[go], k[go], j[go]
         free[rows, k] = False
         need[rows, j] = np.maximum(need[rows, j] - caps_np[k, j], 0)
+    return out
+
+
+def team_steps(sc: Scenario, k: FloatArray) -> IntArray:
+    """The steps until every agent could work on every task (..., N, p), as the agent of each knowledge state (..., K)
+    reckons them from the team's places and arrivals it holds (`knowledge.places`, `travel.arrival_steps`)."""
+    place, eta = knowledge.places(k, sc)
+    per_site = arrival_steps(sc, place, eta)  # (..., N, S)
+    out: IntArray = per_site[..., Model.build(sc).task_site]
+    return out
+
+
+def travel_steps(sc: Scenario, k: FloatArray, who: IntArray) -> IntArray:
+    """The steps until each of agents `who` (R,) could work on every task (B, R, p), from its own knowledge state
+    (B, R, K) (`team_steps`, its own row)."""
+    steps = team_steps(sc, k)  # (B, R, N, p)
+    out: IntArray = steps[:, np.arange(who.size), who]
     return out

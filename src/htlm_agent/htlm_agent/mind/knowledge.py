@@ -6,7 +6,9 @@ levels, tasks in task order, `Scenario.tasks`), then the one-hot previous assign
 Ḡ; a_o = -1 (no assignment yet) is all zeros. With `Scenario.roster`, N more entries: 1 for every teammate heard
 from at the last step (the agent itself always; everyone before the first step). With `Scenario.teammates`, |Ḡ|
 more entries (`teammates`): where the agent's teammates were at the last step by their last known assignments.
-`Scenario.knowledge_size` is its length and `Scenario.layout_hash` its fingerprint.
+With `Scenario.travel`, 2N more (`travel`): every agent's place (the index of the site it is at or drives to) and
+then every agent's steps until it arrives there (docs/model.md, Travel). `Scenario.knowledge_size` is its length
+and `Scenario.layout_hash` its fingerprint.
 """
 
 from __future__ import annotations
@@ -30,17 +32,18 @@ def build(
     n_actions: int,
     roster: NDArray[np.bool_] | None = None,
     mates: FloatArray | None = None,
+    places: FloatArray | None = None,
 ) -> Knowledge:
     """K from marginals (..., p, L) and previous assignments (...,): (..., p·L + |Ḡ|), followed with `roster`
     (..., N) by 1 for every teammate heard from at the last step, 0 for the others (`Scenario.roster`), then with
-    `mates` (..., |Ḡ|) by where the teammates were (`Scenario.teammates`, `teammates_of`)."""
+    `mates` (..., |Ḡ|) by where the teammates were (`Scenario.teammates`, `teammates_of`), then with `places`
+    (..., 2N) by every agent's place and steps to arrival (`Scenario.travel`, `places_of`)."""
     lead, size = marg.shape[:-2], marg.shape[-2] * marg.shape[-1]
-    if roster is not None or mates is not None:
+    if roster is not None or mates is not None or places is not None:
         parts = [build(marg, prev, n_actions)]
-        if roster is not None:
-            parts.append(np.broadcast_to(roster, lead + roster.shape[-1:]).astype(parts[0].dtype))
-        if mates is not None:
-            parts.append(np.broadcast_to(mates, lead + mates.shape[-1:]).astype(parts[0].dtype))
+        for extra in (roster, mates, places):
+            if extra is not None:
+                parts.append(np.broadcast_to(extra, lead + extra.shape[-1:]).astype(parts[0].dtype))
         return np.concatenate(parts, axis=-1)
     out: Knowledge = np.empty(lead + (size + n_actions,))
     dst = out[..., :size].reshape(marg.shape)  # a view of out (its last axis split)
@@ -100,7 +103,26 @@ def teammates(k: AnyFloats, scenario: Scenario) -> AnyFloats:
     keeps none."""
     if not scenario.teammates:
         return np.zeros(k.shape[:-1] + (scenario.n_actions,), dtype=k.dtype)
-    return k[..., scenario.knowledge_size - scenario.n_actions :]
+    start = scenario.n_tasks * scenario.levels + scenario.n_actions + (scenario.n_agents if scenario.roster else 0)
+    return k[..., start : start + scenario.n_actions]
+
+
+def places_of(goal: IntArray, eta: IntArray) -> FloatArray:
+    """The travel entries (..., 2N) of every agent's place (the site it is at or drives to, (..., N)) and steps to
+    arrival (..., N) (`Scenario.travel`)."""
+    out: FloatArray = np.concatenate([goal, eta], axis=-1).astype(np.float64)
+    return out
+
+
+def places(k: AnyFloats, scenario: Scenario) -> tuple[IntArray, IntArray]:
+    """Every agent's place (..., N) and steps to arrival (..., N) held in knowledge states (..., K) (`places_of`);
+    everyone at site 0 and arrived when the scenario has no travel."""
+    n = scenario.n_agents
+    if not scenario.travel:
+        zero = np.zeros(k.shape[:-1] + (n,), dtype=np.int64)
+        return zero, zero.copy()
+    block = np.rint(k[..., scenario.knowledge_size - 2 * n :]).astype(np.int64)
+    return block[..., :n], block[..., n:]
 
 
 def split(k: AnyFloats, scenario: Scenario) -> tuple[AnyFloats, IntArray]:

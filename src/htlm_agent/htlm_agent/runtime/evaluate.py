@@ -136,6 +136,17 @@ def summarize(
                 "reassign_before_completion": _ms(em.agent_reassign_before[:, i]),
             }
         )
+        if em.agent_metres is not None and em.agent_driving is not None:
+            agents[-1]["metres"] = _ms(em.agent_metres[:, i])
+            agents[-1]["driving_steps"] = _ms(em.agent_driving[:, i])
+    travel: dict[str, Any] = {}
+    if em.agent_metres is not None and em.agent_driving is not None:  # docs/model.md, Travel
+        travel = {
+            "step_seconds": scenario.step_seconds,
+            "mission_seconds": _ms(em.completion * scenario.step_seconds),
+            "metres_per_agent": _ms(em.agent_metres.mean(axis=1)),
+            "driving_share": _ms(em.agent_driving.mean(axis=1) / scenario.horizon),
+        }
     return {
         "policy": policy_name,
         "scenario": scenario.name,
@@ -159,6 +170,7 @@ def summarize(
         "unused_fraction_open": _ms(em.unused_open),
         "idle_before_completion": _ms(em.idle_before),
         "reassign_before_completion": _ms(em.reassign_before),
+        **({"travel": travel} if travel else {}),
         "agents": agents,
     }
 

@@ -18,6 +18,7 @@ from htlm_world.events import EventRun
 from htlm_world.model import Model
 from htlm_world.scenario import Scenario
 from htlm_world.simulator import BatchSim, StepResult
+from htlm_world.travel import TravelState, working_actions
 from htlm_world.types import BoolArray, FloatArray, IntArray
 
 
@@ -32,6 +33,7 @@ class StepInfo:
     impossible: BoolArray  # (B, N) zero-probability evidence events
     actions: IntArray  # (B, N) the joint assignment applied (inactive and dropped-out agents idle)
     events: BoolArray  # (B, E) the scenario's events that happened in the step
+    working: IntArray | None = None  # (B, N) the assignment as applied with travel: -1 for an agent on its way
 
 
 class Team:
@@ -72,6 +74,8 @@ class Team:
         )
         self.event_rng = seeds.events(seed, episode)
         """The generator of the scenario's events (`htlm_world.events`); training sets its own per batch."""
+        self.travel = TravelState(scenario, batch) if scenario.travel else None
+        """Where every agent is (`htlm_world.travel`); None without travel."""
         self.filter = bf.filter_tables(self.model)
         self._work = (self._new_sites(), self._new_sites())  # scratch of the filter
         self._spare = self._new_sites()  # where the next step writes its beliefs (the step after swaps them back)
@@ -98,6 +102,8 @@ class Team:
         """Start B new episodes; returns the knowledge states (B, N, K)."""
         sc = self.scenario
         self.sim.reset()
+        if self.travel is not None:
+            self.travel.reset()
         self.events = EventRun(sc, self.batch, self.event_rng)
         self._fired: BoolArray | None = None
         b0 = bf.initial_belief(self.model, self.batch)
@@ -127,7 +133,10 @@ class Team:
         sc = self.scenario
         roster = self.heard[:, None, :] | np.eye(sc.n_agents, dtype=bool)[None] if sc.roster else None
         mates = knowledge.teammates_of(self.model, self.prev) if sc.teammates else None
-        return knowledge.build(self.marg, self.prev, sc.n_actions, roster, mates)
+        places = None
+        if self.travel is not None:  # every broadcast carries its sender's place and arrival
+            places = knowledge.places_of(self.travel.goal, self.travel.eta())[:, None, :]
+        return knowledge.build(self.marg, self.prev, sc.n_actions, roster, mates, places)
 
     def _sitting_out(self) -> BoolArray:
         """(B, N) the agents that sit out the step: kept out by an event, inactivated or dropped."""
@@ -189,10 +198,14 @@ class Team:
         fired = self._next_events()
         self.sim.levels = self._start
         self._fired = None
-        res = self.sim.step(actions)
+        working = None
+        if self.travel is not None:  # an agent on its way works on nothing and observes nothing
+            working = working_actions(actions, self.travel.step(actions))
+        applied = actions if working is None else working
+        res = self.sim.step(applied)
         if self.model.standby_class >= 0:
-            self._sit_out(actions, res)
-        liks = bf.evidence_sites(self.model, actions, res.observations, res.messages, self.t + 1)  # (L, S, N, B)
+            self._sit_out(applied, res)
+        liks = bf.evidence_sites(self.model, applied, res.observations, res.messages, self.t + 1)  # (L, S, N, B)
         caps = self.filter.slot_caps(res.caps.T[:, None, :])  # (S, 1, B): every agent assumes the step's joint
         new, bad_site = bf.update_sites(self.filter, self.sites, caps, liks, self._spare, self._work)
         self.sites, self._spare = new, self.sites
@@ -205,7 +218,7 @@ class Team:
         self.t += 1
         if self.scenario.roster:
             self.heard = ~self._sitting_out()
-        info = StepInfo(res.levels, res.observations, res.messages, parts, bad, actions, fired)
+        info = StepInfo(res.levels, res.observations, res.messages, parts, bad, actions, fired, working)
         self._knowledge = self._build_knowledge()
         return self.knowledge(), r, info
 
