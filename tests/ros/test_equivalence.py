@@ -214,3 +214,30 @@ def test_the_fair_market_over_ros_equals_in_process(ros_team: Any, tmp_path: Pat
     assert team.wait_all(30) == dict.fromkeys(team.procs, 0)
     assert assert_same_as_in_process(team, 4, "auction") == 4
     assert all(w["metrics"]["completion"] < 30 for w in team.world_episodes()), "the market left agent2's work undone"
+
+
+def test_drives_over_ros_equal_in_process(ros_team: Any, tmp_path: Path) -> None:
+    """An operation with travel (docs/model.md, Travel) over ROS: the world applies the drives, every agent process
+    follows its teammates' drives from their broadcast assignments, and the finish-time auction's 4 episodes equal
+    Team(scenario, 4, seed, b) bit for bit, with agents on their way in every episode."""
+    import yaml
+
+    from htlm_world.metrics import drives
+    from htlm_world.scenario import from_dict
+
+    team_spec = [{"name": f"agent{i + 1}", "fire": f, "rescue": r} for i, (f, r) in enumerate(HETEROGENEOUS)]
+    team_spec[0]["speed"] = 50.0
+    sc = from_dict({"step_seconds": 2.0, "speed": 10.0, "agents": team_spec}, "<travel>")
+    (path := tmp_path / "travel.yaml").write_text(yaml.safe_dump(sc.to_dict()))
+    team = ros_team(policy="auction", seed=5, episodes=4, batch=4, scenario=sc, scenario_file=str(path))
+    team.start()
+    assert team.wait("world", 60) == 0
+    assert team.wait_all(30) == dict.fromkeys(team.procs, 0)
+    assert assert_same_as_in_process(team, 5, "auction") == 4
+    actions = np.array([w["actions"] for w in team.world_episodes()]).transpose(1, 0, 2)  # (h, B, N)
+    _, on_way = drives(sc, actions)
+    assert (on_way.sum(axis=1) > 0).all(), "no agent drove in some episode"
+
+
+HETEROGENEOUS = ((3, 1), (3, 2), (2, 0), (0, 1), (1, 1))
+"""The paper's heterogeneous team (fire, rescue), docs/model.md."""

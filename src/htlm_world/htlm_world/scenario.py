@@ -344,6 +344,11 @@ class Scenario:
         """Whether agents take time to drive between sites (`step_seconds` > 0; docs/model.md, Travel)."""
         return self.step_seconds > 0.0
 
+    def without_travel(self) -> Scenario:
+        """This operation without step length and speeds: assignments take effect in the step they are chosen."""
+        agents = tuple(dataclasses.replace(a, speed=None) for a in self.agents)
+        return self.replace(step_seconds=0.0, speed=None, agents=agents)
+
     def agent_speed(self, i: int) -> float:
         """Agent i's speed in metres per second (its own, else the scenario's; 0 when neither is given)."""
         own = self.agents[i].speed

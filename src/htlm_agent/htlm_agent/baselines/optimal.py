@@ -143,12 +143,21 @@ DEFAULT_LIMITS = Limits()
 """The limits of `solve`, `htlm optimal` and the optimal baseline unless told otherwise."""
 
 
+TRAVEL_UNSOLVED = (
+    "the optimum is not computed for an operation with travel: its states would need every agent's place and "
+    "arrival besides the levels (docs/model.md, Travel)"
+)
+
+
 class ProblemTooLarge(ValueError):
     """A problem whose estimate exceeds the limits; raised before anything is built."""
 
-    def __init__(self, size: ProblemSize, est: Estimate, limits: Limits) -> None:
-        """Keep the numbers and say them."""
+    def __init__(self, size: ProblemSize, est: Estimate, limits: Limits, reason: str = "") -> None:
+        """Keep the numbers and say them (or `reason`, when it is not the size that rules the problem out)."""
         self.size, self.estimate, self.limits = size, est, limits
+        if reason:
+            super().__init__(reason)
+            return
         over = []
         if est.seconds > limits.seconds:
             over.append(f"time {_duration(est.seconds)} > {_duration(limits.seconds)}")
@@ -202,6 +211,8 @@ def check(model: Model, limits: Limits = DEFAULT_LIMITS) -> Estimate:
     """
     size = ProblemSize.of(model)
     est = estimate(size)
+    if model.scenario.travel:
+        raise ProblemTooLarge(size, est, limits, TRAVEL_UNSOLVED)
     if est.seconds > limits.seconds or est.memory_bytes > limits.memory_bytes:
         raise ProblemTooLarge(size, est, limits)
     return est

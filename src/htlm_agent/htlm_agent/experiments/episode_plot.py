@@ -26,6 +26,7 @@ from htlm_agent.experiments.recording import episode_log, records
 from htlm_msgs_py.topics import SCENARIO
 from htlm_world.metrics import completion_step
 from htlm_world.scenario import Scenario, ScenarioError, ScenarioRecordError, builtin, from_record, load
+from htlm_world.travel import TravelState
 from htlm_world.types import FloatArray, IntArray
 
 if TYPE_CHECKING:
@@ -284,6 +285,15 @@ def decision_rows(ep: LoggedEpisode) -> FloatArray:
     return rows
 
 
+def on_the_way(ep: LoggedEpisode) -> np.ndarray:
+    """(t, N) whether each agent was on its way at each step, working on nothing (docs/model.md, Travel): the drives
+    of the logged assignments replayed; all False without travel."""
+    if not ep.scenario.travel:
+        return np.zeros(ep.actions.shape, dtype=bool)
+    state = TravelState(ep.scenario, 1)
+    return np.array([~state.step(a[None])[0] for a in ep.actions], dtype=bool).reshape(ep.actions.shape)
+
+
 def shown_steps(ep: LoggedEpisode, all_steps: bool = False) -> int:
     """How many steps the picture shows: every logged step with `all_steps` or after a failure, else up to three steps
     after completion (the rest repeats the finished state)."""
@@ -316,6 +326,7 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
     comp, failed = completion_step(ep.levels[:, None, :])
     completion, did_fail = int(comp[0]), bool(failed[0])
     rows = decision_rows(ep)[:steps]  # (steps, N)
+    driving = on_the_way(ep)[:steps]  # (steps, N)
     names = sc.action_names
 
     legend_rows = -(-n // 3) if n > 5 else 0
@@ -349,7 +360,7 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
         )
         ax.plot(
             x_line[:-1] + 0.5,
-            y,
+            np.where(driving[:, i], np.nan, y),
             ls="none",
             marker=marker,
             ms=6,
@@ -358,6 +369,11 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
             mew=0.8,
             label=f"{agent.name} ({', '.join(f'{k.name} {c}' for k, c in zip(sc.kinds, caps[i], strict=True) if c)})",
         )
+        if driving[:, i].any():  # on its way: a hollow marker, it works on nothing
+            ax.plot(
+                x_line[:-1] + 0.5, np.where(driving[:, i], y, np.nan), ls="none", marker=marker, ms=6, mfc="white",
+                mec=colour, mew=1.4,
+            )  # fmt: skip
     mark = ep.actions.shape[0] if did_fail else completion  # the horizon of a failure, else the completion step
     if mark <= steps:
         text = f"horizon: not complete after {mark} steps" if did_fail else f"complete at step {mark}"
@@ -396,10 +412,13 @@ def episode_figure(ep: LoggedEpisode, all_steps: bool = False) -> Figure:
     ax.set_xlabel(
         "step (bands: true level after the step; lines: each agent's decision applied in the step)"
         + (f"; steps {steps + 1}-{ep.actions.shape[0]} not shown (nothing left to do)" if hidden else "")
-        + ("; grey: level not reported" if np.ma.is_masked(shown) else ""),
+        + ("; grey: level not reported" if np.ma.is_masked(shown) else "")
+        + ("; hollow marker: on its way, working on nothing" if driving.any() else ""),
         fontsize=8.5,
     )
     outcome = f"complete at step {completion}"
+    if sc.travel:
+        outcome += f" ({completion * sc.step_seconds:g} s)"
     if did_fail:
         outcome = f"failed (tasks at levels {ep.levels[-1].tolist()} at the end)"
     ax.set_title(f"{run_label(ep)} · episode {ep.episode} · {sc.team} team · {outcome}", fontsize=10, pad=22)

@@ -38,9 +38,11 @@ from htlm_agent.learning.checkpoint import load_checkpoint
 from htlm_agent.learning.learners import team_policy
 from htlm_agent.learning.run import train
 from htlm_agent.learning.settings import Settings
+from htlm_agent.mind.context import Context
 from htlm_agent.runtime.evaluate import evaluate, importance_table
 from htlm_world.events import resolve_agent
 from htlm_world.scenario import Scenario, load
+from htlm_world.types import IntArray
 
 LEARNERS: dict[str, dict[str, Any]] = {
     "tokens": {"settings": {"learner": "tokens"}, "credit": "difference"},
@@ -51,8 +53,25 @@ LEARNERS: dict[str, dict[str, Any]] = {
     "paper": {"settings": {}, "credit": None},
     "lookahead": {"settings": {"learner": "lookahead"}, "credit": None},
     "expert": {"settings": {"learner": "expert"}, "credit": None},
+    "expert-no-travel": {"settings": {"learner": "expert"}, "credit": None, "blind": True},
 }
-"""The learned teams: `Settings.for_learner` changes and the credit of the scenario they train on."""
+"""The learned teams: `Settings.for_learner` changes and the credit of the scenario they train on; `blind`: trained
+on the operation without its travel and acting in it with travel (`TravelBlind`), the default learner as it was
+before travel was in the model."""
+
+
+class TravelBlind:
+    """A team policy trained on an operation without travel, acting in it with travel: it is shown the knowledge
+    states without their places and arrivals (`knowledge.places`), as it learned them."""
+
+    def __init__(self, policy: Any, blind: Scenario) -> None:
+        """`policy` acts on knowledge states of `blind` (the operation without travel)."""
+        self.policy, self.size = policy, blind.knowledge_size
+
+    def act(self, ctx: Context) -> IntArray:
+        """The policy's actions on the knowledge states cut to the layout it learned."""
+        return np.asarray(self.policy.act(dataclasses.replace(ctx, knowledge=ctx.knowledge[..., : self.size])))
+
 
 TRANSFER = ("tokens", "lookahead")
 """The learned teams `--transfer` trains once and acts with on changed operations (the first: its default)."""
@@ -79,11 +98,15 @@ def _log(text: str) -> None:
 
 def _figures(metrics: dict[str, Any]) -> dict[str, float]:
     c = metrics["completion"]
-    return {
+    out = {
         "completion": float(c["mean"]),
         "failure_rate": float(c["failure_rate"]),
         "unused_fraction": float(metrics["unused_fraction"]["mean"]),
     }
+    if "travel" in metrics:  # docs/model.md, Travel: the mission in seconds, the metres per agent
+        out["mission_s"] = float(metrics["travel"]["mission_seconds"]["mean"])
+        out["metres"] = float(metrics["travel"]["metres_per_agent"]["mean"])
+    return out
 
 
 def run_scenario(
@@ -111,6 +134,11 @@ def run_scenario(
         for learner in learners:
             spec = LEARNERS[learner]
             lsc = sc.with_credit(spec["credit"]) if spec["credit"] else sc
+            if spec.get("blind"):
+                if not sc.travel:
+                    _log(f"{name}: no {learner}: the operation has no travel")
+                    continue
+                lsc = lsc.without_travel()
             budget = {} if episodes is None else {"episodes": episodes}
             settings = Settings.for_learner(
                 **{**spec["settings"], **(changes or {})}, seed=seed, eval_episodes=eval_episodes, **budget
@@ -120,8 +148,12 @@ def run_scenario(
             res = train(lsc, settings, run_dir, progress=False, tensorboard=False)
             took = time.perf_counter() - t0
             rows.append({"scenario": name, "team": learner, "condition": "none", "seed": seed, "train_s": took})
+            pol = team_policy(load_checkpoint(run_dir))
+            if spec.get("blind"):  # acting in the operation with travel, on the same episodes as the others
+                pol, lsc = TravelBlind(pol, lsc), sc
+                res.metrics = evaluate(pol, sc, eval_episodes, seed=seed)
             rows[-1].update(_figures(res.metrics))
-            teams[learner] = (team_policy(load_checkpoint(run_dir)), lsc)
+            teams[learner] = (pol, lsc)
             _log(f"{name} {learner} seed {seed}: {rows[-1]['completion']:.2f} steps in {took:.0f} s")
         for b, (pol, bsc) in _baselines(sc, seed, baselines).items():
             rows.append({"scenario": name, "team": b, "condition": "none", "seed": seed})
@@ -143,6 +175,9 @@ def run_scenario(
                 row = {"scenario": name, "team": r["policy"], "condition": set_name, "seed": seed}
                 row.update(
                     {
+                        "recovery_s": w.get("recovery", {}).get("mean", float("nan")) * max(sc.step_seconds, 1.0)
+                        if sc.travel
+                        else float("nan"),
                         "completion": w["completion"]["mean"],
                         "failure_rate": w["failure_rate"],
                         "unused_fraction": w["unused_fraction"]["mean"],
@@ -221,7 +256,17 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for sc, cond, team in keys:
         group = [r for r in rows if (r["scenario"], r["condition"], r["team"]) == (sc, cond, team)]
         row: dict[str, Any] = {"scenario": sc, "condition": cond, "team": team, "seeds": len(group)}
-        for f in ("completion", "failure_rate", "unused_fraction", "recovery", "never", "train_s"):
+        for f in (
+            "completion",
+            "failure_rate",
+            "unused_fraction",
+            "recovery",
+            "never",
+            "train_s",
+            "mission_s",
+            "metres",
+            "recovery_s",
+        ):
             vals = np.array([r[f] for r in group if f in r and r[f] == r[f]], dtype=np.float64)
             if vals.size:
                 row[f] = float(vals.mean())
@@ -243,17 +288,20 @@ def tables(summary: list[dict[str, Any]]) -> str:
 
     out = []
     for sc in dict.fromkeys(r["scenario"] for r in summary):
+        travel = any("mission_s" in r for r in summary if r["scenario"] == sc)
         out += [
             f"### {sc}",
             "",
-            "| condition | team | seeds | completion | failures | unused | recovery | never recovered |",
-            "|---|---|---|---|---|---|---|---|",
+            "| condition | team | seeds | completion | failures | unused | recovery | never recovered |"
+            + (" mission (s) | metres per agent | recovery (s) |" if travel else ""),
+            "|---|---|---|---|---|---|---|---|" + ("---|---|---|" if travel else ""),
         ]
         for r in (x for x in summary if x["scenario"] == sc):
             cond = "no events" if r["condition"] == "none" else r["condition"]
             out.append(
                 f"| {cond} | {r['team']} | {r['seeds']} | {cell(r, 'completion')} | {cell(r, 'failure_rate', True)} "
                 f"| {cell(r, 'unused_fraction', True)} | {cell(r, 'recovery')} | {cell(r, 'never', True)} |"
+                + (f" {cell(r, 'mission_s')} | {cell(r, 'metres')} | {cell(r, 'recovery_s')} |" if travel else "")
             )
         out.append("")
     return "\n".join(out)

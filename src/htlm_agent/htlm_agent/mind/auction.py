@@ -29,31 +29,53 @@ def allocate(model: Model, lv: IntArray, present: BoolArray | None = None, drive
     """
     sc = model.scenario
     b, m, p = lv.shape
-    n, cmax, L = sc.n_agents, sc.capability_max, sc.levels
+    n = sc.n_agents
     caps_np = model.agent_caps[:, :p]  # (N, p): c_kj
-    caps = caps_np[None, None]  # (1, 1, N, p)
     need = np.where((lv > 0) & ~model.blocked(lv), lv, 0).astype(np.int64)  # (B, M, p)
     assigned = np.full((b, m, n), -1, dtype=np.int64)
     bidders = np.ones((b, m, n), dtype=bool) if present is None else np.broadcast_to(present, (b, m, n))
-    rows = np.arange(b)[:, None], np.arange(m)[None, :]
-    finish_cap = 4 * sc.horizon  # finish times beyond it rank alike
+    # every bid as one integer, kept up to date: a round changes one agent's bids (it has a task now) and one
+    # task's (its need dropped), so only those are worked out again
+    key = _bids(sc, caps_np[None, None], need[:, :, None, :], drive)  # (B, M, N, p)
+    key[~bidders] = -1
+    flat = key.reshape(b, m, n * p)
     for _ in range(n):  # each round assigns at most one agent per auction
-        useful = np.minimum(caps, need[:, :, None, :])  # (B, M, N, p)
-        # one integer per bid, ordered by useful capability, then need, then capability
-        key = (useful * L + need[:, :, None, :]) * (cmax + 1) + caps
-        if drive is not None:  # the soonest finish first, then as above
-            finish = drive + -(-need[:, :, None, :] // np.maximum(useful, 1))
-            key = (finish_cap - np.minimum(finish, finish_cap)) * (L * L * (cmax + 1)) + key
-        key = np.where((useful > 0) & ((assigned < 0) & bidders)[..., None], key, -1).reshape(b, m, n * p)
-        win = key.argmax(axis=-1)  # the first maximum: lower agent, then lower task
-        ok = np.take_along_axis(key, win[..., None], axis=-1)[..., 0] >= 0  # (B, M)
+        win = flat.argmax(axis=-1)  # the first maximum: lower agent, then lower task
+        ok = np.take_along_axis(flat, win[..., None], axis=-1)[..., 0] >= 0  # (B, M)
         if not ok.any():
             break
-        k, j = win // p, win % p
-        assigned[rows[0], rows[1], k] = np.where(ok, j, assigned[rows[0], rows[1], k])
-        need[rows[0], rows[1], j] -= np.where(ok, caps_np[k, j], 0)
-        np.maximum(need, 0, out=need)
+        bi, mi = np.nonzero(ok)
+        k, j = win[bi, mi] // p, win[bi, mi] % p
+        assigned[bi, mi, k] = j
+        need[bi, mi, j] = np.maximum(need[bi, mi, j] - caps_np[k, j], 0)
+        free = assigned[bi, mi] < 0  # (W, N)
+        column = _bids(sc, caps_np.T[j][:, :, None], need[bi, mi, j][:, None, None], _column(drive, bi, mi, j))
+        key[bi, mi, :, j] = np.where(free & bidders[bi, mi], column[..., 0], -1)
+        key[bi, mi, k] = -1
     return assigned
+
+
+def _bids(sc: Scenario, caps: IntArray, need: IntArray, drive: IntArray | None) -> IntArray:
+    """Every bid as one integer (broadcast over caps (..., N, p) and need (..., 1, p)), -1 for no bid: ordered by
+    useful capability, then need, then capability; with `drive` (..., N, p), by the soonest finish first."""
+    cmax, L = sc.capability_max, sc.levels
+    useful = np.minimum(caps, need)
+    key = (useful * L + need) * (cmax + 1) + caps
+    if drive is not None:  # the finish time: the drive plus the need over the useful capability, rounded up
+        cap = 4 * sc.horizon  # finish times beyond it rank alike
+        finish = drive + -(-need // np.maximum(useful, 1))
+        key = (cap - np.minimum(finish, cap)) * (L * L * (cmax + 1)) + key
+    out: IntArray = np.where(useful > 0, key, -1)
+    return out
+
+
+def _column(drive: IntArray | None, bi: IntArray, mi: IntArray, j: IntArray) -> IntArray | None:
+    """The drives (W, N, 1) of every agent to task j[w] in auction (bi[w], mi[w]) (None without travel)."""
+    if drive is None:
+        return None
+    d = np.broadcast_to(drive, (*drive.shape[:2], *drive.shape[2:]))
+    out: IntArray = d[bi, mi, :, j][:, :, None]
+    return out
 
 
 def own_assignment(model: Model, lv: IntArray, agent: IntArray, present: BoolArray | None = None) -> IntArray:
