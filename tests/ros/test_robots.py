@@ -13,6 +13,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(150), pytest.mark.slow]  # 13 processes each: CI budget
@@ -103,4 +104,65 @@ def test_a_robot_that_never_arrives_observes_nothing_and_the_team_finishes_witho
     print(
         f"completion {m['completion']} without {stuck}; its diagnostics: arrived {st['arrived']}, "
         f"{st['distance_to_site']} m from its site"
+    )
+
+
+def test_robots_that_drive_at_their_speeds_keep_the_operations_step(ros_team: Any, tmp_path: Path) -> None:
+    """An operation with travel (docs/model.md, Travel) deployed on simulated robots at its own step: every robot
+    drives at its agent's speed, the launch takes the operation's step as its period, the finish-time auction
+    completes the mission, and the drives the world records take the steps the model gives them."""
+    import yaml
+
+    from htlm_world.metrics import drives
+    from htlm_world.scenario import builtin, from_dict
+    from htlm_world.travel import TravelState
+
+    base = builtin()
+    spec = [{"name": a.name, **a.capabilities} for a in base.agents]
+    spec[0]["speed"] = 200.0  # agent1 crosses in one step, the others in three (50 m, 20 m a step)
+    sc = from_dict({"step_seconds": 0.5, "speed": 40.0, "agents": spec}, "<travel>")
+    (path := tmp_path / "travel.yaml").write_text(yaml.safe_dump(sc.to_dict()))
+    team = ros_team(
+        mode="deploy",
+        policy="auction",
+        episodes=1,
+        seed=3,
+        robots="sim",
+        period=sc.step_seconds,
+        scenario=sc,
+        scenario_file=str(path),
+        world_params={"begin_deadline": 5.0},
+        agent_params={"broadcast_timeout": 0.1},
+    )
+    team.start(*_names(team), *(f"robot_{a.name}" for a in sc.agents))
+    assert team.wait("world", 120) == 0
+    codes = team.wait_all(30)
+    assert codes == dict.fromkeys(codes, 0), codes
+    (e,) = team.world_episodes()
+    m = e["metrics"]
+    assert m["severity"] == "reported" and not m["failed"] and m["completion"] < sc.horizon, m
+    assert "robot of agent1 at (0, 0), 200 m/s" in team.log("robot_agent1"), team.log("robot_agent1")[-800:]
+    assert "40 m/s" in team.log("robot_agent2")
+    actions = np.array(e["actions"])[:, None, :]  # (h, 1, N)
+    _, model_way = drives(sc, actions)
+    state = TravelState(sc, 1)
+    for a in actions:
+        state.step(a)
+    robot_way = np.array(
+        [
+            [a < sc.n_tasks and o == -1 for a, o in zip(acts, obs, strict=True)]
+            for acts, obs in zip(e["actions"], e["observations"], strict=True)
+        ]
+    ).sum(axis=0)
+    print(
+        f"completion {m['completion']}; steps on the way by the model {model_way[0].tolist()}, "
+        f"working steps without an observation on the robots {robot_way.tolist()}, drives {state.moves[0].tolist()}"
+    )
+    assert model_way.sum() > 0, "nobody drove"
+    # a robot leaves when its agent decides, before its step begins: a drive ends at most one step sooner than the
+    # model counts, never later
+    assert (robot_way <= model_way[0]).all() and (robot_way >= model_way[0] - state.moves[0]).all(), (
+        robot_way,
+        model_way,
+        state.moves,
     )

@@ -111,6 +111,14 @@ class TravelState:
         out: BoolArray = np.hypot(delta[..., 0], delta[..., 1]) <= ARRIVED
         return out
 
+    def place(self, agent: int, actions: IntArray, xy: tuple[float, float] | None) -> None:
+        """Put agent `agent` where its robot is (a deployed team): at (x, y), or at the site of its `actions` (B,)
+        when its robot is there (None); its goal becomes that site."""
+        a = np.asarray(actions, dtype=np.int64)
+        site = np.where(a >= 0, self.model.action_site[np.maximum(a, 0)], self.goal[:, agent])
+        self.goal[:, agent] = site
+        self.xy[:, agent] = self.travel.positions[site] if xy is None else np.asarray(xy, dtype=np.float64)
+
     def step(self, actions: IntArray) -> BoolArray:
         """Apply one step's joint assignment (B, N) (a negative action keeps the goal): goals change, drives start or
         turn, every agent not at its goal drives for the step. Returns (B, N) whether each agent is at its goal's

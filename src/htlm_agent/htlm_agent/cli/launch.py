@@ -306,15 +306,27 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
 
 
 def step_period(sc: Scenario, args: argparse.Namespace) -> tuple[float, tuple[str, ...]]:
-    """The free clock's step period of a launch and what to say about it: --period when given, else with simulated
-    robots `robots.arrival_period` at their speed (--robot-param speed, else the robot's default), else
-    FREE_PERIOD. With simulated robots, a period too short for a robot to reach every site within its step is warned
+    """The free clock's step period of a launch and what to say about it: --period when given, else the operation's
+    `step_seconds` when it has travel, else with simulated robots `robots.arrival_period` at their speed
+    (--robot-param speed, else the robot's default), else FREE_PERIOD. With simulated robots, a period too short for a robot to reach every site within its step is warned
     about: a move then takes several steps, which the model does not know (docs/ros.md, Arrival)."""
     from htlm_agent.ros.launch import FREE_PERIOD
     from htlm_world.robots import arrival_period, longest_drive
     from htlm_world.ros.robot_settings import RobotSettings
 
     given = None if args.period is None else float(args.period)
+    if sc.travel:  # the operation's own step: drives take the steps the model gives them
+        if given is None:
+            return sc.step_seconds, (
+                f"--period {sc.step_seconds:g} s: the operation's step (step_seconds); a drive takes the steps its "
+                "distance over the robot's speed gives (docs/model.md, Travel)",
+            )
+        if given != sc.step_seconds:
+            return given, (
+                f"warning: --period {given:g} s is not the operation's step of {sc.step_seconds:g} s: drives take "
+                "another number of steps than the model and every policy trained on it count (docs/model.md, Travel)",
+            )
+        return given, ()
     speed = dict(args.robot_param).get("speed", RobotSettings().speed)
     if args.robots != "sim" or not isinstance(speed, int | float) or isinstance(speed, bool):
         return (FREE_PERIOD if given is None else given), ()  # a bad speed: check_launch names it

@@ -77,6 +77,7 @@ class _Pending:
     drawn: bool = False
     sent: IntArray | None = None  # (B,)
     effective: IntArray | None = None  # (B,) what our action did when it differs from the assignment (not arrived)
+    robot: tuple[bool, tuple[float, float] | None] | None = None  # deployed: arrived, and the robot's (x, y)
 
 
 class AgentMind:
@@ -295,6 +296,7 @@ class AgentMind:
         now: float = 0.0,
         worked: bool = True,
         tasks: IntArray | list[int] | None = None,
+        position: tuple[float, float] | None = None,
     ) -> Effects:
         """The world's observations of step t (B,): draw our channel and broadcast if our actions were applied.
 
@@ -342,6 +344,8 @@ class AgentMind:
                 p.action = np.where(chose_task & (np.asarray(tasks) < 0), self.idle_action(), p.action)
             if not worked:
                 p.effective = np.asarray(self.model.idle_action(p.action), dtype=np.int64)
+            if self.travel is not None and (not worked or position is not None):
+                p.robot = (worked, position)
         else:
             if p.acted is None:
                 self.missed_steps += 1  # our action came too late
@@ -451,6 +455,9 @@ class AgentMind:
         joint[:, me] = action if p.effective is None else p.effective
         applied = joint
         if self.travel is not None:  # an agent on its way works on nothing and observes nothing
+            if p.robot is not None:  # deployed: our robot's place, not the model's guess
+                worked, position = p.robot
+                self.travel.place(me, joint[:, me], None if worked else position)
             applied = working_actions(joint, self.travel.step(joint))
         lik = bf.agent_evidence(self.model, me, applied, obs, messages, heard, p.t)
         caps = self.model.joint_capability(applied)

@@ -456,7 +456,9 @@ class AgentSession:
                 return
             # a robot still on its way did not work on its task this step
             worked = self.arrival.arrival()[0] != Arrival.NO
-            eff = self.mind.observe(ob.episode, ob.step, ob.levels, ob.acted, now, worked)
+            eff = self.mind.observe(
+                ob.episode, ob.step, ob.levels, ob.acted, now, worked, position=self.arrival.position
+            )
             if eff.drop is None:
                 self.last_accept = now
             self.carry("observation", eff, out)

@@ -76,8 +76,10 @@ class RobotNode(RunFollower):
             return
         self.index = names.index(self.name)
         x, y = start_position(self.settings.start) or sc.site_positions[int(model.action_site[sc.start_assignment])]
-        self.drive = Drive(float(x), float(y), self.settings.speed)
-        self.get_logger().info(f"run {self.run}: robot of {self.name} at ({x:g}, {y:g}), {self.settings.speed:g} m/s")
+        # an operation with travel gives every agent its speed (docs/model.md, Travel): the robot drives at it
+        speed = sc.agent_speed(self.index) if sc.travel else self.settings.speed
+        self.drive = Drive(float(x), float(y), speed)
+        self.get_logger().info(f"run {self.run}: robot of {self.name} at ({x:g}, {y:g}), {speed:g} m/s")
 
     def _on_goal(self, msg: PoseStamped) -> None:
         """A goal pose. With a team key it is not followed (anybody on the domain could have sent it): the signed
