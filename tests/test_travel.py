@@ -151,3 +151,14 @@ def test_rollout_with_travel_finishes_with_the_nearest_greedy() -> None:
     sc = paper_with_travel(step=1.0, speed=50.0)
     tr = rollout(Team(sc, 8, 0), GreedyPolicy(sc))
     assert (tr.levels[-1] == 0).all(axis=-1).mean() >= 0.5
+
+
+def test_watch_shows_when_a_robot_on_its_way_arrives() -> None:
+    from htlm_agent.experiments.watch_view import Belief, _robot
+    from htlm_msgs_py.schema import Arrival
+
+    sc = load("facility-20-travel")
+    b = Belief(0, 3, [], [], Arrival.NO, 40.0)
+    assert _robot(b, sc, 1) == "40.0 m away, arrives in 3 steps (27 s)"  # a ground robot at 1.5 m/s, 10 s steps
+    assert _robot(b, sc, 0) == "40.0 m away, arrives in 1 steps (5 s)"  # a drone at 8 m/s
+    assert _robot(b, builtin(), 0) == "40.0 m away"

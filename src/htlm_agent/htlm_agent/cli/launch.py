@@ -308,8 +308,9 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
 def step_period(sc: Scenario, args: argparse.Namespace) -> tuple[float, tuple[str, ...]]:
     """The free clock's step period of a launch and what to say about it: --period when given, else the operation's
     `step_seconds` when it has travel, else with simulated robots `robots.arrival_period` at their speed
-    (--robot-param speed, else the robot's default), else FREE_PERIOD. With simulated robots, a period too short for a robot to reach every site within its step is warned
-    about: a move then takes several steps, which the model does not know (docs/ros.md, Arrival)."""
+    (--robot-param speed, else the robot's default), else FREE_PERIOD. Without travel and with simulated robots, a
+    period too short for a robot to reach every site within its step is warned about: a move then takes several
+    steps, which that operation's model does not count (docs/ros.md, Arrival)."""
     from htlm_agent.ros.launch import FREE_PERIOD
     from htlm_world.robots import arrival_period, longest_drive
     from htlm_world.ros.robot_settings import RobotSettings

@@ -22,6 +22,7 @@ from io import StringIO
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
 from rich import box
 from rich.console import Console, Group, RenderableType
 from rich.live import Live
@@ -35,6 +36,7 @@ from htlm_msgs_py.params import setting
 from htlm_msgs_py.schema import Arrival, WireError, decode, limits
 from htlm_msgs_py.signing import Signer
 from htlm_world.scenario import Scenario, ScenarioRecordError, from_record
+from htlm_world.travel import drive_steps
 
 LEVEL_NAMES = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 """diagnostic_msgs/DiagnosticStatus levels."""
@@ -435,11 +437,18 @@ def _tasks_table(state: WatchState) -> Table | None:
     return table
 
 
-def _robot(b: Belief) -> str:
+def _robot(b: Belief, sc: Scenario, k: int) -> str:
+    """Where an agent's robot is against its site; with travel (docs/model.md, Travel) when it arrives: the distance
+    it has left over its speed, in steps and seconds."""
     if b.arrived == Arrival.YES:
         return "at its site"
     if b.arrived == Arrival.NO:
-        return f"{b.distance:.1f} m away" if b.distance >= 0 else "on its way"
+        if b.distance < 0:
+            return "on its way"
+        if sc.travel and sc.agent_speed(k) > 0:
+            steps = int(drive_steps(np.array(b.distance), np.array(sc.agent_speed(k) * sc.step_seconds)))
+            return f"{b.distance:.1f} m away, arrives in {steps} steps ({b.distance / sc.agent_speed(k):.0f} s)"
+        return f"{b.distance:.1f} m away"
     return "-"
 
 
@@ -477,7 +486,7 @@ def _agents_table(state: WatchState, now: float) -> Table | None:
         ]
         if robots:
             b = state.beliefs.get(a)
-            cells.append(_robot(b) if b is not None else "-")
+            cells.append(_robot(b, sc, k) if b is not None else "-")
         if own_clock:
             c = clocks[a]
             cells.append(
