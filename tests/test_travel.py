@@ -162,3 +162,22 @@ def test_watch_shows_when_a_robot_on_its_way_arrives() -> None:
     assert _robot(b, sc, 1) == "40.0 m away, arrives in 3 steps (27 s)"  # a ground robot at 1.5 m/s, 10 s steps
     assert _robot(b, sc, 0) == "40.0 m away, arrives in 1 steps (5 s)"  # a drone at 8 m/s
     assert _robot(b, builtin(), 0) == "40.0 m away"
+
+
+def test_a_travel_blind_team_acts_on_the_knowledge_layout_it_learned() -> None:
+    from htlm_agent.experiments.market import TravelBlind
+    from htlm_agent.mind.context import Context
+
+    sc = paper_with_travel()
+    blind = sc.without_travel()
+    assert not blind.travel and blind.knowledge_size == sc.knowledge_size - 2 * sc.n_agents
+    seen: list[int] = []
+
+    class Rest:
+        def act(self, ctx: Context) -> np.ndarray:
+            seen.append(ctx.knowledge.shape[-1])
+            return np.full(ctx.prev.shape, sc.n_tasks, dtype=np.int64)
+
+    ev = evaluate_run(TravelBlind(Rest(), blind), sc, episodes=2, seed=0)
+    assert set(seen) == {blind.knowledge_size}
+    assert ev.metrics["travel"]["metres_per_agent"]["mean"] == 0.0

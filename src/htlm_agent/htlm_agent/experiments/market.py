@@ -249,6 +249,13 @@ def run_transfer(
     return rows
 
 
+FIGURES = ("completion", "failure_rate", "unused_fraction", "recovery", "never", "train_s")
+"""What every row may hold, averaged over seeds by `summarize`."""
+
+TRAVEL_FIGURES = ("mission_s", "metres", "recovery_s")
+"""And on an operation with travel: the mission and the recovery in seconds, the metres per agent."""
+
+
 def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Mean over seeds ± SE of every figure, per scenario, team and condition."""
     keys = list(dict.fromkeys((r["scenario"], r["condition"], r["team"]) for r in rows))
@@ -256,17 +263,7 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for sc, cond, team in keys:
         group = [r for r in rows if (r["scenario"], r["condition"], r["team"]) == (sc, cond, team)]
         row: dict[str, Any] = {"scenario": sc, "condition": cond, "team": team, "seeds": len(group)}
-        for f in (
-            "completion",
-            "failure_rate",
-            "unused_fraction",
-            "recovery",
-            "never",
-            "train_s",
-            "mission_s",
-            "metres",
-            "recovery_s",
-        ):
+        for f in (*FIGURES, *TRAVEL_FIGURES):
             vals = np.array([r[f] for r in group if f in r and r[f] == r[f]], dtype=np.float64)
             if vals.size:
                 row[f] = float(vals.mean())
@@ -362,7 +359,7 @@ def write_outputs(out: Path, rows: list[dict[str, Any]]) -> None:
     (out / "market.json").write_text(json.dumps({"runs": rows, "summary": summary}, indent=1) + "\n")
     fields = ["scenario", "condition", "team", "seeds"] + [
         f + s
-        for f in ("completion", "failure_rate", "unused_fraction", "recovery", "never", "train_s")
+        for f in (*FIGURES, *TRAVEL_FIGURES)
         for s in ("", "_se")
     ]
     with (out / "market.csv").open("w", newline="") as f:
