@@ -181,3 +181,17 @@ def test_a_travel_blind_team_acts_on_the_knowledge_layout_it_learned() -> None:
     ev = evaluate_run(TravelBlind(Rest(), blind), sc, episodes=2, seed=0)
     assert set(seen) == {blind.knowledge_size}
     assert ev.metrics["travel"]["metres_per_agent"]["mean"] == 0.0
+
+
+def test_markers_draw_an_agent_on_its_way_between_the_sites() -> None:
+    from htlm_world.markers import DRIVING, MarkerView
+
+    sc = paper_with_travel(step=2.0, speed=10.0)  # 20 m a step, sites at x = 0 and 50
+    view = MarkerView(sc)
+    view.begin(0)
+    view.after_step(0, 1, sc.initial_levels, [2, 4, 4, 4, 4])  # agent1 to fire@site2
+    marks = {(m.ns, m.id): m for m in view.marks()}
+    drone = marks[("agents", 0)]
+    assert drone.rgba == DRIVING and drone.x == pytest.approx(20.0)
+    assert marks[("agent_labels", 0)].text == "agent1: to site2 (2 steps)"
+    assert marks[("agents", 1)].rgba != DRIVING

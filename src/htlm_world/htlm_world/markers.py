@@ -9,7 +9,8 @@ Every marker has a stable id in its namespace, so a marker of an update replaces
   done, at level 0 through yellow to red at level L-1; grey when unknown), labelled with its kind and level;
 - `agents`, `agent_labels`: every agent (a cylinder) at the site of its assignment, in a column below the site's
   tasks; opaque blue while working on a task, pale and translucent while idle, labelled with its name and what it
-  does (and "absent" when the world idled it for a missing action);
+  does (and "absent" when the world idled it for a missing action); with travel (docs/model.md, Travel) an agent on
+  its way is drawn where it is between the sites, orange, labelled with the site it drives to and the steps left;
 - `status`: the episode and step shown.
 
 `MarkerView` follows the world protocol's records (htlm_world.protocol.WorldEffects.publish) and says when the scene
@@ -26,7 +27,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from htlm_world.scenario import Scenario
+from htlm_world.travel import TravelState
 
 FRAME = "map"
 """Fixed frame of every marker: the frame of the scenario's site positions and of the agents' goal poses."""
@@ -48,6 +52,8 @@ WORKING: Rgba = (0.10, 0.35, 0.95, 1.0)
 """Colour of an agent working on a task."""
 IDLE: Rgba = (0.55, 0.62, 0.75, 0.45)
 """Colour of an idle agent (translucent)."""
+DRIVING: Rgba = (0.95, 0.55, 0.10, 1.0)
+"""Colour of an agent on its way to its assignment's site (with travel)."""
 UNKNOWN: Rgba = (0.6, 0.6, 0.6, 1.0)
 """Colour of a task whose level is unknown."""
 SITE: Rgba = (0.75, 0.75, 0.75, 0.35)
@@ -236,6 +242,7 @@ def scene(
     step: int,
     sites: Sequence[int] | None = None,
     events: Sequence[str] = (),
+    moving: dict[int, tuple[float, float, int]] | None = None,
 ) -> list[Mark]:
     """The markers of one episode's state.
 
@@ -248,6 +255,7 @@ def scene(
         step: The step of `levels` (0: the initial state).
         sites: (N,) site of each agent whose action is -1 (its previous site); None: the first site.
         events: Labels of the scenario's events that happened in the episode so far (after the status text).
+        moving: The agents on their way (with travel): agent -> (x, y, steps left), drawn where they are.
 
     Returns:
         Every marker of the scene, namespace by namespace in NAMESPACES order, ids from 0 in each.
@@ -261,6 +269,9 @@ def scene(
         a = int(a)
         stay = int(sites[k]) if sites is not None and sites[k] >= 0 else 0  # no action: where it was
         s = layout.action_sites[a] if a >= 0 else stay
+        if moving is not None and k in moving:
+            agents.append(_driving(layout, k, sc.site_names[s], *moving[k]))
+            continue
         agents.append(layout.agent_marks(k, a, s, taken[s], k not in heard))
         taken[s] += 1
     x, y = layout.status_at
@@ -284,6 +295,17 @@ def scene(
         *(a for _, a in agents),
         status,
     ]
+
+
+def _driving(layout: Layout, k: int, site: str, x: float, y: float, left: int) -> tuple[Mark, Mark]:
+    """Agent k on its way to `site`, at (x, y) with `left` steps to go: its shape and its label."""
+    u = layout.unit
+    text = f"{layout.scenario.agents[k].name}: to {site} ({left} steps)"
+    lx = x + 0.6 * u + 0.5 * CHAR_WIDTH * 0.45 * u * len(text)
+    return (
+        Mark("agents", k, CYLINDER, x, y, 0.5 * u, 0.7 * u, 0.7 * u, 1.0 * u, DRIVING),
+        Mark("agent_labels", k, TEXT, lx, y, 1.2 * u, sz=0.45 * u, rgba=TEXT_COLOUR, text=text),
+    )
 
 
 class MarkerView:
@@ -310,6 +332,8 @@ class MarkerView:
         self._marks: list[Mark] | None = None
         self.events: list[str] = []
         """Labels of the scenario's events that happened in the shown episode so far."""
+        self.travel = TravelState(scenario, 1) if scenario.travel else None
+        """The shown episode's drives, replayed from its assignments (docs/model.md, Travel)."""
 
     def on_record(self, kind: str, fields: dict[str, Any], index: int) -> bool:
         """Follow the protocol's record (kind, fields); returns whether the scene changed.
@@ -351,6 +375,8 @@ class MarkerView:
         self.levels, self.actions, self.acted = sc.initial_levels, [start] * sc.n_agents, range(sc.n_agents)
         self.shown, self.stopped, self._marks = (episode, 0), False, None
         self.events = []
+        if self.travel is not None:
+            self.travel.reset()
 
     def after_step(self, episode: int, step: int, levels: Sequence[int] | None, actions: Sequence[int]) -> None:
         """The scene after `step` of `episode`: true levels (None: unknown) and the applied actions (N,)."""
@@ -359,6 +385,8 @@ class MarkerView:
         for k, a in enumerate(actions):
             if a >= 0:
                 self.sites[k] = self.layout.action_sites[a]
+        if self.travel is not None:
+            self.travel.step(np.asarray(actions, dtype=np.int64)[None])
         self.levels, self.actions = levels, actions
         self.shown, self.stopped, self._marks = (episode, step), False, None
 
@@ -368,7 +396,14 @@ class MarkerView:
             return DELETE_ALL
         if self._marks is None:
             e, t = self.shown
-            self._marks = scene(self.layout, self.levels, self.actions, self.acted, e, t, self.sites, self.events)
+            moving = None
+            if self.travel is not None:
+                eta = self.travel.eta()[0]
+                xy = self.travel.xy[0]
+                moving = {k: (float(xy[k, 0]), float(xy[k, 1]), int(eta[k])) for k in range(len(eta)) if eta[k] > 0}
+            self._marks = scene(
+                self.layout, self.levels, self.actions, self.acted, e, t, self.sites, self.events, moving
+            )
         return self._marks
 
 

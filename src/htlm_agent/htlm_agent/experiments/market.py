@@ -358,9 +358,7 @@ def write_outputs(out: Path, rows: list[dict[str, Any]]) -> None:
     summary = summarize(rows)
     (out / "market.json").write_text(json.dumps({"runs": rows, "summary": summary}, indent=1) + "\n")
     fields = ["scenario", "condition", "team", "seeds"] + [
-        f + s
-        for f in (*FIGURES, *TRAVEL_FIGURES)
-        for s in ("", "_se")
+        f + s for f in (*FIGURES, *TRAVEL_FIGURES) for s in ("", "_se")
     ]
     with (out / "market.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, fields, extrasaction="ignore")
