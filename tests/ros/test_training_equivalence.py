@@ -75,18 +75,40 @@ def test_expert_iteration_over_ros_equals_htlm_train(tmp_path: Path) -> None:
     """`htlm launch train --set learner=expert` (the world shares the true levels with the trainer, the trainer learns
     each round while the world waits, the agents play each round's policy) ends with exactly the policy network and
     the rounds of `htlm train --learner expert`."""
+    _expert_over_ros_equals_in_process(tmp_path, builtin(), [])
+
+
+@pytest.mark.slow
+def test_expert_iteration_with_travel_over_ros_equals_htlm_train(tmp_path: Path) -> None:
+    """The same with drives (docs/model.md, Travel): every agent process follows its teammates' drives, the trainer's
+    teacher counts them, and the networks and rounds are exactly `htlm train`'s."""
+    import yaml
+
+    from htlm_world.scenario import from_dict
+
+    base = builtin()
+    spec = [{"name": a.name, **a.capabilities} for a in base.agents]
+    spec[0]["speed"] = 50.0
+    sc = from_dict({"step_seconds": 2.0, "speed": 10.0, "agents": spec}, "<travel>")
+    (path := tmp_path / "travel.yaml").write_text(yaml.safe_dump(sc.to_dict()))
+    _expert_over_ros_equals_in_process(tmp_path, sc, ["--scenario", str(path)])
+
+
+def _expert_over_ros_equals_in_process(tmp_path: Path, sc: Any, scenario_args: list[str]) -> None:
     import subprocess
     import sys
 
     from htlm_agent.learning.run import train
 
     settings = Settings.for_learner(**EXPERT, validate_episodes=40, eval_episodes=0, seed=SEED)
-    train(builtin(), settings, tmp_path / "inproc", progress=False, tensorboard=False, evaluate_at_end=False)
+    train(sc, settings, tmp_path / "inproc", progress=False, tensorboard=False, evaluate_at_end=False)
     ref = load_checkpoint(tmp_path / "inproc" / "checkpoint")
 
     sets = [x for k, v in {**EXPERT, "validate_episodes": 40}.items() for x in ("--set", f"{k}={v}")]
-    cmd = [sys.executable, "-m", "htlm_agent.cli", "launch", "train", *sets, "--eval-episodes", "0", "--quiet"]
-    r = subprocess.run([*cmd, "--run-dir", str(tmp_path / "ros")], capture_output=True, text=True, timeout=200)
+    cmd = [sys.executable, "-m", "htlm_agent.cli", "launch", "train", *scenario_args, *sets, "--eval-episodes", "0"]
+    r = subprocess.run(
+        [*cmd, "--quiet", "--run-dir", str(tmp_path / "ros")], capture_output=True, text=True, timeout=200
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     got = load_checkpoint(tmp_path / "ros" / "trainer" / "checkpoint")
     assert got.episodes_done == ref.episodes_done == EXPERT["episodes"]
