@@ -38,6 +38,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         EXIT_CODES,
         FREE_PERIOD,
         MAX_RESTARTS,
+        PAGE_PORT,
+        PEOPLE_PERIOD,
         RESPAWN_DELAY,
         RESPAWN_DELAY_MAX,
         RESPAWN_STABLE,
@@ -157,6 +159,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         f"a robot to drive between the two farthest sites within a step, docs/ros.md Arrival; else {FREE_PERIOD:g})",
     )
     p.add_argument(
+        "--person",
+        action="append",
+        default=[],
+        metavar="AGENT",
+        help="deploy: a person plays this agent (repeat, or comma-separate, for several): no robot; the agent serves "
+        "the person's page, whose reports are its observations; the address with its token is printed and the token "
+        f"kept in RUN/people/AGENT.token; the step period defaults to {PEOPLE_PERIOD:g} s (docs/usage.md)",
+    )
+    p.add_argument(
+        "--page-address",
+        default="127.0.0.1",
+        help="address the people's pages listen on (default 127.0.0.1: this machine only; 0.0.0.0: every interface)",
+    )
+    p.add_argument(
+        "--page-port",
+        type=int,
+        default=PAGE_PORT,
+        help=f"port of the first person's page, the next people's after it (default {PAGE_PORT}; 0: any free port)",
+    )
+    p.add_argument(
         "--robot-param",
         type=_kv,
         action="append",
@@ -245,7 +267,18 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         default_episodes = settings.rounds * settings.round_batches * settings.envs
     episodes = args.episodes if args.episodes is not None else default_episodes
     batch = args.batch if args.batch is not None else {"train": settings.envs, "evaluate": 128, "deploy": 1}[args.mode]
-    deployed = args.operation == "external" or args.robots == "sim"
+    people = tuple(x.strip() for item in args.person for x in item.split(",") if x.strip())
+    names = [a.name for a in sc.agents]
+    for name in people:
+        if name not in names:
+            bad.append(f"--person {name}: not an agent of the team ({', '.join(names)})")
+    if len(set(people)) != len(people):
+        bad.append(f"--person {','.join(people)}: an agent is named twice")
+    if people and args.mode != "deploy":
+        bad.append(f"--person: people play agents of a deployed team (htlm launch deploy), not {args.mode}")
+    if not 0 <= args.page_port <= 65535 - len(people):
+        bad.append(f"--page-port {args.page_port!r}: must be a port (0 to 65535, 0: any free port)")
+    deployed = args.operation == "external" or args.robots == "sim" or bool(people)
     if deployed and (args.mode == "train" or batch != 1):
         bad.append(f"{args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
     period, notes = step_period(sc, args)
@@ -292,7 +325,7 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         timeout=args.timeout,
         echo=not args.quiet,
         echo_to_stderr=args.json,  # --json: stdout holds the summary only
-        operation=args.operation,
+        operation="external" if people else args.operation,
         robots="" if args.robots == "none" else args.robots,
         period=period,
         notes=notes,
@@ -301,6 +334,9 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         respawn_delay=args.respawn_delay,
         max_restarts=args.max_restarts,
         agents_per_process=args.agents_per_process,
+        people=people,
+        page_address=args.page_address,
+        page_port=args.page_port,
     )
     return cfg, bad + check_launch(cfg)
 
@@ -310,11 +346,13 @@ def step_period(sc: Scenario, args: argparse.Namespace) -> tuple[float, tuple[st
     robots `robots.arrival_period` at their speed (--robot-param speed, else the robot's default), else
     FREE_PERIOD. With simulated robots, a period too short for a robot to reach every site within its step is warned
     about: a move then takes several steps, which the model does not know (docs/ros.md, Arrival)."""
-    from htlm_agent.ros.launch import FREE_PERIOD
+    from htlm_agent.ros.launch import FREE_PERIOD, PEOPLE_PERIOD
     from htlm_world.robots import arrival_period, longest_drive
     from htlm_world.ros.robot_settings import RobotSettings
 
     given = None if args.period is None else float(args.period)
+    if args.person and given is None:
+        return PEOPLE_PERIOD, (f"--period {PEOPLE_PERIOD:g} s: a step a person can keep (people in the team)",)
     speed = dict(args.robot_param).get("speed", RobotSettings().speed)
     if args.robots != "sim" or not isinstance(speed, int | float) or isinstance(speed, bool):
         return (FREE_PERIOD if given is None else given), ()  # a bad speed: check_launch names it
@@ -334,7 +372,7 @@ def step_period(sc: Scenario, args: argparse.Namespace) -> tuple[float, tuple[st
 
 def run(args: argparse.Namespace) -> int:
     """Check the launch's input (every problem on stderr, exit 2, nothing started), launch the team, print a summary."""
-    from htlm_agent.ros.launch import LaunchConfig, run_team, summarize
+    from htlm_agent.ros.launch import LaunchConfig, page_addresses, run_team, summarize
 
     cfg, bad = make_config(args)
     sc, run_dir, only, episodes = cfg.scenario, cfg.run_dir, cfg.only, cfg.episodes
@@ -344,6 +382,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     for line in cfg.notes:
         print(f"htlm launch: {line}", file=sys.stderr, flush=True)
+    here = [n for n in cfg.people if not only or n in only]
+    for name, address in page_addresses(cfg).items():
+        if name in here:
+            print(f"htlm launch: {name}'s page (a person plays {name}): {address}", file=sys.stderr, flush=True)
     code = run_team(cfg)
     out: dict[str, Any] = {"mode": args.mode, "run_dir": str(run_dir), "exit_code": code, **summarize(run_dir)}
     if cfg.operation == "external" or cfg.robots:
