@@ -57,11 +57,14 @@ def test_a_level_report_is_the_agents_observation_and_bad_reports_change_nothing
     desk = PersonDesk(s)
     v = desk.view(EPOCH - 0.5)
     assert v["state"] == "running" and (v["episode"], v["step"]) == (0, 1)
-    assert v["report_open"] and v["deadline"] == EPOCH + 5.0
+    assert not v["report_open"] and v["deadline"] == EPOCH + 5.0
+    early = desk.report({"kind": "level", "episode": 0, "step": 1, "level": 1}, EPOCH - 0.5, EPOCH - 0.5)
+    assert not early.ok and "step 1 has not begun: reports open at its instant" in early.message
     assert [x["name"] for x in v["sites"]] == list(SC.site_names)
     task = v["assignment"]["task"]
     assert task is not None and 0 <= task < SC.n_tasks, v["assignment"]
     _at(s, EPOCH + 0.1, sent)  # the instant of step 1 passed: the step waits for the person's level
+    assert desk.view(EPOCH + 0.1)["report_open"]
     assert s.mind is not None and s.mind.pending is not None and s.mind.pending.observed_at is None
     before = s.mind.marg.copy()
     refused = [
@@ -80,7 +83,7 @@ def test_a_level_report_is_the_agents_observation_and_bad_reports_change_nothing
         assert not got.ok and why in got.message, (body, got.message)
         assert got.observation is None and not got.effects.publish
         assert got.effects.rejects and got.effects.rejects[0][0] == "person"
-    assert desk.refused == len(refused) and s.mind.pending.observed_at is None
+    assert desk.refused == len(refused) + 1 and s.mind.pending.observed_at is None
     assert (s.mind.marg == before).all()
     seen = max(SC.initial_levels[task] - 1, 0)  # a level the task can have after one step
     got = desk.report({"kind": "level", "episode": 0, "step": 1, "level": seen}, EPOCH + 0.3, EPOCH + 0.3)

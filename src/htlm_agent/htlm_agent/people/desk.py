@@ -8,9 +8,10 @@ the level they see at their task, which becomes the agent's observation of that 
 and the world's log as a robot's would). `PersonDesk` sits between the session and the page: `view` is what the
 page shows, `report` checks one thing the person did and returns its `Outcome`. Reports:
 
-- `{"kind": "level", "episode": e, "step": t, "level": n}`: the level seen at the task of step t (0..L-1). Refused
-  with its reason when n is out of range or not an integer, when step t is not the step in progress (a step long
-  past, or one not begun), when the step already has a report, when the person is not on a task or is marked not
+- `{"kind": "level", "episode": e, "step": t, "level": n}`: the level seen at the task of step t (0..L-1), after the
+  step's work: from the step's instant until the agent's observation wait after it is over. Refused with its reason
+  when n is out of range or not an integer, when step t is not the step in progress (a step long past, or one whose
+  instant has not come), when the step already has a report, when the person is not on a task or is marked not
   available.
 - `{"kind": "away"}` and `{"kind": "back"}`: the person is not available (the agent is out of the team, the model's
   dropout: from the step not yet applied on, it idles at the site of its previous assignment, and its broadcasts say
@@ -106,7 +107,7 @@ class PersonDesk:
         out["episode"], out["step"] = m.episode, step
         out["horizon"] = sc.horizon
         open_step = self._open_step()
-        out["report_open"] = open_step is not None and self.available
+        out["report_open"] = open_step is not None and self.available and self._applied()
         clock = se.deploy.clock if se.deploy is not None else None
         if clock is not None and p is not None:
             out["instant"] = clock.at(m.episode, step)
@@ -114,7 +115,7 @@ class PersonDesk:
         out["assignment"] = self._action(model, names, action)
         out["instead"] = self.instead
         marg = m.marg[0]  # (p, L)
-        mine = {k for k, kind in enumerate(sc.kinds) if sc.agents[run.index].capability(kind.name) > 0}
+        mine = {k for k, kind in enumerate(sc.kinds) if sc.agents[run.index].capability(kind.capability) > 0}
         tasks = []
         for j, (s, k) in enumerate(sc.tasks):
             probs = [round(float(x), 3) for x in marg[j]]
@@ -237,8 +238,10 @@ class PersonDesk:
         cur = (m.episode, m.current)
         if here is None or (e, t) < here:
             return Outcome(False, f"episode {e} step {t} is past: the team is at episode {cur[0]} step {cur[1]}")
-        if (e, t) > here:
-            return Outcome(False, f"episode {e} step {t} has not begun: the team is at episode {cur[0]} step {cur[1]}")
+        if (e, t) > here or not self._applied():
+            return Outcome(
+                False, f"episode {e} step {t} has not begun: reports open at its instant, once its work is done"
+            )
         if (e, t) in self.reported:
             return Outcome(False, f"episode {e} step {t} already has your report (level {self.reported[(e, t)]})")
         assert m.pending is not None
