@@ -65,7 +65,8 @@ def test_the_nurse_plays_her_agent_through_her_page(launcher: Any, tmp_path: Pat
     )  # fmt: skip
     heard = tmp_path / "heard.json"
     team.helper("record_all", "--out", str(heard), "--qos", "events", "/htlm/severity", "/htlm/nurse/observation")
-    address = team.wait_for(lambda: _address(team.said()), 60, "the nurse's page address printed by htlm launch")
+    address = team.wait_for(lambda: _address(team.said(), "nurse's page"), 60, "the nurse's page printed by the launch")
+    chief = team.wait_for(lambda: _address(team.said(), "commander's page"), 60, "the commander's page address")
     token = address.split("token=")[1]
     assert (team.run / "people" / "nurse.token").read_text().strip() == token
     base = f"http://127.0.0.1:{port}"
@@ -81,6 +82,7 @@ def test_the_nurse_plays_her_agent_through_her_page(launcher: Any, tmp_path: Pat
         step = lambda: int(driver.find_element("tag name", "body").get_attribute("data-step") or 0)  # noqa: E731
         wait_until(lambda: step() >= 1, 90, "the nurse's page showing step 1", team.said)
         reported: dict[int, int] = {}
+        believed: dict[int, int] = {}
         for t in (1, 2, 3):  # the scripted person: the true level of her task, once the step's instant passed
             wait_until(lambda t=t: step() == t, 3 * PERIOD, f"the page at step {t}", team.said)
             action = driver.find_element("id", "task").get_attribute("data-action")
@@ -95,9 +97,13 @@ def test_the_nurse_plays_her_agent_through_her_page(launcher: Any, tmp_path: Pat
             reported[t] = level
             # the same step again: refused on the page, with its reason (it has a report, or is over by now)
             driver.execute_script(f"send({{kind: 'level', level: {level}, episode: 0, step: {t}}})")
-            wait_until(lambda: _refused_again(driver.find_element("id", "answer").text, t), PERIOD,
+            wait_until(lambda t=t: _refused_again(driver.find_element("id", "answer").text, t), PERIOD,
                        "the page refusing a second report of the step")  # fmt: skip
+            wait_until(lambda t=t: step() > t, 2 * PERIOD, f"the page past step {t}")  # her belief after the step
+            believed[t] = int(driver.find_element("css selector", f"tr[data-task='{action}'] .likely").text)
         assert reported, "the nurse had a task to report at none of steps 1 to 3"
+        # her report moved her agent's belief: after a step, the likeliest level of the task she reported is hers
+        assert any(believed[t] == reported[t] for t in reported), (reported, believed)
         # a level out of range and a step long past: refused on the page, naming the bad value
         driver.execute_script("send({kind: 'level', level: 9})")
         wait_until(lambda: "level 9 is out of range" in driver.find_element("id", "answer").text, PERIOD, "refusal")
@@ -109,6 +115,24 @@ def test_the_nurse_plays_her_agent_through_her_page(launcher: Any, tmp_path: Pat
         driver.find_element("id", "awaybtn").click()
         wait_until(lambda: driver.find_element("id", "away").is_displayed(), PERIOD, "the page marking her away")
         away_at = step()
+        # the commander's page: her reports, her availability, the true levels; read-only, behind its own token
+        boss = browser(1100, 1000)
+        try:
+            boss.get(chief.replace(chief.split("token=")[1], token))  # the nurse's token opens no other page
+            assert "no access" in boss.find_element("tag name", "body").text
+            boss.get(chief)
+            row = lambda: boss.find_element("css selector", "tr[data-agent=nurse]").text  # noqa: E731
+            wait_until(lambda: "not available" in row(), 3 * PERIOD, "the commander's page showing the nurse away")
+            shown = boss.find_element("id", "reports").text
+            lines = shown.splitlines()
+            for t, level in reported.items():
+                assert any(x.startswith(f"nurse 0/{t} ") and x.endswith(f" {level}") for x in lines), shown
+            wait_until(lambda: boss.find_element("id", "tasks").text.count("\n") >= sc.n_tasks - 1, PERIOD, "tasks")
+            assert f"of {sc.n_tasks} tasks done" in boss.find_element("id", "progress").text
+            if os.environ.get("HTLM_SCREENSHOTS"):
+                boss.save_screenshot(str(Path(os.environ["HTLM_SCREENSHOTS"]) / "commander-page.png"))
+        finally:
+            boss.quit()
         wait_until(lambda: step() >= away_at + 3, 5 * PERIOD, "three steps while she is away")
         driver.find_element("id", "back").click()
         wait_until(lambda: not driver.find_element("id", "away").is_displayed(), PERIOD, "the page marking her back")
@@ -142,8 +166,8 @@ def _refused_again(answer: str, t: int) -> bool:
     return f"step {t} already has your report" in answer or f"step {t} is past" in answer
 
 
-def _address(said: str) -> str | None:
+def _address(said: str, whose: str) -> str | None:
     for line in said.splitlines():
-        if "nurse's page" in line and "token=" in line:
+        if whose in line and "token=" in line:
             return line.split(": ", 2)[-1].strip()
     return None

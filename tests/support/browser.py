@@ -54,7 +54,7 @@ def wait_until(what: Callable[[], Any], timeout: float, why: str, said: Callable
     while True:
         try:
             got = what()
-        except Exception:  # noqa: BLE001 - an element re-rendered under our feet: look again
+        except Exception:
             got = None
         if got:
             return got

@@ -300,6 +300,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         known |= {"operation", *(f"robot_{a.name}" for a in sc.agents)}
     if args.record:
         known.add("recorder")
+    if args.person:
+        known.add("commander")
     if set(only) - known:
         bad.append(f"--only {sorted(set(only) - known)}: unknown; choose from {sorted(known)}")
     cfg = LaunchConfig(
@@ -382,10 +384,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     for line in cfg.notes:
         print(f"htlm launch: {line}", file=sys.stderr, flush=True)
-    here = [n for n in cfg.people if not only or n in only]
     for name, address in page_addresses(cfg).items():
-        if name in here:
-            print(f"htlm launch: {name}'s page (a person plays {name}): {address}", file=sys.stderr, flush=True)
+        if not only or name in only:
+            whose = "the commander's page" if name == "commander" else f"{name}'s page (a person plays {name})"
+            print(f"htlm launch: {whose}: {address}", file=sys.stderr, flush=True)
     code = run_team(cfg)
     out: dict[str, Any] = {"mode": args.mode, "run_dir": str(run_dir), "exit_code": code, **summarize(run_dir)}
     if cfg.operation == "external" or cfg.robots:

@@ -115,7 +115,7 @@ class PersonDesk:
         out["assignment"] = self._action(model, names, action)
         out["instead"] = self.instead
         marg = m.marg[0]  # (p, L)
-        mine = {k for k, kind in enumerate(sc.kinds) if sc.agents[run.index].capability(kind.capability) > 0}
+        mine = {k for k, kind in enumerate(sc.kinds) if sc.agents[run.index].capability(kind.uses) > 0}
         tasks = []
         for j, (s, k) in enumerate(sc.tasks):
             probs = [round(float(x), 3) for x in marg[j]]

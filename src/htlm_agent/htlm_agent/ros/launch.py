@@ -53,6 +53,9 @@ PEOPLE_PERIOD = 120.0
 """Step period, seconds, of a team with people in it unless `--period` is given: a step a person can keep."""
 PERSON_WAIT = 0.5
 """The share of the step period after its instant that a person has to report the level of their task."""
+COMMANDER = "commander"
+"""The process of the commander's page (with people in the team), and the name of its token file."""
+COMMANDER_NODE = "htlm_agent.ros.commander_node"
 PAGE_PORT = 8600
 """Port of the first person's page (`--page-port`)."""
 
@@ -483,6 +486,14 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
             if a.name in cfg.people:
                 continue
             specs.append((f"robot_{a.name}", ROBOT_NODE, {"agent": a.name, **cfg.robot_params}))
+    if cfg.people:  # the commander's page of the whole operation
+        commander = {
+            "people": ",".join(cfg.people),
+            "page_address": cfg.page_address,
+            "page_port": page_port(cfg, COMMANDER),
+            "page_token_file": str(token_file(run, COMMANDER)),
+        }
+        specs.append((COMMANDER, COMMANDER_NODE, commander))
     if cfg.record:  # the agents are named up front: their topics are recorded from the first message on
         agents = ",".join(a.name for a in sc.agents)
         specs.append(("recorder", RECORD_NODE, {"path": str(run / "recording"), "agents": agents}))
@@ -501,9 +512,11 @@ def token_file(run_dir: Path, agent: str) -> Path:
     return run_dir / "people" / f"{agent}.token"
 
 
-def page_port(cfg: LaunchConfig, agent: str) -> int:
-    """The port of `agent`'s person's page: `page_port` for the first person, the next ones after it."""
-    return cfg.page_port + cfg.people.index(agent) if cfg.page_port else 0
+def page_port(cfg: LaunchConfig, name: str) -> int:
+    """The port of a page: `page_port` for the first person's, the next people's after it, then the commander's."""
+    if not cfg.page_port:
+        return 0
+    return cfg.page_port + (cfg.people.index(name) if name in cfg.people else len(cfg.people))
 
 
 def write_tokens(cfg: LaunchConfig) -> dict[str, str]:
@@ -511,7 +524,7 @@ def write_tokens(cfg: LaunchConfig) -> dict[str, str]:
     from htlm_agent.people.web import new_token, read_token
 
     out = {}
-    for name in cfg.people:
+    for name in (*cfg.people, COMMANDER) if cfg.people else ():
         path = token_file(cfg.run_dir.resolve(), name)
         if not path.exists():
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -523,7 +536,7 @@ def write_tokens(cfg: LaunchConfig) -> dict[str, str]:
 
 
 def page_addresses(cfg: LaunchConfig) -> dict[str, str]:
-    """Each person's page, with its token: agent -> address to open."""
+    """Each person's page and the commander's, with its token: agent (or commander) -> address to open."""
     host = "127.0.0.1" if cfg.page_address in ("0.0.0.0", "::") else cfg.page_address
     return {name: f"http://{host}:{page_port(cfg, name)}/?token={tok}" for name, tok in write_tokens(cfg).items()}
 
