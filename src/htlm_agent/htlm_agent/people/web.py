@@ -16,7 +16,7 @@ import hmac
 import json
 import secrets
 import threading
-from collections.abc import Callable
+import time
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -143,7 +143,7 @@ def make_app(bridge: Bridge, token: str, html: str, reports: bool = True) -> Any
 class PageServer:
     """An app served by uvicorn in a daemon thread (started by `start`, stopped by `stop`)."""
 
-    def __init__(self, app: Any, host: str, port: int, log: Callable[[str], None] | None = None) -> None:
+    def __init__(self, app: Any, host: str, port: int) -> None:
         """Serve `app` on `host`:`port` (port 0: any free port; `port` tells which once started)."""
         import uvicorn
 
@@ -151,22 +151,17 @@ class PageServer:
         self.server = uvicorn.Server(self.config)
         self.host = host
         self.port = port
-        self.log = log
         self.thread = threading.Thread(target=self.server.run, name="page-server", daemon=True)
 
     def start(self, timeout: float = 10.0) -> None:
-        """Start serving; returns once the socket listens (raises RuntimeError when it did not within `timeout`)."""
+        """Start serving; returns once the socket listens (raises RuntimeError when it did not within `timeout`:
+        the port is taken, the address is not this host's)."""
         self.thread.start()
-        done = threading.Event()
-
-        def wait() -> None:
-            while not self.server.started and self.thread.is_alive():
-                threading.Event().wait(0.02)
-            done.set()
-
-        threading.Thread(target=wait, daemon=True).start()
-        if not done.wait(timeout) or not self.server.started:
-            raise RuntimeError(f"the page server did not start on {self.host}:{self.port}")
+        end = time.monotonic() + timeout
+        while not self.server.started:
+            if not self.thread.is_alive() or time.monotonic() > end:
+                raise RuntimeError(f"the page server could not listen on {self.host}:{self.port}")
+            time.sleep(0.02)
         sockets = [s for srv in getattr(self.server, "servers", []) for s in srv.sockets]
         if sockets:
             self.port = int(sockets[0].getsockname()[1])
@@ -175,3 +170,21 @@ class PageServer:
         """Stop serving (at most 5 s)."""
         self.server.should_exit = True
         self.thread.join(5.0)
+
+
+class PageError(ValueError):
+    """A page cannot be served: its token file, or its address and port (the node exits naming them)."""
+
+
+def serve(bridge: Bridge, token_file: str, html: str, host: str, port: int, reports: bool = True) -> PageServer:
+    """Serve one page (`make_app`) with the token kept in `token_file` on `host`:`port`, started.
+
+    Raises:
+        PageError: the token file cannot be read or holds no token, or the server cannot listen there.
+    """
+    try:
+        server = PageServer(make_app(bridge, read_token(token_file), html, reports), host, port)
+        server.start()
+    except (OSError, ValueError, RuntimeError) as e:
+        raise PageError(f"page_token_file {token_file!r}, page {host}:{port}: {e}") from None
+    return server

@@ -46,6 +46,7 @@ from htlm_msgs_py.ros import (
     string,
     subscribe_records,
 )
+from htlm_msgs_py.ros.parameters import SettingsError
 from htlm_msgs_py.schema import record_text
 
 
@@ -113,16 +114,17 @@ class AgentNode(Node):
 
     def _start_page(self) -> None:
         """A person plays this agent: serve the person's page and move its reports (htlm_agent.people)."""
-        from htlm_agent.people.web import Bridge, PageServer, make_app, page, read_token
+        from htlm_agent.people.web import Bridge, PageError, page, serve
 
         s = self.settings
         self.desk = PersonDesk(self.session)
         self.bridge = Bridge()
         self.pub_observation = self.create_publisher(String, topics.observation(self.name), EVENTS)
         self.person_log = Path(s.run_dir) / f"{self.name}.person.jsonl" if s.run_dir else None
-        app = make_app(self.bridge, read_token(s.page_token_file), page("person.html"))
-        self.page = PageServer(app, s.page_address, s.page_port)
-        self.page.start()
+        try:
+            self.page = serve(self.bridge, s.page_token_file, page("person.html"), s.page_address, s.page_port)
+        except PageError as e:  # exit 2 naming it, as a bad parameter does
+            raise SettingsError(str(e)) from None
         self.get_logger().info(f"person's page of {self.name}: http://{s.page_address}:{self.page.port}/?token=...")
         self.create_timer(0.1, self._serve_person)
 

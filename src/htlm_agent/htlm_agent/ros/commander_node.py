@@ -18,7 +18,7 @@ from typing import Any
 from rclpy.node import Node
 
 from htlm_agent.people.commander import CommanderDesk
-from htlm_agent.people.web import Bridge, PageServer, make_app, page, read_token
+from htlm_agent.people.web import Bridge, PageError, page, serve
 from htlm_agent.ros.settings import CommanderSettings, validate_commander_settings
 from htlm_msgs_py import topics
 from htlm_msgs_py.ros import (
@@ -31,6 +31,7 @@ from htlm_msgs_py.ros import (
     spin_until_finished,
     start_node,
 )
+from htlm_msgs_py.ros.parameters import SettingsError
 
 
 def _text(msg: Any) -> str:
@@ -57,9 +58,12 @@ class CommanderNode(Node):
         self.create_subscription(String, topics.ACTION, lambda m: self.desk.on_action(_text(m)), EVENTS)
         self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, DIAGNOSTICS)
         self.bridge = Bridge()
-        app = make_app(self.bridge, read_token(s.page_token_file), page("commander.html"), reports=False)
-        self.page = PageServer(app, s.page_address, s.page_port)
-        self.page.start()
+        try:
+            self.page = serve(
+                self.bridge, s.page_token_file, page("commander.html"), s.page_address, s.page_port, reports=False
+            )
+        except PageError as e:  # exit 2 naming it, as a bad parameter does
+            raise SettingsError(str(e)) from None
         self.get_logger().info(f"commander's page: http://{s.page_address}:{self.page.port}/?token=...")
         self.create_timer(0.25, lambda: self.bridge.show(self.desk.view(time.time())))
 
