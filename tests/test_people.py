@@ -186,3 +186,32 @@ def test_the_page_and_its_api_answer_only_their_own_token(served: Any) -> None:
     assert code == 200 and json.loads(text)["step"] == 3
     code, ans = _post(f"{base}/api/report", token, b"{not json")
     assert code == 400 and "a report is JSON" in ans["message"]
+
+
+def test_htlm_launch_with_a_person_checks_her_name_and_starts_her_page_instead_of_her_robot(tmp_path: Any) -> None:
+    from htlm_agent.cli.launch import LaunchError, config
+    from htlm_agent.ros.launch import page_addresses, process_specs
+
+    for argv, why in (
+        (["deploy", "--policy", "greedy", "--person", "nobody"], "--person nobody: not an agent of the team"),
+        (["evaluate", "--policy", "greedy", "--person", "agent1"], "people play agents of a deployed team"),
+        (["deploy", "--policy", "greedy", "--person", "agent1,agent1"], "an agent is named twice"),
+    ):
+        with pytest.raises(LaunchError, match=why):
+            config(argv)
+    cfg = config(
+        ["deploy", "--policy", "greedy", "--robots", "sim", "--person", "agent3", "--run-dir", str(tmp_path / "r")]
+    )
+    assert cfg.period == 120.0 and cfg.operation == "external"  # a step a person can keep
+    specs = {name: params for name, _module, params in process_specs(cfg)}
+    assert "robot_agent3" not in specs and "robot_agent1" in specs
+    assert specs["operation"]["people"] == "agent3"
+    me = specs["agent3"]
+    assert me["person"] and me["observation_wait"] == 60.0 and "pose_topic" not in me
+    assert (me["page_address"], me["page_port"]) == ("127.0.0.1", 8600)
+    assert specs["commander"]["page_port"] == 8601 and specs["commander"]["people"] == "agent3"
+    pages = page_addresses(cfg)
+    token_file = tmp_path / "r" / "people" / "agent3.token"
+    assert pages["agent3"] == f"http://127.0.0.1:8600/?token={token_file.read_text().strip()}"
+    assert token_file.stat().st_mode & 0o077 == 0, "the token is readable by its owner only"
+    assert page_addresses(cfg) == pages, "a run directory keeps its tokens"

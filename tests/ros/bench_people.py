@@ -141,3 +141,52 @@ def test_a_scripted_person_in_the_hospital(launcher: Any, tmp_path: Path, mode: 
     (out / f"people-{mode}.json").write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps({k: v for k, v in result.items() if k not in ("names", "in_process")}))
     print(json.dumps(ref)[:3000])
+
+
+def test_the_pages_load_and_update_with_twenty_agents(launcher: Any, tmp_path: Path) -> None:
+    """facility-20 (20 agents; greedy, no robots: an external operation nobody reports) with a person playing
+    utility1, both pages opened in headless chromium: the time from the request to the first view shown, and how
+    many steps each page showed without a reload."""
+    from support.browser import browser
+
+    out = Path(os.environ.get("HTLM_PEOPLE_OUT", str(tmp_path)))
+    out.mkdir(parents=True, exist_ok=True)
+    port = free_port()
+    team = launcher(
+        "deploy", "--scenario", "facility-20", "--policy", "greedy", "--person", "utility1", "--period", "2",
+        "--episodes", "1", "--page-port", str(port),
+    )  # fmt: skip
+    team.wait_for(lambda: "person's page of utility1" in team.log("utility1"), 180, "the person's page")
+    team.wait_for(lambda: "commander's page" in team.log("commander"), 180, "the commander's page")
+    pages = {
+        "person": (port, (team.run / "people" / "utility1.token").read_text().strip()),
+        "commander": (port + 1, (team.run / "people" / "commander.token").read_text().strip()),
+    }
+    result: dict[str, Any] = {}
+    drivers = {name: browser(412 if name == "person" else 1100) for name in pages}
+    try:
+        for name, (p, token) in pages.items():
+            d = drivers[name]
+            d.get(f"http://127.0.0.1:{p}/?token={token}")  # wait for the team to run: the first load is not timed
+            team.wait_for(lambda d=d: int(d.find_element("tag name", "body").get_attribute("data-step") or 0), 180,
+                          f"the {name} page showing a step")  # fmt: skip
+            t0 = time.monotonic()
+            d.get(f"http://127.0.0.1:{p}/?token={token}")
+            team.wait_for(lambda d=d: d.find_element("tag name", "body").get_attribute("data-version"), 10, name)
+            result[f"{name}_shown_s"] = round(time.monotonic() - t0, 3)
+            result[f"{name}_load_ms"] = d.execute_script(
+                "const t = performance.getEntriesByType('navigation')[0]; return t.loadEventEnd - t.startTime;"
+            )
+            d.execute_script("window.notReloaded = true;")
+        first = {n: int(d.find_element("tag name", "body").get_attribute("data-step")) for n, d in drivers.items()}
+        team.wait_for(lambda: team.popen.poll() is not None, 300, "the end of the episode")
+        for name, d in drivers.items():
+            last = int(d.find_element("tag name", "body").get_attribute("data-step"))
+            result[f"{name}_steps_shown"] = [first[name], last]
+            result[f"{name}_not_reloaded"] = bool(d.execute_script("return window.notReloaded === true;"))
+    finally:
+        for d in drivers.values():
+            d.quit()
+    (out / "people-load.json").write_text(json.dumps(result, indent=1) + "\n")
+    print(json.dumps(result))
+    assert result["person_not_reloaded"] and result["commander_not_reloaded"]
