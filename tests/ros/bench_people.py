@@ -122,7 +122,7 @@ def test_a_scripted_person_in_the_hospital(launcher: Any, tmp_path: Path, mode: 
         ref = _in_process(["evaluate", *common, "--out", str(tmp_path / "eval")])
     else:
         events = tmp_path / "away.yaml"
-        events.write_text(yaml.safe_dump([{"event": "dropout", "agent": "nurse", "at": AWAY_AT + 1}]))
+        events.write_text(yaml.safe_dump([{"event": "dropout", "agent": "nurse", "at": AWAY_AT}]))
         ref = _in_process(["stress", *common, "--events", str(events), "--out", str(tmp_path / "stress")])
     result = {
         "mode": mode,
