@@ -241,7 +241,7 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     """The launch of parsed `htlm launch` options and every problem of its input (empty: it can start)."""
     from htlm_agent.learning.learners import learner
     from htlm_agent.learning.settings import Settings
-    from htlm_agent.ros.launch import LaunchConfig
+    from htlm_agent.ros.launch import PEOPLE_PERIOD, LaunchConfig
     from htlm_agent.ros.launch_check import check_launch
 
     bad: list[str] = []  # every problem of the input, reported together
@@ -282,6 +282,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     if deployed and (args.mode == "train" or batch != 1):
         bad.append(f"{args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
     period, notes = step_period(sc, args)
+    if people and args.period is None:  # the step is theirs to keep: minutes, not seconds
+        period, notes = PEOPLE_PERIOD, (f"--period {PEOPLE_PERIOD:g} s: a step a person can keep (people in the team)",)
     if period <= 0:
         bad.append(f"--period {period!r}: must be > 0")
     if not args.respawn_delay >= 0:
@@ -348,13 +350,11 @@ def step_period(sc: Scenario, args: argparse.Namespace) -> tuple[float, tuple[st
     robots `robots.arrival_period` at their speed (--robot-param speed, else the robot's default), else
     FREE_PERIOD. With simulated robots, a period too short for a robot to reach every site within its step is warned
     about: a move then takes several steps, which the model does not know (docs/ros.md, Arrival)."""
-    from htlm_agent.ros.launch import FREE_PERIOD, PEOPLE_PERIOD
+    from htlm_agent.ros.launch import FREE_PERIOD
     from htlm_world.robots import arrival_period, longest_drive
     from htlm_world.ros.robot_settings import RobotSettings
 
     given = None if args.period is None else float(args.period)
-    if args.person and given is None:
-        return PEOPLE_PERIOD, (f"--period {PEOPLE_PERIOD:g} s: a step a person can keep (people in the team)",)
     speed = dict(args.robot_param).get("speed", RobotSettings().speed)
     if args.robots != "sim" or not isinstance(speed, int | float) or isinstance(speed, bool):
         return (FREE_PERIOD if given is None else given), ()  # a bad speed: check_launch names it
