@@ -127,7 +127,12 @@ def test_not_available_idles_the_agent_until_the_person_is_back_and_instead_is_a
             _at(s, EPOCH + (k - 1) * PERIOD + dt, sent)
     last = {a["step"]: a["actions"][0] for a in sent if a["episode"] == 0}  # the action each step went with
     assert [last[t] >= SC.n_tasks for t in (1, 2, 3)] == [True, True, True]
-    assert desk.report({"kind": "back"}, EPOCH + 29.5, EPOCH + 29.5).ok
+    back = desk.report({"kind": "back"}, EPOCH + 29.5, EPOCH + 29.5)
+    assert back.ok and "from step 4" in back.message
+    # before step 4's instant: its action is sent again, the policy's own choice (the model's return)
+    acts = [S.decode(t, S.ACTION, LIM) for k, t in back.effects.publish if k == "action"]
+    assert s.mind.chosen is not None and [(a["step"], a["actions"]) for a in acts] == [(4, [int(s.mind.chosen[0])])]
+    _take(back.effects, sent)
     for dt in (30.1, 36.0, 39.0):
         _at(s, EPOCH + dt, sent)
     assert sent[-1]["actions"][0] < SC.n_tasks, "back: the policy chooses a task again"

@@ -135,6 +135,8 @@ class AgentMind:
         self.instead: int | None = None
         """An action chosen from outside for the next step the mind acts for (a person's task taken instead of the
         assignment), used once."""
+        self.chosen: IntArray | None = None
+        """The policy's own actions of the newest step it acted for, before `out` or `instead` replaced them."""
 
     # ----- state ----------------------------------------------------------------------------------------------
     @property
@@ -235,6 +237,7 @@ class AgentMind:
         self.deferred = None
         k = self.knowledge()
         a = choose(policy, k, self.mask(), self.epsilon, self.explore)  # drawn whatever overrides it: same streams
+        self.chosen = a
         if self.out:
             a = self.idle_action()
         elif self.instead is not None:
@@ -243,16 +246,17 @@ class AgentMind:
         self._open(t, k, a, acted=None)
         out.action = (t, a)
 
-    def reassign(self, action: int) -> Effects:
-        """Replace our actions of the step in progress by `action` in every episode of the batch (a person takes
-        another task, or goes out of the team), answered with the new action record of that step; dropped as
-        "applied" once the step's observation came (the step can no longer change)."""
+    def reassign(self, action: int | IntArray) -> Effects:
+        """Replace our actions of the step in progress by `action` (one for every episode of the batch, or one per
+        episode: a person takes another task, goes out of the team or comes back), answered with the new action
+        record of that step; dropped as "applied" once the step's observation came (the step can no longer
+        change)."""
         out = Effects()
         p = self.pending
         if p is None or p.observed_at is not None:
             out.drop = "applied"
             return out
-        p.action = np.full(self.size, action, dtype=np.int64)
+        p.action = np.broadcast_to(np.asarray(action, dtype=np.int64), (self.size,)).copy()
         out.action = (p.t, p.action)
         return out
 

@@ -15,7 +15,8 @@ page shows, `report` checks one thing the person did and returns its `Outcome`. 
   available.
 - `{"kind": "away"}` and `{"kind": "back"}`: the person is not available (the agent is out of the team, the model's
   dropout: from the step not yet applied on, it idles at the site of its previous assignment, and its broadcasts say
-  so to its teammates) and back (its policy chooses again from the next step on).
+  so to its teammates) and back (the model's return: from the step not yet applied on, it acts on its policy's
+  choice again).
 - `{"kind": "instead", "task": "kind@site"}`: the person takes that task instead of the assignment: the agent acts
   on it at the step in progress when its instant has not passed, else at the next step.
 
@@ -278,13 +279,17 @@ class PersonDesk:
         return out
 
     def _back(self) -> Outcome:
-        m = self.session.mind
+        se, m = self.session, self.session.mind
         assert m is not None
         if self.available:
             return Outcome(False, "you are already available")
         self.available = True
         m.out = False
-        return Outcome(True, "welcome back: your agent takes a task again from the next step")
+        if self._applied() or m.pending is None or m.chosen is None:
+            return Outcome(True, "welcome back: your agent takes a task again from the next step")
+        out = Outcome(True, f"welcome back: your agent takes a task again from step {m.pending.t}")
+        se.carry("person", m.reassign(m.chosen), out.effects)  # the policy's choice of the step not yet applied
+        return out
 
     def _instead(self, task: Any, now: float) -> Outcome:
         se = self.session
