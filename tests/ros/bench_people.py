@@ -61,6 +61,12 @@ def _truth(path: Path) -> dict[tuple[int, int], list[int]]:
     return {(r["episode"], r["step"]): r["levels"][0] for r in (json.loads(x) for _topic, _t, x in got)}
 
 
+def _step(driver: Any) -> int:
+    """The step a page shows (0 before it shows one)."""
+    text = driver.find_element("tag name", "body").get_attribute("data-step") or ""
+    return int(text) if text.isdigit() else 0
+
+
 def _in_process(args: list[str]) -> dict[str, Any]:
     out = subprocess.run([HTLM, *args, "--json"], capture_output=True, text=True, check=True).stdout
     return dict(json.loads(out)) if out.strip().startswith("{") else {"rows": json.loads(out)}
@@ -155,35 +161,38 @@ def test_the_pages_load_and_update_with_twenty_agents(launcher: Any, tmp_path: P
     out.mkdir(parents=True, exist_ok=True)
     port = free_port()
     team = launcher(
-        "deploy", "--scenario", "facility-20", "--policy", "greedy", "--person", "utility1", "--period", "2",
+        "deploy", "--scenario", "facility-20", "--policy", "greedy", "--person", "utility1", "--period", "4",
         "--episodes", "1", "--page-port", str(port),
     )  # fmt: skip
-    team.wait_for(lambda: "person's page of utility1" in team.log("utility1"), 180, "the person's page")
-    team.wait_for(lambda: "commander's page" in team.log("commander"), 180, "the commander's page")
+    team.wait_for(lambda: (team.run / "people" / "commander.token").exists(), 60, "the pages' tokens")
     pages = {
         "person": (port, (team.run / "people" / "utility1.token").read_text().strip()),
         "commander": (port + 1, (team.run / "people" / "commander.token").read_text().strip()),
     }
+    for name, (p, token) in pages.items():  # the agent's process hosts ten agents: its log is the group's
+        base = f"http://127.0.0.1:{p}"
+        team.wait_for(lambda base=base, token=token: _api(base, token).get("state") == "running", 240, name)
     result: dict[str, Any] = {}
     drivers = {name: browser(412 if name == "person" else 1100) for name in pages}
     try:
+        for name, (p, token) in pages.items():  # the team runs: the first load (a cold browser) is not timed
+            drivers[name].get(f"http://127.0.0.1:{p}/?token={token}")
+        for name, d in drivers.items():
+            team.wait_for(lambda d=d: _step(d), 60, f"the {name} page showing a step")
         for name, (p, token) in pages.items():
             d = drivers[name]
-            d.get(f"http://127.0.0.1:{p}/?token={token}")  # wait for the team to run: the first load is not timed
-            team.wait_for(lambda d=d: int(d.find_element("tag name", "body").get_attribute("data-step") or 0), 180,
-                          f"the {name} page showing a step")  # fmt: skip
             t0 = time.monotonic()
             d.get(f"http://127.0.0.1:{p}/?token={token}")
-            team.wait_for(lambda d=d: d.find_element("tag name", "body").get_attribute("data-version"), 10, name)
+            team.wait_for(lambda d=d: _step(d), 10, f"the {name} page shown again")
             result[f"{name}_shown_s"] = round(time.monotonic() - t0, 3)
             result[f"{name}_load_ms"] = d.execute_script(
                 "const t = performance.getEntriesByType('navigation')[0]; return t.loadEventEnd - t.startTime;"
             )
             d.execute_script("window.notReloaded = true;")
-        first = {n: int(d.find_element("tag name", "body").get_attribute("data-step")) for n, d in drivers.items()}
+        first = {n: _step(d) for n, d in drivers.items()}
         team.wait_for(lambda: team.popen.poll() is not None, 300, "the end of the episode")
         for name, d in drivers.items():
-            last = int(d.find_element("tag name", "body").get_attribute("data-step"))
+            last = _step(d)
             result[f"{name}_steps_shown"] = [first[name], last]
             result[f"{name}_not_reloaded"] = bool(d.execute_script("return window.notReloaded === true;"))
     finally:

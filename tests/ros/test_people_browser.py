@@ -147,8 +147,9 @@ def test_the_nurse_plays_her_agent_through_her_page(launcher: Any, tmp_path: Pat
         assert ep["observations"][t - 1][nurse] == level, (t, ep["observations"])
     sent = [json.loads(x) for topic, _t, x in json.loads(heard.read_text()) if topic == "/htlm/nurse/observation"]
     assert [r["step"] for r in sent] == sorted(reported) and all("sig" in r for r in sent), sent
-    # away: idle (at the site of her previous assignment) at every step after the one she left in, until back
-    idle = [ep["actions"][t - 1][nurse] >= sc.n_tasks for t in range(away_at + 1, back_at + 1)]
+    # away: idle (at the site of her previous assignment) at every step after the one she left in, until the one she
+    # came back in (that one idle too once its instant had passed, else her policy's choice again)
+    idle = [ep["actions"][t - 1][nurse] >= sc.n_tasks for t in range(away_at + 1, back_at)]
     assert idle and all(idle), (away_at, back_at, [a[nurse] for a in ep["actions"]])
     # her teammates heard it: the tablet's own log has her idle there too (the broadcasts)
     log = [json.loads(x) for x in (team.run / "nurse.person.jsonl").read_text().splitlines()]
