@@ -121,6 +121,8 @@ def test_the_nurse_plays_her_agent_through_her_page(launcher: Any, tmp_path: Pat
             boss.get(chief.replace(chief.split("token=")[1], token))  # the nurse's token opens no other page
             assert "no access" in boss.find_element("tag name", "body").text
             boss.get(chief)
+            shown_all = lambda: boss.find_element("tag name", "body").get_attribute("data-version")  # noqa: E731
+            wait_until(shown_all, 3 * PERIOD, "the commander's page rendering a whole view (data-version set)")
             row = lambda: boss.find_element("css selector", "tr[data-agent=nurse]").text  # noqa: E731
             wait_until(lambda: "not available" in row(), 3 * PERIOD, "the commander's page showing the nurse away")
             shown = boss.find_element("id", "reports").text
