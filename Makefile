@@ -2,10 +2,14 @@
 # Every target that needs the environment depends on `setup`, which returns at once when .venv is up to date.
 VENV := .venv/bin
 
-.PHONY: setup run test test-slow lint format type bench
+.PHONY: setup setup-browser run test test-slow lint format type bench
 
 setup:
 	./setup.sh
+
+# the headless browser of the people's pages' tests (Debian's chromium and chromium-driver, with apt)
+setup-browser:
+	tests/setup-browser.sh
 
 run: setup
 	./launch_scripts/team.sh train

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from htlm_agent.experiments.recording import RecordSettings
-from htlm_agent.ros.settings import AgentSettings, TrainerSettings
+from htlm_agent.ros.settings import AgentSettings, CommanderSettings, TrainerSettings
 from htlm_msgs_py.docs import params_markdown, records_markdown, topics_markdown
 from htlm_world.ros.robot_settings import OperationSettings, RobotSettings
 from htlm_world.ros.settings import WorldSettings
@@ -18,7 +18,16 @@ ROS_MD = Path(__file__).resolve().parents[1] / "docs" / "ros.md"
 
 
 @pytest.mark.parametrize(
-    "cls", [WorldSettings, AgentSettings, TrainerSettings, RobotSettings, OperationSettings, RecordSettings]
+    "cls",
+    [
+        WorldSettings,
+        AgentSettings,
+        TrainerSettings,
+        RobotSettings,
+        OperationSettings,
+        RecordSettings,
+        CommanderSettings,
+    ],
 )
 def test_the_parameter_tables_are_the_settings(cls: type) -> None:
     assert params_markdown(cls) in ROS_MD.read_text(), f"docs/ros.md: the table of {cls.__name__} is out of date"

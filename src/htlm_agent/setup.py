@@ -10,6 +10,7 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test", "test.*"]),
+    package_data={"htlm_agent.people": ["*.html"]},  # the pages of a person in the team and of the commander
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -30,6 +31,8 @@ setup(
         "pettingzoo>=1.24",  # runtime/pz_env.py, the PettingZoo ParallelEnv
         "gymnasium>=0.29",  # its observation and action spaces
         "rosbags>=0.11",  # experiments/recording.py: `htlm launch --record` writes and reads ROS 2 bags (MCAP)
+        "starlette>=0.40",  # people/web.py: the API and pages of the people in the team and of the commander
+        "uvicorn>=0.30",  # ... served in a thread of the agent's process
     ],
     python_requires=">=3.11",
     zip_safe=False,

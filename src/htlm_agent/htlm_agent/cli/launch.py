@@ -38,6 +38,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         EXIT_CODES,
         FREE_PERIOD,
         MAX_RESTARTS,
+        PAGE_PORT,
+        PEOPLE_PERIOD,
         RESPAWN_DELAY,
         RESPAWN_DELAY_MAX,
         RESPAWN_STABLE,
@@ -157,6 +159,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         f"a robot to drive between the two farthest sites within a step, docs/ros.md Arrival; else {FREE_PERIOD:g})",
     )
     p.add_argument(
+        "--person",
+        action="append",
+        default=[],
+        metavar="AGENT",
+        help="deploy: a person plays this agent (repeat, or comma-separate, for several): no robot; the agent serves "
+        "the person's page, whose reports are its observations; the address with its token is printed and the token "
+        f"kept in RUN/people/AGENT.token; the step period defaults to {PEOPLE_PERIOD:g} s (docs/usage.md)",
+    )
+    p.add_argument(
+        "--page-address",
+        default="127.0.0.1",
+        help="address the people's pages listen on (default 127.0.0.1: this machine only; 0.0.0.0: every interface)",
+    )
+    p.add_argument(
+        "--page-port",
+        type=int,
+        default=PAGE_PORT,
+        help=f"port of the first person's page, the next people's after it (default {PAGE_PORT}; 0: any free port)",
+    )
+    p.add_argument(
         "--robot-param",
         type=_kv,
         action="append",
@@ -219,7 +241,7 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     """The launch of parsed `htlm launch` options and every problem of its input (empty: it can start)."""
     from htlm_agent.learning.learners import learner
     from htlm_agent.learning.settings import Settings
-    from htlm_agent.ros.launch import LaunchConfig
+    from htlm_agent.ros.launch import PEOPLE_PERIOD, LaunchConfig
     from htlm_agent.ros.launch_check import check_launch
 
     bad: list[str] = []  # every problem of the input, reported together
@@ -245,10 +267,23 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         default_episodes = settings.rounds * settings.round_batches * settings.envs
     episodes = args.episodes if args.episodes is not None else default_episodes
     batch = args.batch if args.batch is not None else {"train": settings.envs, "evaluate": 128, "deploy": 1}[args.mode]
-    deployed = args.operation == "external" or args.robots == "sim"
+    people = tuple(x.strip() for item in args.person for x in item.split(",") if x.strip())
+    names = [a.name for a in sc.agents]
+    for name in people:
+        if name not in names:
+            bad.append(f"--person {name}: not an agent of the team ({', '.join(names)})")
+    if len(set(people)) != len(people):
+        bad.append(f"--person {','.join(people)}: an agent is named twice")
+    if people and args.mode != "deploy":
+        bad.append(f"--person: people play agents of a deployed team (htlm launch deploy), not {args.mode}")
+    if not 0 <= args.page_port <= 65535 - len(people):
+        bad.append(f"--page-port {args.page_port!r}: must be a port (0 to 65535, 0: any free port)")
+    deployed = args.operation == "external" or args.robots == "sim" or bool(people)
     if deployed and (args.mode == "train" or batch != 1):
         bad.append(f"{args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
     period, notes = step_period(sc, args)
+    if people and args.period is None:  # the step is theirs to keep: minutes, not seconds
+        period, notes = PEOPLE_PERIOD, (f"--period {PEOPLE_PERIOD:g} s: a step a person can keep (people in the team)",)
     if period <= 0:
         bad.append(f"--period {period!r}: must be > 0")
     if not args.respawn_delay >= 0:
@@ -267,6 +302,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         known |= {"operation", *(f"robot_{a.name}" for a in sc.agents)}
     if args.record:
         known.add("recorder")
+    if args.person:
+        known.add("commander")
     if set(only) - known:
         bad.append(f"--only {sorted(set(only) - known)}: unknown; choose from {sorted(known)}")
     cfg = LaunchConfig(
@@ -292,7 +329,7 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         timeout=args.timeout,
         echo=not args.quiet,
         echo_to_stderr=args.json,  # --json: stdout holds the summary only
-        operation=args.operation,
+        operation="external" if people else args.operation,
         robots="" if args.robots == "none" else args.robots,
         period=period,
         notes=notes,
@@ -301,6 +338,9 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
         respawn_delay=args.respawn_delay,
         max_restarts=args.max_restarts,
         agents_per_process=args.agents_per_process,
+        people=people,
+        page_address=args.page_address,
+        page_port=args.page_port,
     )
     return cfg, bad + check_launch(cfg)
 
@@ -347,7 +387,7 @@ def step_period(sc: Scenario, args: argparse.Namespace) -> tuple[float, tuple[st
 
 def run(args: argparse.Namespace) -> int:
     """Check the launch's input (every problem on stderr, exit 2, nothing started), launch the team, print a summary."""
-    from htlm_agent.ros.launch import LaunchConfig, run_team, summarize
+    from htlm_agent.ros.launch import LaunchConfig, page_addresses, run_team, summarize
 
     cfg, bad = make_config(args)
     sc, run_dir, only, episodes = cfg.scenario, cfg.run_dir, cfg.only, cfg.episodes
@@ -357,6 +397,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     for line in cfg.notes:
         print(f"htlm launch: {line}", file=sys.stderr, flush=True)
+    for name, address in page_addresses(cfg).items():
+        if not only or name in only:
+            whose = "the commander's page" if name == "commander" else f"{name}'s page (a person plays {name})"
+            print(f"htlm launch: {whose}: {address}", file=sys.stderr, flush=True)
     code = run_team(cfg)
     out: dict[str, Any] = {"mode": args.mode, "run_dir": str(run_dir), "exit_code": code, **summarize(run_dir)}
     if cfg.operation == "external" or cfg.robots:

@@ -133,6 +133,14 @@ class AgentMind:
         self.missed_steps = 0
         self.timeouts = 0
         self.log: dict[str, list[Any]] = {}
+        self.out = False
+        """Out of the team (a person who is not available): every step's action is idle at the site of the previous
+        assignment, the model's dropout, until `out` is False again (the return)."""
+        self.instead: int | None = None
+        """An action chosen from outside for the next step the mind acts for (a person's task taken instead of the
+        assignment), used once."""
+        self.chosen: IntArray | None = None
+        """The policy's own actions of the newest step it acted for, before `out` or `instead` replaced them."""
 
     # ----- state ----------------------------------------------------------------------------------------------
     @property
@@ -236,9 +244,29 @@ class AgentMind:
             policy = gated
         self.deferred = None
         k = self.knowledge()
-        a = choose(policy, k, self.mask(), self.epsilon, self.explore)
+        a = choose(policy, k, self.mask(), self.epsilon, self.explore)  # drawn whatever overrides it: same streams
+        self.chosen = a
+        if self.out:
+            a = self.idle_action()
+        elif self.instead is not None:
+            a = np.full(self.size, self.instead, dtype=np.int64)
+            self.instead = None
         self._open(t, k, a, acted=None)
         out.action = (t, a)
+
+    def reassign(self, action: int | IntArray) -> Effects:
+        """Replace our actions of the step in progress by `action` (one for every episode of the batch, or one per
+        episode: a person takes another task, goes out of the team or comes back), answered with the new action
+        record of that step; dropped as "applied" once the step's observation came (the step can no longer
+        change)."""
+        out = Effects()
+        p = self.pending
+        if p is None or p.observed_at is not None:
+            out.drop = "applied"
+            return out
+        p.action = np.broadcast_to(np.asarray(action, dtype=np.int64), (self.size,)).copy()
+        out.action = (p.t, p.action)
+        return out
 
     def act_now(self, force: bool = False) -> Effects:
         """The deferred actions, if the gate now has the policy of their step (or with `force`: act with the

@@ -6,7 +6,9 @@ transitions with acknowledgements and resends) around the agent's `AgentMind`: t
 them and the time to the session and publishes what it returns: the action, the broadcast, the ready, the
 transition, the belief summary and, when the site of its assignment changes, a geometry_msgs/PoseStamped goal pose.
 The policy comes from a checkpoint (evaluate, deploy), from the trainer's weights (train), or is a built-in one
-(greedy, auction, qmdp, lookahead, random).
+(greedy, auction, qmdp, lookahead, random). An agent a person plays (`person:=true`) also serves the person's page
+(htlm_agent.people): the node moves the person's reports from the page to the ROS-free `PersonDesk` and publishes
+what it returns (a level report as the signed observation record of the step), and the agent's view to the page.
 Run: `ros2 run htlm_agent agent_node --ros-args -p agent:=agent1` or `python -m htlm_agent.ros.agent_node ...`.
 """
 
@@ -21,6 +23,7 @@ from typing import Any
 
 from rclpy.node import Node
 
+from htlm_agent.people.desk import PersonDesk
 from htlm_agent.ros.settings import AgentSettings, validate_agent_settings
 from htlm_agent.session.core import AgentSession, SessionEffects
 from htlm_msgs_py import schema as S
@@ -43,6 +46,7 @@ from htlm_msgs_py.ros import (
     string,
     subscribe_records,
 )
+from htlm_msgs_py.ros.parameters import SettingsError
 from htlm_msgs_py.schema import record_text
 
 
@@ -98,11 +102,46 @@ class AgentNode(Node):
         self.create_timer(s.diagnostics_period, self._publish_health)
         self.create_timer(s.resend_period, lambda: self._apply(self.session.resend(time.monotonic())))
         self.create_timer(min(0.1, s.broadcast_timeout / 4), self._tick)
+        self.desk: PersonDesk | None = None
+        self.page: Any = None
+        if s.person:
+            self._start_page()
         self.run_file = Path(s.run_dir) / f"{self.name}.run.json" if s.run_dir else None
         """A deployed team: the run announcement this agent steps by, kept so that a restart needs no world."""
         if self.run_file is not None and self.run_file.exists():
             self.get_logger().info(f"taking the run announcement kept in {self.run_file}")
             self._on_scenario(self.run_file.read_text(encoding="utf-8"), kept=True)
+
+    def _start_page(self) -> None:
+        """A person plays this agent: serve the person's page and move its reports (htlm_agent.people)."""
+        from htlm_agent.people.web import Bridge, PageError, page, serve
+
+        s = self.settings
+        self.desk = PersonDesk(self.session)
+        self.bridge = Bridge()
+        self.pub_observation = self.create_publisher(String, topics.observation(self.name), EVENTS)
+        self.person_log = Path(s.run_dir) / f"{self.name}.person.jsonl" if s.run_dir else None
+        try:
+            self.page = serve(self.bridge, s.page_token_file, page("person.html"), s.page_address, s.page_port)
+        except PageError as e:  # exit 2 naming it, as a bad parameter does
+            raise SettingsError(str(e)) from None
+        self.get_logger().info(f"person's page of {self.name}: http://{s.page_address}:{self.page.port}/?token=...")
+        self.create_timer(0.1, self._serve_person)
+
+    def _serve_person(self) -> None:
+        """The person's reports in (each answered), the agent's view out."""
+        desk = self.desk
+        assert desk is not None
+        for body, fut in self.bridge.take():
+            got = desk.report(body, time.monotonic(), time.time())
+            self._apply(got.effects)
+            if got.observation is not None:
+                self.pub_observation.publish(string(S.encode(S.OBSERVATION, got.observation, self.signer)))
+            if self.person_log is not None:
+                with open(self.person_log, "a", encoding="utf-8") as f:
+                    f.write(json.dumps({"agent": self.name, **got.log}) + "\n")
+            fut.set_result((got.ok, got.message))
+        self.bridge.show(desk.view(time.time()))
 
     def _tick(self) -> None:
         self.session.wall_offset = time.time() - time.monotonic()  # the step clock follows the wall clock
@@ -196,6 +235,10 @@ class AgentNode(Node):
         h = self.health
         se = self.session
         h.values.update({**se.values(), "signed": str(self.signer.enabled).lower()})
+        if self.desk is not None:
+            d = self.desk
+            h.values.update({"person_available": str(d.available).lower(), "person_reports": str(d.taken)})
+            h.values["person_refused"] = str(d.refused)
         if self.fatal is None:
             off = se.clock_warning()
             if off is None:
@@ -210,6 +253,8 @@ class AgentNode(Node):
 def cleanup(node: AgentNode) -> None:
     """The agent's last diagnostics and its episode log closed, before the node goes."""
     node._publish_health()
+    if node.page is not None:
+        node.page.stop()
     if node.log_file is not None:
         node.log_file.close()
 

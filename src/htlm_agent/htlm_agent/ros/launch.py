@@ -49,6 +49,16 @@ EXIT_CODES = {
 FREE_PERIOD = 0.5
 """Step period, seconds, of the free clock of an external operation without simulated robots (`--period`)."""
 
+PEOPLE_PERIOD = 120.0
+"""Step period, seconds, of a team with people in it unless `--period` is given: a step a person can keep."""
+PERSON_WAIT = 0.5
+"""The share of the step period after its instant that a person has to report the level of their task."""
+COMMANDER = "commander"
+"""The process of the commander's page (with people in the team), and the name of its token file."""
+COMMANDER_NODE = "htlm_agent.ros.commander_node"
+PAGE_PORT = 8600
+"""Port of the first person's page (`--page-port`)."""
+
 RESPAWN_DELAY = 1.0
 """Default seconds before a process that died starts again (`--respawn-delay`)."""
 MAX_RESTARTS = 5
@@ -135,6 +145,12 @@ class LaunchConfig:
     of the agents this host starts and its cores."""
     cores: int = 0
     """Cores the launch counts for `auto_per_process` (0: those this process may run on)."""
+    people: tuple[str, ...] = ()
+    """Agents that people play (`--person`): no simulated robot; each serves its person's page."""
+    page_address: str = "127.0.0.1"
+    """Address the people's pages listen on (`--page-address`)."""
+    page_port: int = PAGE_PORT
+    """Port of the first person's page; the next people's follow (`--page-port`)."""
 
 
 @dataclass
@@ -388,6 +404,7 @@ def prepare(cfg: LaunchConfig) -> list[tuple[ProcessSpec, Path]]:
     the parameters of the process, none, and every hosted agent has its own file, as its own process would), and
     logs/ made."""
     (cfg.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+    write_tokens(cfg)
     params = cfg.run_dir / "parameters"
     out = []
     for spec in team_processes(cfg):
@@ -445,7 +462,17 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
     )
     for a in sc.agents:
         params: dict[str, Any] = {"agent": a.name, "policy": cfg.policy, "run_dir": str(run)}
-        if cfg.robots == "sim":  # arrival from the simulated robot's odometry
+        if a.name in cfg.people:  # a person plays it: their page, their reports for the robot's observations
+            params.update(
+                {
+                    "person": True,
+                    "page_address": cfg.page_address,
+                    "page_port": page_port(cfg, a.name),
+                    "page_token_file": str(token_file(run, a.name)),
+                    "observation_wait": round(PERSON_WAIT * cfg.period, 3),
+                }
+            )
+        elif cfg.robots == "sim":  # arrival from the simulated robot's odometry
             params.update({"pose_topic": f"/htlm/{a.name}/odom", "pose_type": "odometry"})
         if in_rounds(learner):  # the first step of a round waits for the round's learning
             params["weights_timeout"] = EXPERT_WEIGHTS_TIMEOUT
@@ -454,9 +481,19 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
             params["checkpoint"] = str(Path(cfg.checkpoint).resolve())
         specs.append((a.name, AGENT_NODE, params))
     if cfg.robots == "sim":
-        specs.append(("operation", "htlm_world.ros.operation_node", {}))
+        specs.append(("operation", "htlm_world.ros.operation_node", {"people": ",".join(cfg.people)}))
         for a in sc.agents:
+            if a.name in cfg.people:
+                continue
             specs.append((f"robot_{a.name}", ROBOT_NODE, {"agent": a.name, **cfg.robot_params}))
+    if cfg.people:  # the commander's page of the whole operation
+        commander = {
+            "people": ",".join(cfg.people),
+            "page_address": cfg.page_address,
+            "page_port": page_port(cfg, COMMANDER),
+            "page_token_file": str(token_file(run, COMMANDER)),
+        }
+        specs.append((COMMANDER, COMMANDER_NODE, commander))
     if cfg.record:  # the agents are named up front: their topics are recorded from the first message on
         agents = ",".join(a.name for a in sc.agents)
         specs.append(("recorder", RECORD_NODE, {"path": str(run / "recording"), "agents": agents}))
@@ -468,6 +505,40 @@ def process_specs(cfg: LaunchConfig) -> list[tuple[str, str, dict[str, Any]]]:
             if name == "world":
                 params["join_timeout"] = max(JOIN_TIMEOUT, JOIN_PER_PROCESS * procs)
     return specs
+
+
+def token_file(run_dir: Path, agent: str) -> Path:
+    """Where the token of `agent`'s person's page is kept (RUN/people/<agent>.token)."""
+    return run_dir / "people" / f"{agent}.token"
+
+
+def page_port(cfg: LaunchConfig, name: str) -> int:
+    """The port of a page: `page_port` for the first person's, the next people's after it, then the commander's."""
+    if not cfg.page_port:
+        return 0
+    return cfg.page_port + (cfg.people.index(name) if name in cfg.people else len(cfg.people))
+
+
+def write_tokens(cfg: LaunchConfig) -> dict[str, str]:
+    """Each person's page token, made once per run directory (kept, readable by the owner only): agent -> token."""
+    from htlm_agent.people.web import new_token, read_token
+
+    out = {}
+    for name in (*cfg.people, COMMANDER) if cfg.people else ():
+        path = token_file(cfg.run_dir.resolve(), name)
+        if not path.exists():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(new_token() + "\n")
+        out[name] = read_token(path)
+    return out
+
+
+def page_addresses(cfg: LaunchConfig) -> dict[str, str]:
+    """Each person's page and the commander's, with its token: agent (or commander) -> address to open."""
+    host = "127.0.0.1" if cfg.page_address in ("0.0.0.0", "::") else cfg.page_address
+    return {name: f"http://{host}:{page_port(cfg, name)}/?token={tok}" for name, tok in write_tokens(cfg).items()}
 
 
 def deployed(cfg: LaunchConfig) -> bool:

@@ -32,8 +32,15 @@ import yaml
 
 from htlm_agent.experiments.recording import RecordSettings, validate_record_settings
 from htlm_agent.learning.settings import Settings
-from htlm_agent.ros.launch import RECORD_NODE, LaunchConfig, process_specs, ros_env
-from htlm_agent.ros.settings import AgentSettings, TrainerSettings, validate_agent_settings, validate_trainer_settings
+from htlm_agent.ros.launch import COMMANDER_NODE, RECORD_NODE, LaunchConfig, process_specs, ros_env
+from htlm_agent.ros.settings import (
+    AgentSettings,
+    CommanderSettings,
+    TrainerSettings,
+    validate_agent_settings,
+    validate_commander_settings,
+    validate_trainer_settings,
+)
 from htlm_msgs_py.params import problems
 from htlm_msgs_py.signing import SigningError, load_key
 from htlm_msgs_py.validation import ConversionError, convert_value, lookup, split_path
@@ -55,6 +62,7 @@ NODES: dict[str, tuple[type, Callable[[Any], list[str]], str]] = {
     "htlm_world.ros.robot_node": (RobotSettings, validate_robot_settings, "--robot-param"),
     "htlm_world.ros.operation_node": (OperationSettings, validate_operation_settings, ""),
     RECORD_NODE: (RecordSettings, validate_record_settings, ""),
+    COMMANDER_NODE: (CommanderSettings, validate_commander_settings, ""),
 }
 """Per node module: its settings dataclass, its validate function, and the option of `htlm launch` that sets its
 parameters (empty: none)."""

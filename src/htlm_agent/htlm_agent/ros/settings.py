@@ -85,6 +85,15 @@ class AgentSettings:
     observation_wait: float = setting(-1.0, lo=-1.0, hi=SECONDS[1])
     """External operation: seconds after the instant of a step to wait for the robot's observation before
     updating without one; -1: a quarter of the clock period."""
+    person: bool = setting(False)
+    """A person plays this agent: serve the person's page (docs/usage.md, A person in the team); the person's reports
+    become the agent's observations."""
+    page_address: str = setting("127.0.0.1")
+    """Address the person's page listens on (127.0.0.1: this machine only; 0.0.0.0: every interface)."""
+    page_port: int = setting(0, lo=0, hi=65535)
+    """Port of the person's page (0: any free port, logged)."""
+    page_token_file: str = setting("")
+    """File holding the page's token (one line); required with person."""
 
     def session(self) -> SessionSettings:
         """The agent session's settings from these parameters."""
@@ -105,6 +114,10 @@ def validate_agent_settings(s: AgentSettings) -> list[str]:
         bad.append("frame_id: '' must not be empty")
     if -1.0 < s.observation_wait < 0.0:
         bad.append(f"observation_wait: {s.observation_wait!r} must be -1 or >= 0")
+    if s.person and not s.page_token_file:
+        bad.append("page_token_file: '' : a person's page needs its token file")
+    if not s.page_address:
+        bad.append("page_address: '' must not be empty")
     if s.pose_topic and not _topic_name(s.pose_topic):
         bad.append(f"pose_topic: {s.pose_topic!r} is not a valid topic name")
     return bad
@@ -173,3 +186,31 @@ def validate_trainer_settings(s: TrainerSettings) -> list[str]:
         except ValueError as e:
             bad.append(str(e))
     return bad + problems(s)
+
+
+@dataclass(frozen=True)
+class CommanderSettings:
+    """Parameters of the commander node: the commander's page of the whole operation (read-only)."""
+
+    people: str = setting("")
+    """Comma-separated agents that people play (their reports and availability are shown)."""
+    page_address: str = setting("127.0.0.1")
+    """Address the commander's page listens on (127.0.0.1: this machine only; 0.0.0.0: every interface)."""
+    page_port: int = setting(0, lo=0, hi=65535)
+    """Port of the commander's page (0: any free port, logged)."""
+    page_token_file: str = setting("")
+    """File holding the page's token (one line); required."""
+    exit_on_stop: bool = setting(True)
+    """Exit when the world announces the end of the run."""
+    executor: str = setting("single", choices=EXECUTORS)
+    """events (rclpy's EventsExecutor) or single (SingleThreadedExecutor)."""
+
+
+def validate_commander_settings(s: CommanderSettings) -> list[str]:
+    """Problems of a CommanderSettings, each naming the parameter and the value (empty when valid)."""
+    bad = problems(s)
+    if not s.page_token_file:
+        bad.append("page_token_file: '' : the commander's page needs its token file")
+    if not s.page_address:
+        bad.append("page_address: '' must not be empty")
+    return bad

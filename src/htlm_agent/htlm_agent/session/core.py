@@ -215,7 +215,7 @@ class AgentSession:
         run = self.joined
         assert run is not None and self.observations is not None
         clock = StepClock(rec["epoch"], run.period, run.scenario.horizon, run.first_episode, run.episodes)
-        self.deploy = DeployClock(clock, self.observations, self._wait(), self)
+        self.deploy = DeployClock(clock, self.observations, self.observation_wait(), self)
         out.log.append(
             ("info", f"run {self.run}: stepping on our own clock (epoch {rec['epoch']:.6f}, period {run.period:g} s)")
         )
@@ -337,7 +337,7 @@ class AgentSession:
                     if self._future(e, t, now):
                         out.rejects.append(("step", "future", f"episode {e} step {t}"))
                         return out
-                    ready = self.observations.on_step(e, t, rec["acted"], now, self._wait())
+                    ready = self.observations.on_step(e, t, rec["acted"], now, self.observation_wait())
                     self.observe_deployed(ready, now, out)
                 return out
             eff = self.mind.end(e, t)
@@ -443,7 +443,7 @@ class AgentSession:
         run = self.joined
         return min(w, 0.4 * run.period) if run is not None and run.clock == "free" else w
 
-    def _wait(self) -> float:
+    def observation_wait(self) -> float:
         """Seconds to wait for the robot's observation of a step (a deployed team)."""
         w, run = self.settings.observation_wait, self.joined
         assert run is not None

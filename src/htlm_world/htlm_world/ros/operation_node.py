@@ -5,7 +5,8 @@ It keeps the true task levels of the current episode and steps on the run's cloc
 period of the run announcement, no record of the world needed): at the instant of step t it applies the model's T
 to the capabilities of the robots that are at the site of the assignment their agent sent for step t (an agent not
 heard idles at its site) (their nav_msgs/Odometry on /htlm/<agent>/odom, within
-`arrival_radius`): a robot on its way works on nothing. It publishes the levels on /htlm/severity, where the
+`arrival_radius`): a robot on its way works on nothing; an agent a person plays (`people`) works where it is sent.
+It publishes the levels on /htlm/severity, where the
 simulated robots read the true level of the task they observe and the world takes the levels for its logs and
 metrics. Run: `python -m htlm_world.ros.operation_node` (or `htlm launch deploy --robots sim`).
 """
@@ -105,10 +106,14 @@ class OperationNode(RunFollower):
             joint = np.array(
                 [heard[k] if k in heard else int(model.idle_action(self.prev[k])) for k in range(n)], dtype=np.int64
             )
+            people = {x.strip() for x in self.settings.people.split(",") if x.strip()}
             arrived = np.array(
                 [
-                    k in self.positions
-                    and action_distance(model, int(joint[k]), *self.positions[k]) <= self.settings.arrival_radius
+                    sc.agents[k].name in people
+                    or (
+                        k in self.positions
+                        and action_distance(model, int(joint[k]), *self.positions[k]) <= self.settings.arrival_radius
+                    )
                     for k in range(n)
                 ]
             )

@@ -52,6 +52,9 @@ class OperationSettings:
 
     arrival_radius: float = setting(2.0, lo=0.0, hi=1e6)
     """Metres from a site within which a robot works on its task there."""
+    people: str = setting("")
+    """Comma-separated agents that people play (no robot): each works on the task its agent sent for the step,
+    wherever that is (a person walks there within the step)."""
     diagnostics_period: float = setting(1.0, lo=SECONDS[0], hi=SECONDS[1])
     """Seconds between /diagnostics messages."""
     exit_on_stop: bool = setting(True)
