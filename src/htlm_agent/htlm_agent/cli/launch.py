@@ -282,7 +282,8 @@ def make_config(args: argparse.Namespace) -> tuple[LaunchConfig, list[str]]:
     if deployed and (args.mode == "train" or batch != 1):
         bad.append(f"{args.mode}: an external operation runs evaluate or deploy with --batch 1 (got {batch})")
     period, notes = step_period(sc, args)
-    if people and args.period is None:  # the step is theirs to keep: minutes, not seconds
+    if people and args.period is None and not sc.travel:  # the step is theirs to keep: minutes, not seconds
+        # (an operation with travel has its own step, which its people walk and report in too)
         period, notes = PEOPLE_PERIOD, (f"--period {PEOPLE_PERIOD:g} s: a step a person can keep (people in the team)",)
     if period <= 0:
         bad.append(f"--period {period!r}: must be > 0")
