@@ -318,6 +318,8 @@ def plot(summary: list[dict[str, Any]], path: Path) -> None:
         "tokens": "#1f6f8b",
         "tokens-qmdp": "#16a085",
         "paper": "#7fb3d5",
+        "expert": "#1a5276",
+        "expert-no-travel": "#85c1e9",
         "greedy": "0.6",
         "auction": "#c0392b",
         "qmdp": "#8e44ad",
