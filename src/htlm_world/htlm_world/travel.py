@@ -17,7 +17,6 @@ mind that hear the same assignments hold the same state, bit for bit.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,11 +139,6 @@ class TravelState:
         self.driven += np.where(there, 0.0, moved)
         return there
 
-    def copy_row(self, other: TravelState, rows: IntArray) -> None:
-        """Take the state of episodes `rows` of `other` into this one's episodes 0..len(rows)-1."""
-        for name in ("xy", "goal", "left", "driven", "moves"):
-            getattr(self, name)[: rows.size] = getattr(other, name)[rows]
-
 
 def working_actions(actions: IntArray, there: BoolArray) -> IntArray:
     """The joint assignment as the model applies it: an agent on its way works on nothing and observes nothing (-1)."""
@@ -162,20 +156,3 @@ def arrival_steps(sc: Scenario, place: IntArray, eta: IntArray) -> IntArray:
     rows = tr.steps[np.arange(n), pl]  # (..., N, S)
     out: IntArray = (np.asarray(eta, dtype=np.int64)[..., None] + rows).astype(np.int64)
     return out
-
-
-def seconds(sc: Scenario, steps: float) -> float:
-    """Steps as seconds of the operation (steps themselves when the scenario has no step length)."""
-    return steps * sc.step_seconds if sc.travel else float(steps)
-
-
-def describe(sc: Scenario) -> str:
-    """One line on the scenario's travel for logs: step length and the slowest and fastest longest drive."""
-    if not sc.travel:
-        return "no travel (an assignment takes effect in its step)"
-    tr = Travel.of(sc)
-    longest = tr.steps.max(axis=(1, 2))
-    return (
-        f"travel: a step is {sc.step_seconds:g} s; the longest drive takes {int(longest.min())} to "
-        f"{int(longest.max())} steps ({math.ceil(float(tr.distance.max()))} m)"
-    )

@@ -73,8 +73,7 @@ def _column(drive: IntArray | None, bi: IntArray, mi: IntArray, j: IntArray) -> 
     """The drives (W, N, 1) of every agent to task j[w] in auction (bi[w], mi[w]) (None without travel)."""
     if drive is None:
         return None
-    d = np.broadcast_to(drive, (*drive.shape[:2], *drive.shape[2:]))
-    out: IntArray = d[bi, mi, :, j][:, :, None]
+    out: IntArray = drive[bi, mi, :, j][:, :, None]
     return out
 
 
